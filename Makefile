@@ -1,0 +1,34 @@
+# Two entry points (see README): `make run` (DPSOC-EM experiment + report), `make test`.
+PY ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+TASK ?= linear2d
+OUT ?= runs/compare-$(TASK)
+
+.PHONY: install run test test-slow bench verify clean
+
+$(BIN)/.installed: pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[test]'
+	touch $@
+
+install: $(BIN)/.installed
+
+run: install
+	$(BIN)/soc-opt compare $(TASK) --out $(OUT)
+
+test: install
+	$(BIN)/python -m pytest
+
+test-slow: install
+	$(BIN)/python -m pytest -m slow
+
+verify: install
+	$(BIN)/soc-opt verify
+
+bench: install
+	$(BIN)/soc-opt bench
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache
