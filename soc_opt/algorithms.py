@@ -1,0 +1,496 @@
+"""Algorithms (SPEC §7): LQR-FLM baseline, DPSOC-EM (paper Algorithm 1), model-based iLQG.
+
+The loop is written as a pure step function on an explicit :class:`RunState`
+(policy, KL multiplier, mixture prior, RNG state, history), so that a run can be
+checkpointed after every iteration and resumed bit-for-bit, and so that
+DPSOC-EM can fork from the baseline's state at ``i_switch``.
+
+One LQR-FLM iteration (SPEC §7):
+
+1. sample ``M`` rollouts of the current policy ``p_i`` on the task;
+2. fit linear-Gaussian dynamics (mixture prior + NIW posterior, SPEC §2);
+3. expand the cost to second order around the sample mean trajectory;
+4. adapt the KL budget from predicted vs actual improvement (SPEC §6, GPS rule);
+5. KL-constrained LQG step against the reference policy -> ``p_{i+1}``.
+
+DPSOC-EM replaces the reference at iteration ``i_switch`` by the EM policy:
+``n_em`` recursions of {sample, fit augmented model, generate ``Y``, E-step,
+DP M-step}; the LQG step of that iteration then uses the EM policy as its KL
+reference and as the sampling policy (paper eq. constrainObjective).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Literal
+
+import numpy as np
+
+from . import estep, fit, lqg, mstep
+from .config import Config
+from .models import LinearGaussianPolicy, Rollouts, symmetrize
+
+__all__ = [
+    "LQRFLMConfig",
+    "EMConfig",
+    "DPSOCConfig",
+    "ILQGConfig",
+    "RunState",
+    "IterationRecord",
+    "initial_state",
+    "lqr_flm_iteration",
+    "em_update",
+    "dpsoc_iteration",
+    "run_algorithm",
+    "ilqg",
+]
+
+
+@dataclass(frozen=True)
+class LQRFLMConfig(Config):
+    """LQR-FLM baseline ("iLQG" in the paper), SPEC §7.
+
+    iterations:  number of sample -> fit -> LQG rounds (paper: 14).
+    samples:     rollouts per iteration ``M`` (paper: 20).
+    init_var:    initial policy covariance ``Sigma = init_var * I``.
+    kl_budget:   base KL budget per time step; the total budget is ``kl_budget * T * mult``.
+    kl_mode:     "total" (one budget ``nu = sum nu_k``, one multiplier: the GPS form) or
+                 "per_step" (``nu_k = kl_budget * mult`` with one multiplier per step).
+    adapt_step:  adapt ``mult`` from predicted vs actual improvement (GPS rule, see lqg.adapt_step).
+    workers:     parallel rollout workers (results do not depend on it).
+    fit:         dynamics-fitting configuration (SPEC §2).
+    kl:          KL-step solver configuration (SPEC §6).
+    """
+
+    iterations: int = 14
+    samples: int = 20
+    init_var: float = 1.0
+    kl_budget: float = 0.5
+    kl_mode: Literal["total", "per_step"] = "total"
+    adapt_step: bool = True
+    workers: int = 1
+    fit: fit.FitConfig = field(default_factory=fit.FitConfig)
+    kl: lqg.KLStepConfig = field(default_factory=lqg.KLStepConfig)
+
+    def __post_init__(self):
+        if self.iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.samples < 2:
+            raise ValueError(f"samples must be >= 2 (dynamics fitting needs 2 rollouts), got {self.samples}")
+        if self.init_var <= 0 or self.kl_budget <= 0:
+            raise ValueError("init_var and kl_budget must be positive")
+
+
+@dataclass(frozen=True)
+class EMConfig(Config):
+    """The EM phase of DPSOC-EM (SPEC §3–§5, paper Algorithm 1).
+
+    n_em:          EM recursions at the switch (each samples ``M`` rollouts of the current EM policy).
+    y_mode:        cost observations ``Y``: "model" (the paper), "measured", "optimistic" (SPEC §3).
+    y_samples:     number of ``Y`` sequences drawn in "model" mode (default: ``samples``).
+    method:        M-step solver, "closed_form" or "cvxpy".
+    variant:       "time_varying" (the Proposition's DP sweep) or "time_invariant".
+    objective:     "surrogate" (the paper's Lbar) or "exact" (exact EM).
+    cov_floor_scale:  ``Sigma_k >= scale * Sigma_k^i`` (covariance floor relative to the
+                   current policy, SPEC §5); ignored when ``entropy_floor`` is true.
+    entropy_floor: use the entropy floor ``log det Sigma_k >= log det Sigma_k^i`` instead.
+    trust_region:  optional Frobenius trust region on ``[K k]`` around the current policy (cvxpy only).
+    min_norm:      minimum-norm M-step where the maximiser is not unique.
+    """
+
+    n_em: int = 1
+    y_mode: Literal["model", "measured", "optimistic"] = "model"
+    y_samples: int | None = None
+    method: Literal["closed_form", "cvxpy"] = "closed_form"
+    variant: Literal["time_varying", "time_invariant"] = "time_varying"
+    objective: Literal["surrogate", "exact"] = "surrogate"
+    cov_floor_scale: float = 0.5
+    entropy_floor: bool = False
+    trust_region: float | None = None
+    min_norm: bool = True
+
+    def __post_init__(self):
+        if self.n_em < 1:
+            raise ValueError(f"n_em must be >= 1, got {self.n_em}")
+        if not 0 < self.cov_floor_scale:
+            raise ValueError(f"cov_floor_scale must be positive, got {self.cov_floor_scale}")
+
+
+@dataclass(frozen=True)
+class DPSOCConfig(Config):
+    """DPSOC-EM (paper Algorithm 1): baseline until ``i_switch``, EM phase, baseline again.
+
+    i_switch: the EM phase runs after this many baseline iterations (paper: 4 of 14).
+    baseline: the LQR-FLM configuration (iterations = total baseline iterations).
+    em:       the EM phase configuration.
+    """
+
+    i_switch: int = 4
+    baseline: LQRFLMConfig = field(default_factory=LQRFLMConfig)
+    em: EMConfig = field(default_factory=EMConfig)
+
+    def __post_init__(self):
+        if not 0 <= self.i_switch < self.baseline.iterations:
+            raise ValueError(
+                f"i_switch must be in [0, iterations={self.baseline.iterations}), got {self.i_switch}"
+            )
+
+
+@dataclass(frozen=True)
+class ILQGConfig(Config):
+    """Model-based iLQG on a known MuJoCo model (SPEC §7).
+
+    iterations:  maximum outer iterations.
+    mu_init:     initial Levenberg–Marquardt regulariser added to the action Hessian.
+    mu_factor:   multiply/divide ``mu`` by this on rejection/acceptance.
+    mu_max:      give up past this regulariser.
+    alphas:      backtracking line-search step sizes, tried in order.
+    tol:         stop when the relative cost decrease is below ``tol``.
+    policy_var:  covariance of the returned (initialiser) policy.
+    """
+
+    iterations: int = 20
+    mu_init: float = 1e-6
+    mu_factor: float = 10.0
+    mu_max: float = 1e10
+    alphas: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.03, 0.01)
+    tol: float = 1e-4
+    policy_var: float = 1.0
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    """Metrics of one iteration (one sampling round).
+
+    phase: "baseline" or "em".  ``cost`` holds per-sample total costs on the true states.
+    """
+
+    iteration: int
+    phase: str
+    cost: np.ndarray  # (M,) true-state total cost per sample
+    cost_measured: np.ndarray  # (M,) measured-state total cost per sample (SPEC Y)
+    kl: float
+    nu: float
+    mult: float
+    metrics: dict
+    timings: dict
+    extra: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return {
+            "iteration": self.iteration,
+            "phase": self.phase,
+            "cost_mean": float(np.mean(self.cost)),
+            "cost_std": float(np.std(self.cost)),
+            "cost_measured_mean": float(np.mean(self.cost_measured)),
+            "kl": self.kl,
+            "nu": self.nu,
+            "mult": self.mult,
+            **{f"metric_{k}": v for k, v in self.metrics.items()},
+            **{f"time_{k}": v for k, v in self.timings.items()},
+            **self.extra,
+        }
+
+
+@dataclass(frozen=True)
+class RunState:
+    """Everything needed to continue a run (checkpointed after each iteration).
+
+    iteration: number of finished baseline iterations.
+    policy:    the current policy ``p_i`` (sampled next).
+    mult:      KL budget multiplier (step-size adaptation).
+    prior:     mixture prior (fit.MixturePrior) or None.
+    rng_state: ``numpy`` bit-generator state (JSON-able dict).
+    history:   tuple of IterationRecord.
+    prev:      Laplace-objective bookkeeping of the previous iteration (dynamics, cost, policy, mu0, P0).
+    best:      (mean cost, policy) of the best policy sampled so far.
+    em_done:   whether the DPSOC-EM phase has run.
+    """
+
+    iteration: int
+    policy: LinearGaussianPolicy
+    mult: float
+    prior: object
+    rng_state: dict
+    history: tuple = ()
+    prev: tuple | None = None
+    best: tuple | None = None
+    em_done: bool = False
+    last_rollouts: Rollouts | None = None
+
+
+def initial_state(task, cfg: LQRFLMConfig, seed: int) -> RunState:
+    rng = np.random.default_rng(seed)
+    return RunState(
+        iteration=0,
+        policy=task.initial_policy(cfg.init_var),
+        mult=1.0,
+        prior=None,
+        rng_state=rng.bit_generator.state,
+    )
+
+
+def _rng(state: RunState) -> np.random.Generator:
+    rng = np.random.default_rng()
+    rng.bit_generator.state = state.rng_state
+    return rng
+
+
+def _initial_distribution(rollouts: Rollouts, task) -> tuple[np.ndarray, np.ndarray]:
+    """``s_0 ~ N(mu0, P0)`` from the task (measurement noise included)."""
+    return np.asarray(task.mu0, float), np.asarray(task.P0, float)
+
+
+def _budget(cfg: LQRFLMConfig, T: int, mult: float):
+    if cfg.kl_mode == "total":
+        return cfg.kl_budget * T * mult
+    return np.full(T, cfg.kl_budget * mult)
+
+
+def _expected_total(dyn, cost, policy, mu0, P0) -> float:
+    return float(np.sum(lqg.expected_cost(dyn, cost, policy, mu0, P0)))
+
+
+def _record(iteration, phase, task, rollouts, *, kl=0.0, nu=0.0, mult=1.0, timings=None, extra=None):
+    return IterationRecord(
+        iteration=iteration,
+        phase=phase,
+        cost=np.asarray(task.true_cost(rollouts).sum(axis=-1)),
+        cost_measured=np.asarray(rollouts.total_cost()),
+        kl=float(kl),
+        nu=float(nu),
+        mult=float(mult),
+        metrics={k: float(v) for k, v in task.metrics(rollouts).items()},
+        timings=timings or {},
+        extra=extra or {},
+    )
+
+
+def lqr_flm_iteration(task, cfg: LQRFLMConfig, state: RunState, reference: LinearGaussianPolicy | None = None,
+                      phase: str = "baseline") -> RunState:
+    """One LQR-FLM iteration (module docstring, steps 1–5). Pure: returns a new state."""
+    rng = _rng(state)
+    timings = {}
+    t0 = time.perf_counter()
+    rollouts = task.rollouts(state.policy, cfg.samples, rng, workers=cfg.workers)
+    timings["rollouts"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    prior = fit.update_prior(state.prior, rollouts, cfg.fit, rng) if cfg.fit.prior == "mixture" else None
+    dyn = fit.fit_dynamics(rollouts, cfg.fit, prior)
+    timings["fit"] = time.perf_counter() - t0
+
+    mu0, P0 = _initial_distribution(rollouts, task)
+    s_bar = rollouts.s.mean(axis=0)
+    a_bar = rollouts.a.mean(axis=0)
+    cost = task.cost_expansion(s_bar, a_bar)
+    ref = state.policy if reference is None else reference
+
+    mult = state.mult
+    if cfg.adapt_step and state.prev is not None:
+        p_dyn, p_cost, p_policy, p_mu0, p_P0, p_ref = state.prev
+        previous_obj = _expected_total(p_dyn, p_cost, p_ref, p_mu0, p_P0)
+        predicted_obj = _expected_total(p_dyn, p_cost, p_policy, p_mu0, p_P0)
+        actual_obj = _expected_total(dyn, cost, state.policy, mu0, P0)
+        mult = lqg.adapt_step(mult, previous_obj - predicted_obj, previous_obj - actual_obj, cfg.kl)
+
+    t0 = time.perf_counter()
+    nu = _budget(cfg, task.T, mult)
+    res = lqg.kl_step(dyn, cost, ref, nu, mu0, P0, method="closed_form", config=cfg.kl)
+    timings["lqg"] = time.perf_counter() - t0
+
+    record = _record(
+        state.iteration, phase, task, rollouts,
+        kl=float(np.sum(res.kl)), nu=float(np.sum(nu)), mult=mult, timings=timings,
+        extra={"eta_mean": float(np.mean(res.eta)), "predicted_cost": float(res.expected_cost)},
+    )
+    best = state.best
+    mean_cost = float(np.mean(record.cost))
+    if best is None or mean_cost < best[0]:
+        best = (mean_cost, state.policy, state.iteration)
+    return dataclasses.replace(
+        state,
+        iteration=state.iteration + 1,
+        policy=res.policy,
+        mult=mult,
+        prior=prior,
+        rng_state=rng.bit_generator.state,
+        history=state.history + (record,),
+        prev=(dyn, cost, res.policy, mu0, P0, ref),
+        best=best,
+        last_rollouts=rollouts,
+    )
+
+
+def em_update(task, cfg: DPSOCConfig, policy: LinearGaussianPolicy, rollouts: Rollouts, prior,
+              rng: np.random.Generator) -> tuple[LinearGaussianPolicy, dict]:
+    """One EM recursion (paper Algorithm 1): fit augmented model, generate ``Y``, E-step, DP M-step.
+
+    ``rollouts`` are samples of ``policy``.  Returns the EM policy and diagnostics
+    (surrogate and ``log p(Y)`` before/after).
+    """
+    em = cfg.em
+    timings = {}
+    t0 = time.perf_counter()
+    model = fit.fit_augmented(rollouts, cfg.baseline.fit, prior)
+    timings["fit_augmented"] = time.perf_counter() - t0
+    mu0, P0 = _initial_distribution(rollouts, task)
+    Y = fit.cost_observations(em.y_mode, rollouts, model, policy, mu0, P0, rng, n_samples=em.y_samples)
+
+    t0 = time.perf_counter()
+    sm = estep.smooth(model, policy, Y, mu0, P0)
+    timings["estep"] = time.perf_counter() - t0
+
+    if em.entropy_floor:
+        cons = mstep.MStepConstraints(entropy_floor=np.linalg.slogdet(policy.cov)[1].tolist())
+    else:
+        cons = mstep.MStepConstraints(cov_floor=(em.cov_floor_scale * np.asarray(policy.cov)).tolist())
+    if em.trust_region is not None:
+        cons = dataclasses.replace(cons, trust_region=em.trust_region)
+    t0 = time.perf_counter()
+    new = mstep.maximize(
+        model, sm, Y, constraints=cons, method=em.method, variant=em.variant,
+        objective=em.objective, previous=policy, min_norm=em.min_norm,
+    )
+    timings["mstep"] = time.perf_counter() - t0
+    sur_old = float(np.sum(mstep.surrogate(model, sm, Y, policy)))
+    sur_new = float(np.sum(mstep.surrogate(model, sm, Y, new)))
+    ll_old = float(np.mean(sm.loglik))
+    ll_new = float(np.mean(estep.smooth(model, new, Y, mu0, P0).loglik))
+    diag = {
+        "surrogate_old": sur_old,
+        "surrogate_new": sur_new,
+        "loglik_old": ll_old,
+        "loglik_new": ll_new,
+        **{f"time_{k}": v for k, v in timings.items()},
+    }
+    return new, diag
+
+
+def dpsoc_iteration(task, cfg: DPSOCConfig, state: RunState) -> RunState:
+    """One DPSOC-EM outer iteration: the EM phase when ``iteration == i_switch``, then LQR-FLM."""
+    if state.iteration == cfg.i_switch and not state.em_done:
+        rng = _rng(state)
+        policy = state.policy
+        prior = state.prior
+        history = state.history
+        best = state.best
+        for r in range(cfg.em.n_em):
+            t0 = time.perf_counter()
+            rollouts = task.rollouts(policy, cfg.baseline.samples, rng, workers=cfg.baseline.workers)
+            t_roll = time.perf_counter() - t0
+            if cfg.baseline.fit.prior == "mixture":
+                prior = fit.update_prior(prior, rollouts, cfg.baseline.fit, rng)
+            new, diag = em_update(task, cfg, policy, rollouts, prior, rng)
+            rec = _record(state.iteration, "em", task, rollouts, timings={"rollouts": t_roll},
+                          extra={"em_recursion": r, **diag})
+            history = history + (rec,)
+            mean_cost = float(np.mean(rec.cost))
+            if best is None or mean_cost < best[0]:
+                best = (mean_cost, policy, state.iteration)
+            policy = new
+        state = dataclasses.replace(
+            state, policy=policy, prior=prior, rng_state=rng.bit_generator.state,
+            history=history, best=best, em_done=True, prev=None,
+        )
+        # The EM policy is the KL reference (and the sampling policy) of this iteration.
+        return lqr_flm_iteration(task, cfg.baseline, state, reference=policy)
+    return lqr_flm_iteration(task, cfg.baseline, state)
+
+
+def run_algorithm(
+    task,
+    method: Literal["lqr-flm", "dpsoc-em"],
+    cfg: DPSOCConfig,
+    seed: int = 0,
+    state: RunState | None = None,
+    on_iteration: Callable[[RunState], None] | None = None,
+) -> RunState:
+    """Run LQR-FLM or DPSOC-EM to ``cfg.baseline.iterations`` from ``state`` (or a fresh start).
+
+    ``on_iteration`` is called with the new state after every finished iteration
+    (checkpointing, progress lines).  The final state's ``best`` is the best policy sampled.
+    """
+    if state is None:
+        state = initial_state(task, cfg.baseline, seed)
+    while state.iteration < cfg.baseline.iterations:
+        if method == "dpsoc-em":
+            state = dpsoc_iteration(task, cfg, state)
+        elif method == "lqr-flm":
+            state = lqr_flm_iteration(task, cfg.baseline, state)
+        else:
+            raise ValueError(f"unknown method {method!r}; use 'lqr-flm' or 'dpsoc-em'")
+        if on_iteration is not None:
+            on_iteration(state)
+    return state
+
+
+def ilqg(task, x0: np.ndarray | None = None, u_init: np.ndarray | None = None, cfg: ILQGConfig = ILQGConfig(),
+         on_iteration: Callable[[int, float, float], None] | None = None):
+    """Model-based iLQG on a known MuJoCo model (SPEC §7).
+
+    Derivatives by finite differences (``task.linearize``, built on ``mujoco.mjd_transitionFD``),
+    Levenberg–Marquardt regularisation ``mu I`` on the action Hessian, backtracking line search
+    on the feed-forward term.  Returns ``(policy, costs)`` where ``costs`` lists the cost of every
+    accepted iterate (strictly decreasing) and ``policy`` is a linear-Gaussian initialiser
+    ``a = u_bar + K (s - s_bar)`` with covariance ``policy_var * I``.
+    """
+    T, n, m = task.T, task.n, task.m
+    u = np.zeros((T, m)) if u_init is None else np.asarray(u_init, float).copy()
+    zero_cov = np.zeros((T, m, m))
+
+    def simulate(K, kff):
+        pol = LinearGaussianPolicy(K, kff, zero_cov, allow_singular=True)
+        ro = task.rollouts(pol, 1, np.random.default_rng(0), noise=False)
+        return ro.x[0], ro.a[0], float(task.true_cost(ro)[0].sum())
+
+    x, u, J = simulate(np.zeros((T, m, n)), u)
+    costs = [J]
+    mu = cfg.mu_init
+    K = np.zeros((T, m, n))
+    for it in range(cfg.iterations):
+        dyn = task.linearize(x, u)
+        cost = task.cost_expansion(x, u)
+        accepted = False
+        while mu <= cfg.mu_max and not accepted:
+            C = np.array(cost.C)
+            C[:, n:, n:] += mu * np.eye(m)
+            reg = type(cost)(C, cost.c, cost.n, cost.c0)
+            try:
+                pol = lqg.lqr(dyn, reg, x[0], np.eye(n) * 1e-9)
+            except ValueError:
+                mu = max(mu * cfg.mu_factor, 1e-6)
+                continue
+            Knew = np.asarray(pol.K)
+            d = np.einsum("tij,tj->ti", Knew, x[:-1]) + pol.k - u  # change of the mean action at x_bar
+            for alpha in cfg.alphas:
+                kff = u + alpha * d - np.einsum("tij,tj->ti", Knew, x[:-1])
+                try:
+                    x_new, u_new, J_new = simulate(Knew, kff)
+                except Exception:
+                    continue
+                if J_new < J:
+                    accepted = True
+                    break
+            if accepted:
+                rel = (J - J_new) / max(abs(J), 1e-12)
+                x, u, J, K = x_new, u_new, J_new, Knew
+                costs.append(J)
+                mu = max(mu / cfg.mu_factor, cfg.mu_init)
+                if on_iteration is not None:
+                    on_iteration(it, J, mu)
+                if rel < cfg.tol:
+                    return _ilqg_policy(K, x, u, cfg), costs
+            else:
+                mu *= cfg.mu_factor
+        if not accepted:
+            break
+    return _ilqg_policy(K, x, u, cfg), costs
+
+
+def _ilqg_policy(K, x, u, cfg):
+    T, m, _ = K.shape
+    k = u - np.einsum("tij,tj->ti", K, x[:-1])
+    return LinearGaussianPolicy(K, k, np.broadcast_to(cfg.policy_var * np.eye(m), (T, m, m)).copy())

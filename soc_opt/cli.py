@@ -1,0 +1,262 @@
+"""The ``soc-opt`` command line.
+
+Subcommands::
+
+    soc-opt run TASK --method dpsoc-em|lqr-flm|ilqg [--config FILE] [--seed N] [--out DIR] [--paper]
+    soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper]
+    soc-opt verify [--json] [--seed N] [--instances N]
+    soc-opt solvers [--json] [--quick]
+    soc-opt bench [--json] [--only NAMES]
+    soc-opt tasks
+
+``TASK`` is a built-in name (``linear2d``, ``peg``, ``door``) or the path of a task TOML file.
+Configurations are validated before any simulation starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["main", "load_config"]
+
+PROBLEMS = Path(__file__).resolve().parent.parent / "problems"
+PAPER = {"iterations": 14, "samples": 20, "i_switch": 4}
+
+
+def _print(line: str) -> None:
+    print(line, flush=True)
+
+
+def load_config(task_name: str, config_file: str | None, paper: bool, overrides: dict | None = None):
+    """The DPSOC-EM/LQR-FLM configuration: task default file, then ``--config``, then flags."""
+    from .algorithms import DPSOCConfig
+    from .config import ConfigError
+
+    if config_file is not None:
+        cfg = DPSOCConfig.from_toml(config_file)
+    else:
+        default = PROBLEMS / "experiments" / f"{Path(task_name).stem}.toml"
+        cfg = DPSOCConfig.from_toml(default) if default.is_file() else DPSOCConfig()
+    base_changes = {}
+    top_changes = {}
+    if paper:
+        base_changes.update(iterations=PAPER["iterations"], samples=PAPER["samples"])
+        top_changes["i_switch"] = PAPER["i_switch"]
+    for key, value in (overrides or {}).items():
+        if value is None:
+            continue
+        if key == "i_switch":
+            top_changes[key] = value
+        else:
+            base_changes[key] = value
+    try:
+        base = cfg.baseline.replace(**base_changes) if base_changes else cfg.baseline
+        return cfg.replace(baseline=base, **top_changes)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(str(e)) from e
+
+
+def _table(rows: list[dict], columns: list[str] | None = None) -> str:
+    if not rows:
+        return "(no rows)"
+    columns = columns or list(dict.fromkeys(k for r in rows for k in r))
+
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.3g}" if (abs(v) >= 1e-3 or v == 0) else f"{v:.2e}"
+        return str(v)
+
+    cells = [[fmt(r.get(c, "")) for c in columns] for r in rows]
+    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(columns, widths)), "  ".join("-" * w for w in widths)]
+    lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths)) for row in cells]
+    return "\n".join(lines)
+
+
+def _cmd_tasks(args) -> int:
+    from .tasks import load_task
+
+    for name in ("linear2d", "peg", "door"):
+        t = load_task(name)
+        _print(f"{name:10s} n={t.n:3d} m={t.m:2d} T={t.T:4d} dt={t.dt:g} rho2={t.rho2:g}")
+    return 0
+
+
+def _cmd_run(args) -> int:
+    from .compare import METHODS  # noqa: F401
+    from .experiment import run_experiment
+    from .tasks import load_task
+
+    task = load_task(args.task)
+    out = Path(args.out or f"runs/{Path(args.task).stem}-{args.method}-seed{args.seed}")
+    if args.method == "ilqg":
+        from .algorithms import ILQGConfig, ilqg
+
+        cfg = ILQGConfig.from_toml(args.config) if args.config else ILQGConfig()
+        out.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        policy, costs = ilqg(task, cfg=cfg, on_iteration=lambda it, J, mu: _print(
+            f"[ilqg] iter {it + 1:3d} cost {J:.6g} mu {mu:.1e} ({time.perf_counter() - t0:.1f}s)"))
+        np.savez_compressed(out / "policy.npz", **policy.to_dict())
+        (out / "costs.json").write_text(json.dumps(costs))
+        _print(f"iLQG: cost {costs[0]:.6g} -> {costs[-1]:.6g} in {len(costs) - 1} accepted iterations; wrote {out}")
+        return 0
+    cfg = load_config(args.task, args.config, args.paper,
+                      {"iterations": args.iterations, "samples": args.samples, "workers": args.workers})
+    state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_print)
+    _write_run_figures(task, state, out)
+    best = state.best
+    _print(f"done: best mean cost {best[0]:.6g} (iteration {best[2] + 1}); run directory {out}")
+    return 0
+
+
+def _write_run_figures(task, state, out: Path) -> None:
+    from . import report
+
+    costs = {"dpsoc-em" if any(r.phase == "em" for r in state.history) else "lqr-flm":
+             [np.asarray(r.cost) for r in state.history if r.phase == "baseline"]}
+    report.plot_costs(costs, out / "cost_per_iteration.png", f"{task.name}: total cost per iteration")
+    if state.last_rollouts is not None:
+        meth = next(iter(costs))
+        report.plot_ee({meth: np.asarray(task.ee_points(state.last_rollouts.x))}, task.dt,
+                       out / "ee_trajectories.png", f"{task.name}: end-effector points (last iteration)",
+                       point_names=getattr(task, "point_names", None), targets=getattr(task, "point_targets", None))
+
+
+def _cmd_compare(args) -> int:
+    from .compare import compare
+    from .tasks import load_task
+
+    task = load_task(args.task)
+    cfg = load_config(args.task, args.config, args.paper,
+                      {"iterations": args.iterations, "samples": args.samples, "workers": args.workers,
+                       "i_switch": args.i_switch})
+    out = Path(args.out or f"runs/compare-{Path(args.task).stem}")
+    seeds = list(range(args.seed, args.seed + args.seeds))
+    _print(f"comparing LQR-FLM and DPSOC-EM on {args.task}: seeds {seeds}, {cfg.baseline.iterations} iterations, "
+           f"{cfg.baseline.samples} samples, EM switch after iteration {cfg.i_switch}; output {out}")
+    t0 = time.perf_counter()
+    summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_print)
+    _print("")
+    _print(_table([{k: r[k] for k in ("claim", "baseline_mean", "dpsoc_mean", "seeds_lower", "held")}
+                   for r in summary["claims"]]))
+    _print(f"\nreport: {summary['report']}  ({time.perf_counter() - t0:.0f}s)")
+    return 0
+
+
+def _cmd_verify(args) -> int:
+    from . import verification
+
+    results = verification.run_all(seed=args.seed, instances=args.instances)
+    if args.json:
+        _print(json.dumps(verification.to_json(results), indent=1))
+    else:
+        _print(verification.format_table(results))
+    return 0
+
+
+def _cmd_solvers(args) -> int:
+    from .bench import lqg as bench_lqg
+    from .bench import mstep as bench_mstep
+
+    if args.quick:
+        m_rows = bench_mstep.run(sizes=((6, 2),), T=5)
+        l_rows = bench_lqg.run(sizes=((4, 2, 20),))
+    else:
+        m_rows = bench_mstep.run()
+        l_rows = bench_lqg.run()
+    if args.json:
+        _print(json.dumps({"mstep": m_rows, "kl_step": l_rows}, indent=1, default=float))
+    else:
+        _print("M-step: closed form vs CVXPY (Clarabel, SCS)\n" + _table(m_rows))
+        _print("\nKL-constrained LQG step: closed form vs CasADi/IPOPT\n" + _table(l_rows))
+    return 0
+
+
+def _cmd_bench(args) -> int:
+    import importlib
+
+    names = args.only.split(",") if args.only else ["rollouts", "fit", "estep", "mstep", "lqg", "iteration"]
+    out = {}
+    for name in names:
+        mod = importlib.import_module(f"soc_opt.bench.{name}")
+        rows = mod.run()
+        out[name] = rows
+        if not args.json:
+            _print(f"\n== {name}\n" + _table(rows))
+    if args.json:
+        _print(json.dumps(out, indent=1, default=float))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="soc-opt", description="EM-based stochastic optimal control (DPSOC-EM).")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common_algo(sp):
+        sp.add_argument("task", help="built-in task (linear2d, peg, door) or a task TOML file")
+        sp.add_argument("--config", help="algorithm configuration TOML (see docs/configuration.md)")
+        sp.add_argument("--paper", action="store_true",
+                        help="paper-scale settings: 14 iterations, 20 samples, EM switch at 4")
+        sp.add_argument("--iterations", type=int, help="override baseline.iterations")
+        sp.add_argument("--samples", type=int, help="override baseline.samples")
+        sp.add_argument("--workers", type=int, help="parallel rollout workers")
+        sp.add_argument("--out", help="run directory (resumes if it holds a checkpoint)")
+
+    r = sub.add_parser("run", help="run one method on a task, writing a resumable run directory")
+    common_algo(r)
+    r.add_argument("--method", choices=["dpsoc-em", "lqr-flm", "ilqg"], default="dpsoc-em")
+    r.add_argument("--seed", type=int, default=0)
+    r.set_defaults(func=_cmd_run)
+
+    c = sub.add_parser("compare", help="LQR-FLM vs DPSOC-EM on the same seeds, with a Markdown report")
+    common_algo(c)
+    c.add_argument("--seeds", type=int, default=3, help="number of seeds")
+    c.add_argument("--seed", type=int, default=0, help="first seed")
+    c.add_argument("--i-switch", dest="i_switch", type=int, help="override i_switch")
+    c.set_defaults(func=_cmd_compare)
+
+    v = sub.add_parser("verify", help="check the paper's claims (SPEC §9, 1-4) numerically")
+    v.add_argument("--json", action="store_true")
+    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--instances", type=int, default=20)
+    v.set_defaults(func=_cmd_verify)
+
+    s = sub.add_parser("solvers", help="compare closed forms with CVXPY and CasADi/IPOPT")
+    s.add_argument("--json", action="store_true")
+    s.add_argument("--quick", action="store_true", help="small sizes only")
+    s.set_defaults(func=_cmd_solvers)
+
+    b = sub.add_parser("bench", help="benchmarks: rollouts, fitting, E-step, M-step, LQG, full iterations")
+    b.add_argument("--json", action="store_true")
+    b.add_argument("--only", help="comma-separated subset")
+    b.set_defaults(func=_cmd_bench)
+
+    t = sub.add_parser("tasks", help="list the built-in tasks")
+    t.set_defaults(func=_cmd_tasks)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .config import ConfigError
+
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ConfigError, FileNotFoundError) as e:
+        print(f"soc-opt: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\nsoc-opt: interrupted; rerun the same command to resume from the last finished iteration",
+              file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,192 @@
+"""Figures and the Markdown report of a method comparison (SPEC §9.5, paper figures).
+
+Inputs are plain arrays gathered by :func:`soc_opt.compare.compare`; this module only draws
+and writes.  Figures (PNG):
+
+- ``cost_per_iteration.png``: expected cost per iteration, box plots over samples (all seeds)
+  for both methods side by side;
+- ``ee_trajectories.png``: mean ± std over samples of the end-effector ``x, y, z`` of the final
+  policies, dashed baseline vs solid DPSOC-EM;
+- ``actions.png``: box plots of the actions per joint over samples and time, final policies;
+- ``min_hinge.png`` (door): the minimum hinge angle per iteration.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+__all__ = ["plot_costs", "plot_ee", "plot_actions", "plot_metric", "claims_table", "write_markdown"]
+
+COLORS = {"lqr-flm": "tab:blue", "dpsoc-em": "tab:red"}
+LABELS = {"lqr-flm": "LQR-FLM (baseline)", "dpsoc-em": "DPSOC-EM"}
+
+
+def plot_costs(costs: dict, path: Path, title: str, i_switch: int | None = None) -> Path:
+    """``costs[method]`` is a list over iterations of 1-D arrays of per-sample costs."""
+    fig, ax = plt.subplots(figsize=(10, 4.5))
+    methods = list(costs)
+    width = 0.8 / len(methods)
+    for j, meth in enumerate(methods):
+        data = costs[meth]
+        pos = np.arange(len(data)) + 1 + (j - (len(methods) - 1) / 2) * width
+        bp = ax.boxplot(data, positions=pos, widths=width * 0.9, patch_artist=True, showfliers=False,
+                        manage_ticks=False)
+        for b in bp["boxes"]:
+            b.set_facecolor(COLORS.get(meth, "gray"))
+            b.set_alpha(0.5)
+        ax.plot(pos, [np.mean(d) for d in data], "o-", color=COLORS.get(meth, "gray"), ms=3, label=LABELS.get(meth, meth))
+    if i_switch is not None:
+        ax.axvline(i_switch + 0.5, color="k", ls=":", lw=1, label=f"EM switch (after iteration {i_switch})")
+    n_it = max(len(d) for d in costs.values())
+    ax.set_xticks(np.arange(1, n_it + 1))
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("total cost per sample (true state)")
+    ax.set_yscale("symlog" if min(np.min(np.concatenate(d)) for d in costs.values()) <= 0 else "log")
+    ax.set_title(title)
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_ee(points: dict, dt: float, path: Path, title: str, point_names=None, targets=None) -> Path:
+    """``points[method]``: ``(S, T+1, P, 3)`` end-effector points over samples ``S``."""
+    P = next(iter(points.values())).shape[2]
+    fig, axes = plt.subplots(P, 3, figsize=(12, 3 * P), squeeze=False, sharex=True)
+    for meth, pts in points.items():
+        t = np.arange(pts.shape[1]) * dt
+        mean, std = pts.mean(axis=0), pts.std(axis=0)
+        ls = "--" if meth == "lqr-flm" else "-"
+        for p in range(P):
+            for c in range(3):
+                ax = axes[p, c]
+                ax.plot(t, mean[:, p, c], ls, color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
+                ax.fill_between(t, mean[:, p, c] - std[:, p, c], mean[:, p, c] + std[:, p, c],
+                                color=COLORS.get(meth, "gray"), alpha=0.2)
+    for p in range(P):
+        for c, name in enumerate("xyz"):
+            ax = axes[p, c]
+            pname = point_names[p] if point_names else f"point {p}"
+            ax.set_title(f"{pname}: {name}")
+            if targets is not None:
+                ax.axhline(targets[p][c], color="k", lw=0.8, ls=":")
+            ax.grid(alpha=0.3)
+    for c in range(3):
+        axes[-1, c].set_xlabel("time [s]")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(title + " (mean ± std over samples; dashed baseline, solid DPSOC-EM)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_actions(actions: dict, path: Path, title: str) -> Path:
+    """``actions[method]``: ``(S, T, m)``; box plot per joint of the actions over samples and time."""
+    m = next(iter(actions.values())).shape[-1]
+    fig, ax = plt.subplots(figsize=(max(6, 1.4 * m), 4))
+    methods = list(actions)
+    width = 0.8 / len(methods)
+    for j, meth in enumerate(methods):
+        a = actions[meth].reshape(-1, m)
+        pos = np.arange(m) + 1 + (j - (len(methods) - 1) / 2) * width
+        bp = ax.boxplot([a[:, i] for i in range(m)], positions=pos, widths=width * 0.9, patch_artist=True,
+                        showfliers=False, manage_ticks=False)
+        for b in bp["boxes"]:
+            b.set_facecolor(COLORS.get(meth, "gray"))
+            b.set_alpha(0.5)
+        ax.plot([], [], "s", color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
+    ax.set_xticks(np.arange(1, m + 1))
+    ax.set_xticklabels([f"joint {i + 1}" for i in range(m)])
+    ax.set_ylabel("action")
+    ax.set_title(title)
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_metric(values: dict, path: Path, title: str, ylabel: str) -> Path:
+    """``values[method]``: ``(seeds, iterations)`` metric; mean ± std over seeds per iteration."""
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for meth, v in values.items():
+        v = np.asarray(v, float)
+        it = np.arange(1, v.shape[1] + 1)
+        ls = "--" if meth == "lqr-flm" else "-"
+        ax.plot(it, v.mean(0), ls + "o", ms=3, color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
+        ax.fill_between(it, v.mean(0) - v.std(0), v.mean(0) + v.std(0), color=COLORS.get(meth, "gray"), alpha=0.2)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def claims_table(per_seed: dict) -> list[dict]:
+    """SPEC §9.5 claims from per-seed final-policy statistics.
+
+    ``per_seed[method]`` is a dict of arrays over seeds: ``cost`` (mean total cost of the final
+    policy), ``state_spread`` (mean over time of the std over samples of the end-effector points),
+    ``action_spread`` (mean over time and joints of the std over samples of the actions).
+    A claim "DPSOC-EM lowers X" holds when the mean over seeds is lower; the number of seeds on
+    which it was lower (paired) is reported as well.
+    """
+    rows = []
+    names = {
+        "cost": "final expected cost",
+        "state_spread": "spread of the state (end-effector) trajectories",
+        "action_spread": "spread of the actions",
+    }
+    b, e = per_seed["lqr-flm"], per_seed["dpsoc-em"]
+    for key, label in names.items():
+        xb, xe = np.asarray(b[key], float), np.asarray(e[key], float)
+        rows.append({
+            "claim": f"DPSOC-EM lowers the {label}",
+            "baseline_mean": float(xb.mean()), "baseline_std": float(xb.std()),
+            "dpsoc_mean": float(xe.mean()), "dpsoc_std": float(xe.std()),
+            "seeds_lower": int(np.sum(xe < xb)), "seeds": int(len(xb)),
+            "held": bool(xe.mean() < xb.mean()),
+        })
+    return rows
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.4g}"
+
+
+def write_markdown(path: Path, *, title: str, setup: dict, claims: list[dict], figures: dict,
+                   extra_tables: dict | None = None, notes: list[str] | None = None) -> Path:
+    lines = [f"# {title}", "", "## Setup", ""]
+    lines += [f"- **{k}**: {v}" for k, v in setup.items()]
+    lines += ["", "## Claims (SPEC §9.5), final policies, mean ± std over seeds", "",
+              "| claim | LQR-FLM | DPSOC-EM | seeds where DPSOC-EM lower | held |", "|---|---|---|---|---|"]
+    for r in claims:
+        lines.append(
+            f"| {r['claim']} | {_fmt(r['baseline_mean'])} ± {_fmt(r['baseline_std'])} | "
+            f"{_fmt(r['dpsoc_mean'])} ± {_fmt(r['dpsoc_std'])} | {r['seeds_lower']}/{r['seeds']} | "
+            f"{'yes' if r['held'] else '**no**'} |"
+        )
+    for name, (header, rows) in (extra_tables or {}).items():
+        lines += ["", f"## {name}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    lines += ["", "## Figures", ""]
+    for caption, fig in figures.items():
+        lines += [f"### {caption}", "", f"![{caption}]({Path(fig).name})", ""]
+    if notes:
+        lines += ["## Notes", ""] + [f"- {n}" for n in notes]
+    path.write_text("\n".join(lines) + "\n")
+    return path
