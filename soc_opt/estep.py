@@ -1,6 +1,23 @@
 """E-step: Kalman filter and RTS smoother on the closed loop (SPEC §4).
 
+Under the current policy ``a_k = K_k s_k + k_k + L_k w_k`` the action is
+integrated out of the augmented model (SPEC §1), giving the closed loop
+
+    zeta_k = (s_{k+1}, y_k) | s_k ~ N(M_k s_k + m_k, S_k),
+    M_k = As_k + Bs_k K_k,  m_k = Bs_k k_k + co_k,  S_k = So_k + Bs_k Sigma_k Bs_k^T,
+
+with ``As_k = [A_k; Ay_k]`` and ``Bs_k = [B_k; By_k]``.  The noise of ``s_{k+1}``
+and the noise of ``y_k`` are correlated (off-diagonal block of ``S_k``); the
+filter below treats this exactly by decorrelation (see :func:`kalman_filter`).
+
 Also the sufficient statistics (:class:`Moments`) the M-step consumes.
+
+Public functions:
+    closed_loop(model, policy)                       -> (Mk, mk, Sk)
+    kalman_filter(model, policy, y, mu0, P0)         -> Filtered
+    smooth(model, policy, y, mu0, P0)                -> Smoothed
+    log_likelihood(model, policy, y, mu0, P0)        -> float | (M,)
+    moments(smoothed, y)                             -> Moments
 """
 
 from __future__ import annotations
@@ -8,10 +25,290 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
-from .models import Smoothed, check_array, symmetrize
+from .models import (
+    AugmentedModel,
+    LinearGaussianPolicy,
+    NotPositiveDefiniteError,
+    ShapeError,
+    Smoothed,
+    check_array,
+    check_covariances,
+    symmetrize,
+)
 
-__all__ = ["Moments", "moments"]
+__all__ = [
+    "Filtered",
+    "Moments",
+    "closed_loop",
+    "kalman_filter",
+    "log_likelihood",
+    "moments",
+    "smooth",
+]
+
+_LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+# --------------------------------------------------------------------------- closed loop
+
+
+def _check_pair(model: AugmentedModel, policy: LinearGaussianPolicy) -> None:
+    """Type and dimension consistency of a model and a policy (errors name both)."""
+    if not isinstance(model, AugmentedModel):
+        raise TypeError(f"model must be an AugmentedModel, got {type(model).__name__}")
+    if not isinstance(policy, LinearGaussianPolicy):
+        raise TypeError(f"policy must be a LinearGaussianPolicy, got {type(policy).__name__}")
+    for what, pv, mv in (("horizon T", policy.T, model.T), ("state dimension n", policy.n, model.n),
+                         ("action dimension m", policy.m, model.m)):
+        if pv != mv:
+            raise ShapeError(f"policy {what}={pv} does not match model {what}={mv}")
+
+
+def closed_loop(model: AugmentedModel, policy: LinearGaussianPolicy) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closed-loop augmented model ``zeta_k | s_k ~ N(M_k s_k + m_k, S_k)`` (SPEC §4).
+
+    Returns:
+        Mk: (T, n+1, n)    ``As_k + Bs_k K_k``
+        mk: (T, n+1)       ``Bs_k k_k + co_k``
+        Sk: (T, n+1, n+1)  ``So_k + Bs_k Sigma_k Bs_k^T`` (symmetrised; positive definite
+                           because ``So_k`` is, even for a singular policy covariance).
+    """
+    _check_pair(model, policy)
+    Bs = model.Bs
+    Mk = model.As + np.einsum("tim,tmj->tij", Bs, policy.K)
+    mk = np.einsum("tim,tm->ti", Bs, policy.k) + model.co
+    Sk = symmetrize(model.So + np.einsum("tia,tab,tjb->tij", Bs, policy.cov, Bs))
+    return Mk, mk, Sk
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _validate(model, policy, y, mu0, P0) -> tuple[np.ndarray, bool, np.ndarray, np.ndarray]:
+    """Check all E-step inputs once; return ``(Y (M, T), batched, mu0, P0)``."""
+    _check_pair(model, policy)
+    T, n = model.T, model.n
+    y_arr = np.asarray(y, dtype=float)
+    if y_arr.ndim == 1:
+        Y = check_array("y", y_arr, (T,))[None]
+        batched = False
+    elif y_arr.ndim == 2:
+        Y = check_array("y", y_arr, (None, T))
+        if Y.shape[0] == 0:
+            raise ShapeError(f"y must hold at least one sequence, got shape {Y.shape}")
+        batched = True
+    else:
+        raise ShapeError(f"y must have shape ({T},) or (M, {T}), got {y_arr.shape}")
+    mu0 = check_array("mu0", mu0, (n,))
+    P0 = check_covariances("P0", check_array("P0", P0, (n, n)))
+    return Y, batched, mu0, P0
+
+
+# --------------------------------------------------------------------------- filter
+
+
+@dataclass(frozen=True)
+class Filtered:
+    """Output of :func:`kalman_filter` (SPEC §4).
+
+    For one observation sequence:
+        pred_mean: (T+1, n)    ``E[s_k | y_0..y_{k-1}]`` (``k = 0``: ``mu0``; ``k = T``: given all of ``Y``)
+        pred_cov:  (T+1, n, n) ``Cov(s_k | y_0..y_{k-1})``
+        filt_mean: (T, n)      ``E[s_k | y_0..y_k]``
+        filt_cov:  (T, n, n)   ``Cov(s_k | y_0..y_k)``
+        loglik:    float       ``log p(Y) = sum_k log p(y_k | y_0..y_{k-1})``
+    For ``M`` sequences every field has a leading ``M`` axis and ``loglik`` is ``(M,)``.
+    The covariances do not depend on ``y``: in the batched case they are read-only
+    broadcast views of one ``(T+1, n, n)`` / ``(T, n, n)`` array.
+    """
+
+    pred_mean: np.ndarray
+    pred_cov: np.ndarray
+    filt_mean: np.ndarray
+    filt_cov: np.ndarray
+    loglik: float | np.ndarray
+
+
+@dataclass(frozen=True)
+class _FilterPass:
+    """Everything the smoother needs from the forward pass (always batched means)."""
+
+    pred_mean: np.ndarray  # (M, T+1, n)
+    pred_cov: np.ndarray  # (T+1, n, n)
+    filt_mean: np.ndarray  # (M, T, n)
+    filt_cov: np.ndarray  # (T, n, n)
+    F: np.ndarray  # (T, n, n)  decorrelated transition
+    Q: np.ndarray  # (T, n, n)  decorrelated process noise
+    loglik: np.ndarray  # (M,)
+
+
+def _decorrelate(Mk: np.ndarray, mk: np.ndarray, Sk: np.ndarray, n: int):
+    """Split the closed loop into state rows / observation row and decorrelate the noises.
+
+    With ``e = (e_s, e_y) ~ N(0, S_k)``, write ``e_s = G_k e_y + e'_k`` where
+    ``G_k = S_sy / S_yy`` and ``e'_k ~ N(0, Q_k)``, ``Q_k = S_ss - S_sy S_yy^{-1} S_ys``,
+    independent of ``e_y``.  Substituting ``e_y = y_k - My_k s_k - my_k`` gives
+    ``s_{k+1} = F_k s_k + b0_k + G_k y_k + e'_k`` with
+    ``F_k = Ms_k - G_k My_k`` and ``b0_k = ms_k - G_k my_k``.
+    """
+    Ms, My = Mk[:, :n, :], Mk[:, n, :]
+    ms, my = mk[:, :n], mk[:, n]
+    Sss, Ssy, Syy = Sk[:, :n, :n], Sk[:, :n, n], Sk[:, n, n]
+    G = Ssy / Syy[:, None]  # (T, n)
+    F = Ms - G[:, :, None] * My[:, None, :]  # (T, n, n)
+    b0 = ms - G * my[:, None]  # (T, n)
+    Q = symmetrize(Sss - Ssy[:, :, None] * G[:, None, :])  # (T, n, n), Schur complement of S_yy
+    return My, my, Syy, G, F, b0, Q
+
+
+def _forward(Mk, mk, Sk, Y, mu0, P0) -> _FilterPass:
+    """Forward (filter) pass on the closed loop, vectorised over the ``M`` sequences of ``Y``."""
+    M, T = Y.shape
+    n = mu0.shape[0]
+    My, my, Syy, G, F, b0, Q = _decorrelate(Mk, mk, Sk, n)
+    eye = np.eye(n)
+
+    pred_mean = np.empty((M, T + 1, n))
+    pred_cov = np.empty((T + 1, n, n))
+    filt_mean = np.empty((M, T, n))
+    filt_cov = np.empty((T, n, n))
+    loglik = np.zeros(M)
+
+    m = np.broadcast_to(mu0, (M, n)).copy()
+    P = P0
+    for k in range(T):
+        pred_mean[:, k] = m
+        pred_cov[k] = P
+        h = My[k]
+        Ph = P @ h
+        s_v = float(h @ Ph + Syy[k])  # innovation variance (scalar observation), >= S_yy > 0
+        g = Ph / s_v  # Kalman gain
+        # measurement update (Joseph form)
+        v = Y[:, k] - m @ h - my[k]  # innovations (M,)
+        loglik -= 0.5 * (_LOG_2PI + np.log(s_v) + v * v / s_v)
+        m = m + v[:, None] * g
+        IKH = eye - np.outer(g, h)
+        P = symmetrize(IKH @ P @ IKH.T + Syy[k] * np.outer(g, g))
+        filt_mean[:, k] = m
+        filt_cov[k] = P
+        # time update with the decorrelated transition
+        m = m @ F[k].T + b0[k] + Y[:, k, None] * G[k]
+        P = symmetrize(F[k] @ P @ F[k].T + Q[k])
+    pred_mean[:, T] = m
+    pred_cov[T] = P
+    return _FilterPass(pred_mean, pred_cov, filt_mean, filt_cov, F, Q, loglik)
+
+
+def _unbatch(x: np.ndarray, batched: bool, M: int, shared: bool = False) -> np.ndarray:
+    """Shape an output: ``shared`` arrays (no ``M`` axis) are broadcast read-only when batched."""
+    if shared:
+        return np.broadcast_to(x, (M,) + x.shape) if batched else x
+    return x if batched else x[0]
+
+
+def kalman_filter(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> Filtered:
+    """Kalman filter on the closed loop with correlated process/measurement noise (SPEC §4).
+
+    Model (closed loop, :func:`closed_loop`): given ``s_k``,
+    ``(s_{k+1}, y_k) ~ N(M_k s_k + m_k, S_k)`` with blocks ``Ms_k, My_k`` (rows of ``M_k``),
+    ``ms_k, my_k`` and ``S_ss, S_sy, S_yy``; ``s_0 ~ N(mu0, P0)``; ``y_k`` observed for
+    ``k = 0..T-1``, ``s_T`` unobserved.
+
+    Recursions, starting from ``m_0 = mu0``, ``P_0 = P0`` (``m_k, P_k`` predicted, i.e.
+    given ``y_0..y_{k-1}``):
+
+    1. Update with ``y_k`` (scalar): ``v_k = y_k - My_k m_k - my_k``,
+       ``s_k^v = My_k P_k My_k^T + S_yy``, gain ``g_k = P_k My_k^T / s_k^v``;
+       ``m_k^f = m_k + g_k v_k``,
+       ``P_k^f = (I - g_k My_k) P_k (I - g_k My_k)^T + S_yy g_k g_k^T`` (Joseph form);
+       ``log p(y_k | y_0..y_{k-1}) = -1/2 (log 2 pi + log s_k^v + v_k^2 / s_k^v)``.
+    2. Predict ``s_{k+1}``.  The noise of ``s_{k+1}`` is correlated with the noise of
+       ``y_k``, so it is split as ``e_s = G_k e_y + e'_k`` with ``G_k = S_sy / S_yy`` and
+       ``e'_k ~ N(0, Q_k)``, ``Q_k = S_ss - S_sy S_yy^{-1} S_ys``, independent of ``e_y``
+       (and of ``s_k`` and all earlier ``y``).  Since ``e_y = y_k - My_k s_k - my_k``,
+       ``s_{k+1} = F_k s_k + b_k + e'_k`` with ``F_k = Ms_k - G_k My_k`` and
+       ``b_k = ms_k + G_k (y_k - my_k)``, hence
+       ``m_{k+1} = F_k m_k^f + b_k``, ``P_{k+1} = F_k P_k^f F_k^T + Q_k``.
+
+    Every covariance is symmetrised.  ``y`` is ``(T,)`` or ``(M, T)`` (means and ``loglik``
+    vectorised over ``M``; the covariances do not depend on ``y`` and are computed once).
+    """
+    Y, batched, mu0, P0 = _validate(model, policy, y, mu0, P0)
+    fp = _forward(*closed_loop(model, policy), Y, mu0, P0)
+    M = Y.shape[0]
+    return Filtered(
+        pred_mean=_unbatch(fp.pred_mean, batched, M),
+        pred_cov=_unbatch(fp.pred_cov, batched, M, shared=True),
+        filt_mean=_unbatch(fp.filt_mean, batched, M),
+        filt_cov=_unbatch(fp.filt_cov, batched, M, shared=True),
+        loglik=fp.loglik if batched else float(fp.loglik[0]),
+    )
+
+
+def log_likelihood(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> float | np.ndarray:
+    """``log p(Y)`` under the closed loop (filter pass only): a float, or ``(M,)`` for ``y (M, T)``."""
+    return kalman_filter(model, policy, y, mu0, P0).loglik
+
+
+# --------------------------------------------------------------------------- smoother
+
+
+def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> Smoothed:
+    """Rauch–Tung–Striebel smoother on the closed loop (SPEC §4).
+
+    Runs :func:`kalman_filter` and then, backwards from ``s_hat_T = m_T``, ``P^s_T = P_T``
+    (the last prediction already conditions on all of ``Y``), for ``k = T-1..0``:
+
+        J_k = P_k^f F_k^T P_{k+1}^{-1}                (Cholesky solve with P_{k+1})
+        s_hat_k = m_k^f + J_k (s_hat_{k+1} - m_{k+1})
+        P^s_k = (I - J_k F_k) P_k^f (I - J_k F_k)^T + J_k (Q_k + P^s_{k+1}) J_k^T
+        Cov(s_{k+1}, s_k | Y) = P^s_{k+1} J_k^T
+
+    with ``F_k, Q_k`` the decorrelated transition of :func:`kalman_filter` (given
+    ``s_{k+1}`` and ``y_0..y_k``, ``s_k`` is independent of ``y_{k+1}..``, and
+    ``s_{k+1} = F_k s_k + b_k + e'_k`` with ``e'_k`` independent of ``s_k, y_0..y_k``).
+    The covariance update is the Joseph-like form of ``P^f - J P_{k+1} J^T + J P^s J^T``:
+    a sum of positive semidefinite terms, so it stays positive definite over long horizons.
+
+    Returns :class:`~soc_opt.models.Smoothed`; for ``y (M, T)`` every field has a leading
+    ``M`` axis (covariances are read-only broadcast views: they do not depend on ``y``).
+    """
+    Y, batched, mu0, P0 = _validate(model, policy, y, mu0, P0)
+    fp = _forward(*closed_loop(model, policy), Y, mu0, P0)
+    M, T = Y.shape
+    n = mu0.shape[0]
+    eye = np.eye(n)
+
+    mean = np.empty((M, T + 1, n))
+    cov = np.empty((T + 1, n, n))
+    cross = np.empty((T, n, n))
+    mean[:, T] = fp.pred_mean[:, T]
+    cov[T] = fp.pred_cov[T]
+    for k in range(T - 1, -1, -1):
+        Pf, F = fp.filt_cov[k], fp.F[k]
+        try:
+            c = cho_factor(fp.pred_cov[k + 1], lower=True, check_finite=False)
+        except LinAlgError as exc:
+            raise NotPositiveDefiniteError(
+                f"predicted covariance P[{k + 1}] (Cov(s_{k + 1} | y_0..y_{k})) is not positive definite"
+            ) from exc
+        J = cho_solve(c, F @ Pf, check_finite=False).T  # P_{k+1}^{-1} F P^f = J^T
+        mean[:, k] = fp.filt_mean[:, k] + (mean[:, k + 1] - fp.pred_mean[:, k + 1]) @ J.T
+        IJF = eye - J @ F
+        cov[k] = symmetrize(IJF @ Pf @ IJF.T + J @ (fp.Q[k] + cov[k + 1]) @ J.T)
+        cross[k] = cov[k + 1] @ J.T
+
+    return Smoothed(
+        mean=_unbatch(mean, batched, M),
+        cov=_unbatch(cov, batched, M, shared=True),
+        cross=_unbatch(cross, batched, M, shared=True),
+        loglik=fp.loglik if batched else float(fp.loglik[0]),
+    )
+
+
+# --------------------------------------------------------------------------- moments
 
 
 @dataclass(frozen=True)
