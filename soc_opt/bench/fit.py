@@ -1,0 +1,354 @@
+"""Dynamics-fitting benchmark and accuracy tables (SPEC §2).
+
+``run()`` times the fit with and without the VB mixture prior on a synthetic
+time-varying linear-Gaussian system of the ``peg`` task's size and appends the
+accuracy tables also asserted by ``tests/test_fit.py``:
+
+* ``convergence_table``: error of the fitted ``A, B, c, W`` against a known
+  time-varying linear-Gaussian system as the number of rollouts grows;
+* ``few_sample_table``: held-out one-step prediction error of least squares vs
+  the mixture prior with fewer rollouts than ``n + m`` (linear system);
+* ``pendulum_table``: the same comparison on a damped, torque-driven pendulum.
+
+Every function is pure (randomness from seeds); printing only under ``__main__``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..fit import FitConfig, fit_augmented, fit_dynamics, prediction_error, update_prior
+from ..models import Rollouts
+
+__all__ = [
+    "ltv_system",
+    "simulate_linear",
+    "simulate_pendulum",
+    "dynamics_errors",
+    "convergence_table",
+    "few_sample_table",
+    "pendulum_table",
+    "summarize",
+    "format_table",
+    "run",
+]
+
+
+# --------------------------------------------------------------------------- systems
+
+
+def ltv_system(n: int, m: int, T: int, rng: np.random.Generator, variation: float = 0.1) -> dict:
+    """A random stable time-varying linear-Gaussian system ``x' = A_k x + B_k a + c_k + w``, ``w ~ N(0, W_k)``.
+
+    ``A_k`` is a rotation scaled to spectral radius 0.9 plus a smooth
+    (sinusoidal in ``k``) perturbation of relative size ``variation``; ``B_k``,
+    ``c_k`` and ``W_k`` vary smoothly too (``variation = 0`` gives a
+    time-invariant system).  Returns ``dict(A, B, c, W)``, time-major.
+    """
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    A0 = 0.9 * Q
+    E = rng.standard_normal((n, n)) / np.sqrt(n)
+    B0 = rng.standard_normal((n, m)) / np.sqrt(m)
+    F = rng.standard_normal((n, m)) / np.sqrt(m)
+    c0 = 0.3 * rng.standard_normal(n)
+    c1 = 0.3 * rng.standard_normal(n)
+    G = rng.standard_normal((n, n)) / np.sqrt(n)
+    W0 = 0.02 * (G @ G.T) + 0.01 * np.eye(n)
+    ph = 2 * np.pi * np.arange(T) / max(T, 1)
+    sk, ck = np.sin(ph), np.cos(ph)
+    A = A0[None] + variation * sk[:, None, None] * E[None]
+    B = B0[None] + variation * ck[:, None, None] * F[None]
+    c = c0[None] + (variation / 0.1 if variation else 0.0) * sk[:, None] * c1[None]
+    W = W0[None] * (1.0 + 5 * variation * sk[:, None, None] ** 2)
+    return {"A": A, "B": B, "c": c, "W": W}
+
+
+def _rollouts(x: np.ndarray, a: np.ndarray, rng: np.random.Generator, rho2: float, target: np.ndarray) -> Rollouts:
+    s = x + np.sqrt(rho2) * rng.standard_normal(x.shape) if rho2 > 0 else x.copy()
+    d = s[:, :-1] - target
+    cost = 0.05 * np.sum(d * d, axis=-1) + 0.005 * np.sum(a * a, axis=-1)
+    return Rollouts(x=x, s=s, a=a, cost=cost, y=np.exp(-cost))
+
+
+def simulate_linear(
+    system: dict,
+    M: int,
+    rng: np.random.Generator,
+    rho2: float = 0.0,
+    action_std: float = 1.0,
+    x0_std: float = 1.0,
+) -> Rollouts:
+    """``M`` rollouts of ``system`` under the exploratory policy ``a ~ N(0, action_std^2 I)``.
+
+    ``x_0 ~ N(0, x0_std^2 I)``; measured ``s = x + N(0, rho2 I)``; stage cost
+    ``Y = 0.05 |s|^2 + 0.005 |a|^2`` and ``y = exp(-Y)``.
+    """
+    A, B, c, W = system["A"], system["B"], system["c"], system["W"]
+    T, n, m = B.shape[0], B.shape[1], B.shape[2]
+    LW = np.linalg.cholesky(W)
+    x = np.empty((M, T + 1, n))
+    a = action_std * rng.standard_normal((M, T, m))
+    x[:, 0] = x0_std * rng.standard_normal((M, n))
+    for k in range(T):
+        w = rng.standard_normal((M, n)) @ LW[k].T
+        x[:, k + 1] = x[:, k] @ A[k].T + a[:, k] @ B[k].T + c[k] + w
+    return _rollouts(x, a, rng, rho2, np.zeros(n))
+
+
+def _pendulum_f(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    g_over_l, damping = 9.81, 0.3
+    th, om = x[..., 0], x[..., 1]
+    return np.stack([om, -g_over_l * np.sin(th) - damping * om + u[..., 0]], axis=-1)
+
+
+def simulate_pendulum(
+    M: int,
+    rng: np.random.Generator,
+    T: int = 60,
+    dt: float = 0.05,
+    rho2: float = 1e-3,
+    action_std: float = 2.0,
+    proc_std: float = 0.01,
+) -> Rollouts:
+    """``M`` rollouts of a damped pendulum ``th'' = -9.81 sin th - 0.3 th' + u`` (n=2, m=1).
+
+    RK4 with step ``dt``; open-loop exploratory torque ``u_k = 6 sin(2 pi k / T) + N(0, action_std^2)``
+    so that the swings cover the nonlinear range; start ``th_0 ~ N(pi/2, 0.3^2)``,
+    ``th'_0 ~ N(0, 0.3^2)``; additive process noise ``N(0, proc_std^2 I)`` per step and
+    measurement noise ``N(0, rho2 I)``.
+    """
+    n = 2
+    x = np.empty((M, T + 1, n))
+    x[:, 0, 0] = np.pi / 2 + 0.3 * rng.standard_normal(M)
+    x[:, 0, 1] = 0.3 * rng.standard_normal(M)
+    u_nom = 6.0 * np.sin(2 * np.pi * np.arange(T) / T)
+    a = u_nom[None, :, None] + action_std * rng.standard_normal((M, T, 1))
+    for k in range(T):
+        xk, uk = x[:, k], a[:, k]
+        k1 = _pendulum_f(xk, uk)
+        k2 = _pendulum_f(xk + 0.5 * dt * k1, uk)
+        k3 = _pendulum_f(xk + 0.5 * dt * k2, uk)
+        k4 = _pendulum_f(xk + dt * k3, uk)
+        x[:, k + 1] = xk + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4) + proc_std * rng.standard_normal((M, n))
+    return _rollouts(x, a, rng, rho2, np.array([np.pi, 0.0]))
+
+
+# --------------------------------------------------------------------------- tables
+
+
+def _rel(est: np.ndarray, true: np.ndarray) -> float:
+    return float(np.linalg.norm(est - true) / np.linalg.norm(true))
+
+
+def dynamics_errors(dyn, system: dict) -> dict:
+    """Relative Frobenius errors over all steps of the fitted ``A, B, c, W`` against ``system``."""
+    return {
+        "err_A": _rel(dyn.A, system["A"]),
+        "err_B": _rel(dyn.B, system["B"]),
+        "err_c": _rel(dyn.c, system["c"]),
+        "err_W": _rel(dyn.cov, system["W"]),
+    }
+
+
+def convergence_table(
+    Ms=(5, 10, 20, 80),
+    seeds=(0, 1, 2),
+    n: int = 6,
+    m: int = 2,
+    T: int = 50,
+    priors=("none", "mixture"),
+    config: FitConfig = FitConfig(),
+) -> list[dict]:
+    """Errors of the fitted ``A, B, c, W`` vs the true time-varying system as ``M`` grows.
+
+    Per seed a system (``ltv_system``, variation 0.1) and ``max(Ms)`` rollouts
+    (no measurement noise, so that regression of ``s'`` on ``(s, a)`` is
+    consistent) are drawn; each ``M`` uses the first ``M`` rollouts.  With
+    ``"mixture"`` the prior is fitted on those same ``M`` rollouts.  One row per
+    (prior, M, seed).
+    """
+    rows = []
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        system = ltv_system(n, m, T, rng)
+        data = simulate_linear(system, max(Ms), rng)
+        for M in Ms:
+            ro = Rollouts(*(np.array(getattr(data, f)[:M]) for f in ("x", "s", "a", "cost", "y")))
+            for p in priors:
+                cfg = config.replace(prior=p, seed=seed)
+                prior = update_prior(None, ro, cfg, np.random.default_rng(seed)) if p == "mixture" else None
+                dyn = fit_dynamics(ro, cfg, prior)
+                rows.append({"table": "convergence", "prior": p, "M": M, "seed": seed, **dynamics_errors(dyn, system)})
+    return rows
+
+
+def _heldout_compare(
+    train: Rollouts, test: Rollouts, config: FitConfig, seed: int, prior_data=None, reference=None
+) -> dict:
+    """Held-out MSEs of least squares and of the mixture prior; ``mse_ref`` of a ``reference`` dynamics model."""
+    rng = np.random.default_rng(seed)
+    prior = update_prior(None, prior_data, config, rng) if prior_data is not None else None
+    prior = update_prior(prior, train, config, rng)
+    ls = fit_augmented(train, config.replace(prior="none"))
+    mix = fit_augmented(train, config.replace(prior="mixture"), prior)
+    return {
+        "mse_ls": float(prediction_error(ls, test).mean()),
+        "mse_prior": float(prediction_error(mix, test).mean()),
+        "mse_y_ls": float(prediction_error(ls, test, "y").mean()),
+        "mse_y_prior": float(prediction_error(mix, test, "y").mean()),
+        "mse_ref": float(prediction_error(reference, test).mean()) if reference is not None else float("nan"),
+        "components": prior.n_components,
+    }
+
+
+def few_sample_table(
+    Ms=(3, 5, 7),
+    seeds=(0, 1, 2),
+    n: int = 6,
+    m: int = 2,
+    T: int = 50,
+    variation: float = 0.02,
+    rho2: float = 0.01,
+    M_test: int = 50,
+    config: FitConfig = FitConfig(),
+) -> list[dict]:
+    """Held-out one-step prediction MSE (mean over steps) of least squares vs the mixture prior, ``M < n+m``.
+
+    Slowly varying linear system (``variation``), measurement noise ``rho2``;
+    the prior is fitted on the ``M`` training rollouts only (all time steps
+    pooled).  ``mse_ref`` is the error of the true system matrices (the floor
+    set by process and measurement noise).  One row per (M, seed).
+    """
+    from ..models import LinearGaussianDynamics
+
+    rows = []
+    for seed in seeds:
+        rng = np.random.default_rng(1000 + seed)
+        system = ltv_system(n, m, T, rng, variation=variation)
+        truth = LinearGaussianDynamics(system["A"], system["B"], system["c"], system["W"])
+        test = simulate_linear(system, M_test, rng, rho2=rho2)
+        for M in Ms:
+            train = simulate_linear(system, M, rng, rho2=rho2)
+            rows.append(
+                {"table": "few_sample", "M": M, "seed": seed, **_heldout_compare(train, test, config, seed, reference=truth)}
+            )
+    return rows
+
+
+def pendulum_table(
+    Ms=(2, 3, 5),
+    seeds=(0, 1, 2),
+    T: int = 60,
+    M_test: int = 50,
+    M_earlier: int = 0,
+    config: FitConfig = FitConfig(),
+) -> list[dict]:
+    """Held-out one-step prediction MSE of least squares vs the mixture prior on the pendulum.
+
+    The prior is fitted on the ``M`` training rollouts (all steps pooled), after
+    a buffer of ``M_earlier`` rollouts from an "earlier iteration" (0: none).
+    ``mse_ref`` is the error of a least-squares fit on 200 rollouts (the best
+    time-varying linear model, up to its own estimation error).  One row per (M, seed).
+    """
+    rows = []
+    for seed in seeds:
+        rng = np.random.default_rng(2000 + seed)
+        test = simulate_pendulum(M_test, rng, T=T)
+        ref = fit_dynamics(simulate_pendulum(200, rng, T=T), config.replace(prior="none"))
+        earlier = simulate_pendulum(M_earlier, rng, T=T) if M_earlier else None
+        for M in Ms:
+            train = simulate_pendulum(M, rng, T=T)
+            rows.append(
+                {"table": "pendulum", "M": M, "seed": seed, "M_earlier": M_earlier,
+                 **_heldout_compare(train, test, config, seed, earlier, ref)}
+            )
+    return rows
+
+
+def summarize(rows: list[dict], keys: tuple, group: tuple) -> list[dict]:
+    """Mean of ``keys`` over rows sharing the ``group`` fields (order preserved)."""
+    out: dict = {}
+    for r in rows:
+        g = tuple(r[k] for k in group)
+        out.setdefault(g, []).append(r)
+    return [
+        {**dict(zip(group, g)), **{k: float(np.mean([r[k] for r in rs])) for k in keys}, "n_seeds": len(rs)}
+        for g, rs in out.items()
+    ]
+
+
+def format_table(rows: list[dict]) -> str:
+    """Plain-text table of dict rows (floats in 4 significant digits)."""
+    if not rows:
+        return ""
+    cols = list(rows[0])
+    cells = [[f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c]) for c in cols] for r in rows]
+    w = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(cols)]
+    lines = ["  ".join(c.rjust(w[i]) for i, c in enumerate(cols))]
+    lines += ["  ".join(v.rjust(w[i]) for i, v in enumerate(row)) for row in cells]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- benchmark
+
+
+def _timed(f, *args, repeats: int = 1, **kw):
+    """``(result, best wall time over repeats)``."""
+    best = np.inf
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        out = f(*args, **kw)
+        best = min(best, time.perf_counter() - t0)
+    return out, best
+
+
+def run(
+    M: int = 20, T: int = 100, n: int = 26, m: int = 7, seed: int = 0, tables: bool = True, repeats: int = 3
+) -> list[dict]:
+    """Fit times with/without the mixture prior on a synthetic system of size ``(n, m, T)``, plus the tables.
+
+    Timing rows: ``least_squares`` (posterior + conditioning only) and
+    ``mixture`` (VB prior update, then posterior + conditioning), for the
+    augmented model and the dynamics; the prediction error on 20 held-out
+    rollouts is reported alongside.  Times are the best of ``repeats`` runs
+    (the fits are deterministic).  With ``tables`` the (seed-averaged)
+    convergence, few-sample and pendulum tables follow as rows.
+    """
+    rng = np.random.default_rng(seed)
+    system = ltv_system(n, m, T, rng)
+    train = simulate_linear(system, M, rng, rho2=0.01)
+    test = simulate_linear(system, 20, rng, rho2=0.01)
+    cfg = FitConfig(seed=seed)
+    rows = []
+
+    r = repeats
+    ls, t_ls = _timed(fit_augmented, train, cfg.replace(prior="none"), repeats=r)
+    _, t_ls_d = _timed(fit_dynamics, train, cfg.replace(prior="none"), repeats=r)
+    prior, t_prior = _timed(lambda: update_prior(None, train, cfg, np.random.default_rng(seed)), repeats=r)
+    mix, t_mix = _timed(fit_augmented, train, cfg, prior, repeats=r)
+    _, t_mix_d = _timed(fit_dynamics, train, cfg, prior, repeats=r)
+    base = {"table": "timing", "M": M, "T": T, "n": n, "m": m, "D": 2 * n + m + 1}
+    rows.append({**base, "method": "least_squares", "prior_s": 0.0, "augmented_s": t_ls, "dynamics_s": t_ls_d,
+                 "total_s": t_ls, "components": 0, "vb_iter": 0,
+                 "heldout_mse": float(prediction_error(ls, test).mean())})
+    rows.append({**base, "method": "mixture", "prior_s": t_prior, "augmented_s": t_mix, "dynamics_s": t_mix_d,
+                 "total_s": t_prior + t_mix, "components": prior.n_components, "vb_iter": prior.n_iter,
+                 "heldout_mse": float(prediction_error(mix, test).mean())})
+    if tables:
+        errs = ("err_A", "err_B", "err_c", "err_W")
+        rows += summarize(convergence_table(), errs, ("table", "prior", "M"))
+        mse = ("mse_ls", "mse_prior", "mse_ref", "mse_y_ls", "mse_y_prior")
+        rows += summarize(few_sample_table(), mse, ("table", "M"))
+        rows += summarize(pendulum_table(), mse, ("table", "M"))
+    return rows
+
+
+if __name__ == "__main__":
+    out = run()
+    for name in ("timing", "convergence", "few_sample", "pendulum"):
+        sel = [r for r in out if r["table"] == name]
+        if sel:
+            print(f"\n[{name}]")
+            print(format_table(sel))

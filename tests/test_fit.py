@@ -1,0 +1,499 @@
+"""Tests of soc_opt.fit (SPEC §2, §3).
+
+Oracles: the known system matrices and the OLS / Wishart standard errors,
+ridge regression written here with numpy, a direct re-implementation of the
+NIW posterior + Gaussian conditioning with scipy densities, and exact moment
+propagation of the closed loop for the Monte-Carlo check of ``cost_observations``.
+Run with ``pytest -s`` to see the accuracy tables (also produced by
+``soc_opt.bench.fit``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.stats import multivariate_normal
+
+from soc_opt.bench.fit import (
+    convergence_table,
+    few_sample_table,
+    format_table,
+    ltv_system,
+    pendulum_table,
+    simulate_linear,
+    summarize,
+)
+from soc_opt.config import ConfigError
+from soc_opt.fit import (
+    FitConfig,
+    MixturePrior,
+    cost_observations,
+    fit_augmented,
+    fit_dynamics,
+    prediction_error,
+    tuples,
+    update_prior,
+)
+from soc_opt.models import AugmentedModel, LinearGaussianPolicy, Rollouts, ShapeError
+
+N, MU, T = 6, 2, 50
+ERRS = ("err_A", "err_B", "err_c", "err_W")
+MSES = ("mse_ls", "mse_prior", "mse_ref", "mse_y_ls", "mse_y_prior", "components")
+
+
+def _subset(ro: Rollouts, idx) -> Rollouts:
+    return Rollouts(*(np.array(getattr(ro, f)[idx]) for f in ("x", "s", "a", "cost", "y")))
+
+
+@pytest.fixture(scope="module")
+def system():
+    return ltv_system(N, MU, T, np.random.default_rng(7))
+
+
+@pytest.fixture(scope="module")
+def data(system):
+    return simulate_linear(system, 40, np.random.default_rng(8), rho2=0.01)
+
+
+# --------------------------------------------------------------------------- convergence to truth
+
+
+def _ols_expected_sq_errors(ro: Rollouts, system: dict) -> dict:
+    """Expected squared Frobenius errors (summed over steps) of OLS and of the ML residual covariance.
+
+    Given the design ``Z_k = [s_k, a_k, 1]`` (independent of the step-k noise),
+    ``E||Theta_hat - Theta||^2 = tr(W_k) tr((Z^T Z)^{-1})`` per block, and
+    ``W_hat ~ Wishart(W, M-p)/M`` gives
+    ``E||W_hat - W||^2 = (p/M)^2 ||W||^2 + (M-p)/M^2 (||W||^2 + tr(W)^2)``.
+    """
+    M, n, m = ro.M, ro.n, ro.m
+    p = n + m + 1
+    out = dict.fromkeys(ERRS, 0.0)
+    for k in range(ro.T):
+        Z = np.concatenate([ro.s[:, k], ro.a[:, k], np.ones((M, 1))], axis=1)
+        G = np.diag(np.linalg.inv(Z.T @ Z))
+        W = system["W"][k]
+        trW = np.trace(W)
+        out["err_A"] += trW * G[:n].sum()
+        out["err_B"] += trW * G[n : n + m].sum()
+        out["err_c"] += trW * G[-1]
+        fro2 = np.sum(W * W)
+        out["err_W"] += (p / M) ** 2 * fro2 + (M - p) / M**2 * (fro2 + trW**2)
+    return out
+
+
+def test_least_squares_error_matches_ols_standard_error():
+    """At M=80 (no prior) the squared errors of A, B, c, W match their OLS/Wishart expectations."""
+    ratios = {k: [] for k in ERRS}
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        sysm = ltv_system(N, MU, T, rng)
+        ro = simulate_linear(sysm, 80, rng)
+        dyn = fit_dynamics(ro, FitConfig(prior="none"))
+        expect = _ols_expected_sq_errors(ro, sysm)
+        got = {
+            "err_A": np.sum((dyn.A - sysm["A"]) ** 2),
+            "err_B": np.sum((dyn.B - sysm["B"]) ** 2),
+            "err_c": np.sum((dyn.c - sysm["c"]) ** 2),
+            "err_W": np.sum((dyn.cov - sysm["W"]) ** 2),
+        }
+        for k in ERRS:
+            ratios[k].append(got[k] / expect[k])
+    print("\nLS squared error / OLS expectation (3 seeds):", {k: np.round(v, 3).tolist() for k, v in ratios.items()})
+    # each ratio is a sum of >= 300 roughly chi-square terms (relative sd <= ~10%); the
+    # seed average must be within ~4 sd of 1
+    for k in ERRS:
+        assert 0.7 < np.mean(ratios[k]) < 1.35, (k, ratios[k])
+
+
+def test_fit_converges_to_true_system_as_M_grows():
+    rows = convergence_table(Ms=(5, 10, 20, 80), seeds=(0, 1, 2), n=N, m=MU, T=T)
+    table = summarize(rows, ERRS, ("prior", "M"))
+    print("\nrelative Frobenius errors vs truth (mean of 3 seeds):\n" + format_table(table))
+    for prior in ("none", "mixture"):
+        sel = [r for r in table if r["prior"] == prior]
+        for key in ERRS:
+            errs = [r[key] for r in sel]
+            assert all(b < a for a, b in zip(errs, errs[1:])), (prior, key, errs)
+        last = sel[-1]
+        assert last["M"] == 80
+        assert last["err_A"] < 0.06 and last["err_B"] < 0.06 and last["err_c"] < 0.2 and last["err_W"] < 0.35, last
+    ls80 = next(r for r in table if r["prior"] == "none" and r["M"] == 80)
+    mix80 = next(r for r in table if r["prior"] == "mixture" and r["M"] == 80)
+    for key in ERRS:  # the prior's weight (1 pseudo-sample) vanishes as M grows
+        assert mix80[key] < 1.05 * ls80[key], (key, mix80[key], ls80[key])
+
+
+@pytest.mark.slow
+def test_fit_converges_more_seeds_and_M():
+    rows = convergence_table(Ms=(5, 10, 20, 40, 80, 160), seeds=tuple(range(6)), n=N, m=MU, T=T)
+    table = summarize(rows, ERRS, ("prior", "M"))
+    print("\nrelative Frobenius errors vs truth (mean of 6 seeds):\n" + format_table(table))
+    for prior in ("none", "mixture"):
+        sel = [r for r in table if r["prior"] == prior]
+        for key in ERRS:
+            errs = [r[key] for r in sel]
+            assert all(b < a for a, b in zip(errs, errs[1:])), (prior, key, errs)
+
+
+# --------------------------------------------------------------------------- few samples / nonlinear
+
+
+def test_mixture_prior_beats_least_squares_with_few_samples():
+    rows = few_sample_table(Ms=(3, 5, 7), seeds=(0, 1, 2), n=N, m=MU, T=T)
+    table = summarize(rows, MSES, ("M",))
+    print("\nheld-out one-step MSE, linear system, M < n+m = 8 (mean of 3 seeds):\n" + format_table(table))
+    for r in table:
+        assert r["mse_prior"] < r["mse_ls"], r
+        assert r["mse_y_prior"] < r["mse_y_ls"], r
+
+
+def test_mixture_prior_beats_least_squares_on_pendulum():
+    rows = pendulum_table(Ms=(2, 3, 5), seeds=(0, 1, 2))
+    table = summarize(rows, MSES, ("M",))
+    print("\nheld-out one-step MSE, pendulum (n=2, m=1) (mean of 3 seeds):\n" + format_table(table))
+    for r in table:
+        assert r["mse_prior"] < r["mse_ls"], r
+    rows = pendulum_table(Ms=(3,), seeds=(0, 1, 2), M_earlier=20)
+    table = summarize(rows, MSES, ("M", "M_earlier"))
+    print("with a buffer of 20 earlier rollouts:\n" + format_table(table))
+    for r in table:
+        assert r["mse_prior"] < r["mse_ls"], r
+
+
+# --------------------------------------------------------------------------- least squares = ridge
+
+
+def _ridge(Z: np.ndarray, y: np.ndarray, lam: float):
+    """Ridge of y on centred Z with penalty M*lam, unpenalised intercept -> (coef, intercept)."""
+    M = Z.shape[0]
+    zm, ym = Z.mean(0), y.mean(0)
+    Zc, yc = Z - zm, y - ym
+    coef = np.linalg.solve(Zc.T @ Zc + M * lam * np.eye(Z.shape[1]), Zc.T @ yc)
+    return coef, ym - zm @ coef
+
+
+def test_least_squares_y_row_is_ridge_regression(data):
+    cfg = FitConfig(prior="none", reg=1e-3)
+    model = fit_augmented(data, cfg)
+    n, m = data.n, data.m
+    sa = np.concatenate([data.s[:, :-1], data.a], axis=-1)
+    lam = cfg.reg * sa.reshape(-1, n + m).var(axis=0).mean()
+    for k in range(data.T):
+        coef, icpt = _ridge(sa[:, k], data.y[:, k], lam)
+        np.testing.assert_allclose(model.Ao[k, n], coef, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(model.co[k, n], icpt, rtol=1e-8, atol=1e-10)
+
+
+def test_least_squares_y_row_is_lstsq_with_tiny_reg(data):
+    model = fit_augmented(data, FitConfig(prior="none", reg=1e-13))
+    n = data.n
+    for k in range(data.T):
+        Z = np.concatenate([data.s[:, k], data.a[:, k], np.ones((data.M, 1))], axis=1)
+        beta, *_ = np.linalg.lstsq(Z, data.y[:, k], rcond=None)
+        np.testing.assert_allclose(model.Ao[k, n], beta[:-1], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(model.co[k, n], beta[-1], rtol=1e-6, atol=1e-9)
+
+
+def test_least_squares_state_rows_equal_fit_dynamics(data):
+    cfg = FitConfig(prior="none")
+    aug, dyn = fit_augmented(data, cfg), fit_dynamics(data, cfg)
+    d2 = aug.dynamics()
+    for a, b in ((d2.A, dyn.A), (d2.B, dyn.B), (d2.c, dyn.c), (d2.cov, dyn.cov)):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_training_prediction_error_equals_residual_variance(data):
+    """With 1/M normalisation the mean squared training residual is tr(W_hat)/n (tiny ridge)."""
+    dyn = fit_dynamics(data, FitConfig(prior="none", reg=1e-13))
+    np.testing.assert_allclose(
+        prediction_error(dyn, data), np.trace(dyn.cov, axis1=1, axis2=2) / data.n, rtol=1e-6
+    )
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    n=st.integers(1, 3),
+    m=st.integers(1, 2),
+    M=st.integers(2, 12),
+    seed=st.integers(0, 10_000),
+)
+def test_least_squares_matches_ridge_for_random_shapes(n, m, M, seed):
+    rng = np.random.default_rng(seed)
+    Tn = 3
+    x = rng.standard_normal((M, Tn + 1, n))
+    a = rng.standard_normal((M, Tn, m))
+    y = rng.uniform(0.1, 1.0, (M, Tn))
+    ro = Rollouts(x=x, s=x, a=a, cost=-np.log(y), y=y)
+    cfg = FitConfig(prior="none", reg=1e-2)
+    model = fit_augmented(ro, cfg)
+    sa = np.concatenate([x[:, :-1], a], axis=-1)
+    lam = cfg.reg * sa.reshape(-1, n + m).var(axis=0).mean()
+    zeta = np.concatenate([x[:, 1:], y[..., None]], axis=-1)
+    for k in range(Tn):
+        coef, icpt = _ridge(sa[:, k], zeta[:, k], lam)
+        np.testing.assert_allclose(model.Ao[k], coef.T, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(model.co[k], icpt, rtol=1e-7, atol=1e-9)
+        assert np.linalg.eigvalsh(model.So[k])[0] > 0
+
+
+# --------------------------------------------------------------------------- NIW posterior oracle
+
+
+def _oracle_fit(ro: Rollouts, prior: MixturePrior, cfg: FitConfig):
+    """SPEC §2 steps 2-4 written out step by step with scipy densities and np.linalg.solve."""
+    X = tuples(ro)
+    M, Tn, D = X.shape
+    nz = ro.n + ro.m
+    lam = cfg.reg * X[..., :nz].reshape(-1, nz).var(axis=0).mean()
+    Ao, co, So = [], [], []
+    for k in range(Tn):
+        Xk = X[:, k]
+        dens = np.stack(
+            [w * multivariate_normal(mu, S).pdf(Xk) for w, mu, S in zip(prior.weights, prior.means, prior.covariances)],
+            axis=1,
+        ).reshape(M, -1)
+        resp = dens / dens.sum(axis=1, keepdims=True)
+        wk = resp.mean(axis=0)
+        mu0 = sum(w * mu for w, mu in zip(wk, prior.means))
+        S0 = sum(w * (S + np.outer(mu - mu0, mu - mu0)) for w, mu, S in zip(wk, prior.means, prior.covariances))
+        mue = Xk.mean(axis=0)
+        Le = (Xk - mue).T @ (Xk - mue) / M
+        mu_k = (cfg.k0 * mu0 + M * mue) / (cfg.k0 + M)
+        Lam = (cfg.n0 * S0 + M * Le + cfg.k0 * M / (cfg.k0 + M) * np.outer(mue - mu0, mue - mu0)) / (M + cfg.n0)
+        Lam[:nz, :nz] += lam * np.eye(nz)
+        A = np.linalg.solve(Lam[:nz, :nz], Lam[:nz, nz:]).T
+        Ao.append(A)
+        co.append(mu_k[nz:] - A @ mu_k[:nz])
+        So.append(Lam[nz:, nz:] - A @ Lam[:nz, nz:])
+    return np.array(Ao), np.array(co), np.array(So)
+
+
+@pytest.mark.parametrize("k0,n0", [(1.0, 1.0), (3.0, 0.5)])
+def test_mixture_posterior_matches_direct_niw_computation(data, k0, n0):
+    cfg = FitConfig(k0=k0, n0=n0, n_components=5)
+    ro = _subset(data, slice(0, 5))
+    prior = update_prior(None, data, cfg, np.random.default_rng(0))
+    model = fit_augmented(ro, cfg, prior)
+    Ao, co, So = _oracle_fit(ro, prior, cfg)
+    np.testing.assert_allclose(model.Ao, Ao, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(model.co, co, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(model.So, So, rtol=1e-7, atol=1e-10)
+
+
+def test_prior_with_vanishing_strength_reduces_to_least_squares(data):
+    prior = update_prior(None, data, FitConfig(n_components=4), np.random.default_rng(0))
+    weak = fit_augmented(data, FitConfig(k0=1e-10, n0=1e-10), prior)
+    ls = fit_augmented(data, FitConfig(prior="none"))
+    np.testing.assert_allclose(weak.Ao, ls.Ao, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(weak.So, ls.So, rtol=1e-6, atol=1e-10)
+
+
+def test_prior_none_config_ignores_given_prior(data):
+    prior = update_prior(None, data, FitConfig(n_components=4), np.random.default_rng(0))
+    a = fit_augmented(data, FitConfig(prior="none"), prior)
+    b = fit_augmented(data, FitConfig(prior="none"))
+    np.testing.assert_array_equal(a.Ao, b.Ao)
+
+
+# --------------------------------------------------------------------------- prior object / buffer / determinism
+
+
+def test_prior_fields_and_pruning(data):
+    cfg = FitConfig(n_components=8)
+    prior = update_prior(None, data, cfg, np.random.default_rng(0))
+    D = 2 * data.n + data.m + 1
+    assert 1 <= prior.n_components <= 8
+    assert prior.means.shape == (prior.n_components, D)
+    assert prior.covariances.shape == (prior.n_components, D, D)
+    assert np.isclose(prior.weights.sum(), 1.0) and np.all(prior.weights >= cfg.min_weight)
+    assert np.all(np.linalg.eigvalsh(prior.covariances)[:, 0] > 0)
+    # the mixture reproduces the data mean
+    np.testing.assert_allclose(prior.weights @ prior.means, tuples(data).reshape(-1, D).mean(0), atol=0.05)
+
+
+def test_buffer_is_bounded_and_keeps_newest(data):
+    cfg = FitConfig(n_components=3, buffer_size=130)
+    r1, r2 = _subset(data, slice(0, 2)), _subset(data, slice(2, 4))
+    p1 = update_prior(None, r1, cfg, np.random.default_rng(0))
+    assert p1.buffer.shape[0] == min(130, 2 * data.T)
+    p2 = update_prior(p1, r2, cfg, np.random.default_rng(0))
+    D = 2 * data.n + data.m + 1
+    allt = np.concatenate([p1.buffer, tuples(r2).reshape(-1, D)])
+    assert p2.buffer.shape == (130, D)
+    np.testing.assert_array_equal(p2.buffer, allt[-130:])
+    np.testing.assert_array_equal(p2.buffer[-2 * data.T :], tuples(r2).reshape(-1, D))
+    p0 = update_prior(None, r1, cfg.replace(buffer_size=0), np.random.default_rng(0))
+    assert p0.buffer.shape == (0, D)
+
+
+def test_same_seed_gives_same_fit(data):
+    cfg = FitConfig(n_components=6)
+    ro = _subset(data, slice(0, 5))
+    pa = update_prior(None, data, cfg, np.random.default_rng(3))
+    pb = update_prior(None, data, cfg, np.random.default_rng(3))
+    for f in ("weights", "means", "covariances", "buffer"):
+        np.testing.assert_array_equal(getattr(pa, f), getattr(pb, f))
+    ma, mb = fit_augmented(ro, cfg, pa), fit_augmented(ro, cfg, pb)
+    np.testing.assert_array_equal(ma.Ao, mb.Ao)
+    np.testing.assert_array_equal(ma.So, mb.So)
+    # rng=None falls back to config.seed
+    pc = update_prior(None, data, cfg.replace(seed=11))
+    pd = update_prior(None, data, cfg.replace(seed=11))
+    np.testing.assert_array_equal(pc.means, pd.means)
+
+
+# --------------------------------------------------------------------------- validation / degenerate data
+
+
+def test_fewer_than_two_rollouts_is_an_error(data):
+    one = _subset(data, slice(0, 1))
+    for f in (fit_augmented, fit_dynamics):
+        with pytest.raises(ValueError, match="at least 2 rollouts"):
+            f(one, FitConfig(prior="none"))
+
+
+def test_prior_shape_mismatch_is_an_error(data):
+    prior = update_prior(None, data, FitConfig(n_components=3), np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((4, 6, 2))
+    a = rng.standard_normal((4, 5, 1))
+    y = np.full((4, 5), 0.5)
+    small = Rollouts(x=x, s=x, a=a, cost=-np.log(y), y=y)
+    with pytest.raises(ShapeError, match="n=6, m=2"):
+        fit_augmented(small, FitConfig(), prior)
+    with pytest.raises(ShapeError, match="n=6, m=2"):
+        fit_dynamics(small, FitConfig(), prior)
+    with pytest.raises(ShapeError, match="n=6, m=2"):
+        update_prior(prior, small, FitConfig(), rng)
+
+
+def test_nan_in_rollouts_is_rejected(data):
+    s = np.array(data.s)
+    s[1, 3, 2] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        Rollouts(x=data.x, s=s, a=data.a, cost=data.cost, y=data.y)
+
+
+def test_few_rollouts_least_squares_gives_pd_noise(data):
+    ro = _subset(data, slice(0, 3))  # M=3 < n+m=8
+    for prior in ("none", "mixture"):
+        cfg = FitConfig(prior=prior, n_components=4)
+        p = update_prior(None, ro, cfg, np.random.default_rng(0)) if prior == "mixture" else None
+        model = fit_augmented(ro, cfg, p)
+        assert np.all(np.isfinite(model.Ao))
+        assert np.all(np.linalg.eigvalsh(model.So)[:, 0] > 0)
+        dyn = fit_dynamics(ro, cfg, p)
+        assert np.all(np.linalg.eigvalsh(dyn.cov)[:, 0] > 0)
+
+
+def test_constant_state_component_is_regularised(data):
+    x = np.array(data.x)
+    x[..., 0] = 5.0
+    y = np.ones_like(data.y)  # constant observation row too
+    ro = Rollouts(x=x, s=x, a=data.a, cost=np.zeros_like(y), y=y)
+    for prior in ("none", "mixture"):
+        cfg = FitConfig(prior=prior, n_components=4)
+        p = update_prior(None, ro, cfg, np.random.default_rng(0)) if prior == "mixture" else None
+        model = fit_augmented(ro, cfg, p)
+        assert np.all(np.isfinite(model.Ao)) and np.all(np.linalg.eigvalsh(model.So)[:, 0] > 0)
+        # the constant component is predicted exactly (to the regulariser)
+        np.testing.assert_allclose(prediction_error(model, ro, "y"), 0.0, atol=1e-8)
+
+
+def test_config_toml_and_validation(tmp_path):
+    f = tmp_path / "fit.toml"
+    f.write_text('[fit]\nprior = "none"\nn_components = 5\nk0 = 2.0\n')
+    cfg = FitConfig.from_toml(f, table="fit")
+    assert cfg.prior == "none" and cfg.n_components == 5 and cfg.k0 == 2.0 and cfg.n0 == 1.0
+    assert FitConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ConfigError, match="prior"):
+        FitConfig.from_dict({"prior": "gmm"})
+    with pytest.raises(ConfigError, match="unknown config key"):
+        FitConfig.from_dict({"strength": 1.0})
+    with pytest.raises(ConfigError, match="k0"):
+        FitConfig.from_dict({"k0": 0})
+
+
+# --------------------------------------------------------------------------- cost observations
+
+
+def _closed_loop_y_moments(model: AugmentedModel, policy: LinearGaussianPolicy, mu0, P0):
+    """Exact mean and variance of y_k under the model and the policy, by moment propagation."""
+    n, m = model.n, model.m
+    mu, P = mu0.copy(), P0.copy()
+    mean, var = [], []
+    for k in range(model.T):
+        Kk, kk, Sk = policy.K[k], policy.k[k], policy.cov[k]
+        J = np.vstack([np.eye(n), Kk])
+        zm = np.concatenate([mu, Kk @ mu + kk])
+        Zc = J @ P @ J.T
+        Zc[n:, n:] += Sk
+        zm_next = model.Ao[k] @ zm + model.co[k]
+        C = model.Ao[k] @ Zc @ model.Ao[k].T + model.So[k]
+        mean.append(zm_next[n])
+        var.append(C[n, n])
+        mu, P = zm_next[:n], C[:n, :n]
+    return np.array(mean), np.array(var)
+
+
+@pytest.fixture(scope="module")
+def small_model(system):
+    ro = simulate_linear(system, 30, np.random.default_rng(3))
+    model = fit_augmented(ro, FitConfig(prior="none"))
+    rng = np.random.default_rng(4)
+    policy = LinearGaussianPolicy(
+        0.1 * rng.standard_normal((T, MU, N)), 0.2 * rng.standard_normal((T, MU)), np.broadcast_to(0.5 * np.eye(MU), (T, MU, MU))
+    )
+    return ro, model, policy
+
+
+def test_cost_observation_modes_shapes(small_model):
+    ro, model, policy = small_model
+    mu0, P0 = np.zeros(N), np.eye(N)
+    Y = cost_observations("model", ro, model, policy, mu0, P0, np.random.default_rng(0))
+    assert Y.shape == (ro.M, T)
+    Y = cost_observations("model", ro, model, policy, mu0, P0, np.random.default_rng(0), n_samples=7)
+    assert Y.shape == (7, T)
+    Ym = cost_observations("measured", ro)
+    assert Ym.shape == (ro.M, T)
+    np.testing.assert_array_equal(Ym, ro.y)
+    Yo = cost_observations("optimistic", ro, model)
+    assert Yo.shape == (1, T) and np.all(Yo == 1.0)
+    with pytest.raises(ValueError, match="'bogus'"):
+        cost_observations("bogus", ro, model, policy, mu0, P0, np.random.default_rng(0))
+    with pytest.raises(ShapeError):
+        cost_observations("model", ro, model, LinearGaussianPolicy.zeros(T - 1, N, MU), mu0, P0, np.random.default_rng(0))
+
+
+def test_model_cost_observations_match_model_moments(small_model):
+    ro, model, policy = small_model
+    mu0, P0 = 0.3 * np.ones(N), 0.5 * np.eye(N)
+    S = 4000
+    Y = cost_observations("model", ro, model, policy, mu0, P0, np.random.default_rng(5), n_samples=S)
+    mean, var = _closed_loop_y_moments(model, policy, mu0, P0)
+    # 5 standard errors per step (T=50 steps, two statistics each)
+    z_mean = (Y.mean(0) - mean) / np.sqrt(var / S)
+    z_var = (Y.var(0, ddof=1) - var) / (var * np.sqrt(2.0 / (S - 1)))
+    assert np.max(np.abs(z_mean)) < 5, np.max(np.abs(z_mean))
+    assert np.max(np.abs(z_var)) < 5, np.max(np.abs(z_var))
+
+
+def test_model_cost_observations_are_reproducible(small_model):
+    ro, model, policy = small_model
+    args = (ro, model, policy, np.zeros(N), np.eye(N))
+    a = cost_observations("model", *args, np.random.default_rng(9))
+    b = cost_observations("model", *args, np.random.default_rng(9))
+    np.testing.assert_array_equal(a, b)
+
+
+def test_prediction_error_validation(small_model):
+    ro, model, _ = small_model
+    with pytest.raises(ValueError, match="AugmentedModel"):
+        prediction_error(model.dynamics(), ro, "y")
+    assert prediction_error(model, ro).shape == (T,)
+    assert prediction_error(model, ro, "y").shape == (T,)
+    with pytest.raises(ValueError, match="target"):
+        prediction_error(model, ro, "both")
