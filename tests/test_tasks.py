@@ -1,0 +1,526 @@
+"""Tests for soc_opt/tasks.py: task loading, state layout, rollouts, linearisation, config errors."""
+
+import os
+
+import mujoco
+import numpy as np
+import pytest
+import scipy.integrate
+from scipy.optimize import least_squares
+
+from soc_opt.config import ConfigError
+from soc_opt.models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, Rollouts
+from soc_opt.tasks import (
+    LinearTask,
+    MujocoTask,
+    SimulationError,
+    Task,
+    TaskConfig,
+    build_task,
+    load_task,
+    render_filmstrip,
+)
+
+START = np.array([0.1, 0.1, -1.54, -1.7, 1.54, -0.2, 0.0])
+
+
+@pytest.fixture(scope="module")
+def peg():
+    return load_task("peg")
+
+
+@pytest.fixture(scope="module")
+def door():
+    return load_task("door")
+
+
+@pytest.fixture(scope="module")
+def lin():
+    return load_task("linear2d")
+
+
+# ----------------------------------------------------------------- loading and dimensions
+
+
+def test_builtin_tasks_load_with_spec_dimensions(peg, door, lin):
+    assert isinstance(peg, MujocoTask) and isinstance(door, MujocoTask) and isinstance(lin, LinearTask)
+    for t in (peg, door, lin):
+        assert isinstance(t, Task)
+        assert len(t.state_labels) == t.n and t.mu0.shape == (t.n,) and t.P0.shape == (t.n, t.n)
+        assert np.all(np.linalg.eigvalsh(t.P0) > 0)
+        pol = t.initial_policy(0.5)
+        assert (pol.T, pol.m, pol.n) == (t.T, t.m, t.n) and np.allclose(pol.cov, 0.5 * np.eye(t.m))
+    assert (peg.n, peg.m, peg.T) == (26, 7, 100) and peg.dt == pytest.approx(0.05)
+    assert (door.n, door.m, door.T) == (26, 6, 100) and door.dt == pytest.approx(0.05)
+    assert (lin.n, lin.m) == (6, 2)
+    assert peg.model.opt.gravity.tolist() == [0.0, 0.0, 0.0] and peg.model.opt.timestep == 0.01
+    np.testing.assert_allclose(peg.x0[:7], START)
+    assert peg.state_labels[14:20] == ["peg_top.x", "peg_top.y", "peg_top.z", "peg_bottom.x", "peg_bottom.y", "peg_bottom.z"]
+    assert door.state_labels[24:] == ["q:hinge", "qd:hinge"]
+    assert peg.P0[0, 0] == pytest.approx(0.1 + 1e-6)
+
+
+def test_peg_geometry_matches_spec(peg):
+    m = peg.model
+    g = m.geom("peg")
+    assert g.size[0] == pytest.approx(0.028) and 2 * g.size[1] == pytest.approx(0.3)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    assert np.linalg.norm(d.site("peg_top").xpos - d.site("peg_bottom").xpos) == pytest.approx(0.3)
+    # table top surface at z = -0.4 around a 0.066 x 0.066 hole centred at (0, 0.3); hole floor at z = -0.5
+    left, right = d.geom("table_left"), d.geom("table_right")
+    front, back = d.geom("table_front"), d.geom("table_back")
+    assert left.xpos[2] + m.geom("table_left").size[2] == pytest.approx(-0.4)
+    assert right.xpos[0] - m.geom("table_right").size[0] == pytest.approx(0.033)
+    assert left.xpos[0] + m.geom("table_left").size[0] == pytest.approx(-0.033)
+    assert back.xpos[1] - m.geom("table_back").size[1] == pytest.approx(0.333)
+    assert front.xpos[1] + m.geom("table_front").size[1] == pytest.approx(0.267)
+    fl = d.geom("hole_floor")
+    assert fl.xpos[2] + m.geom("hole_floor").size[2] == pytest.approx(-0.5)
+
+
+def _ik(task, targets, q_start):
+    """Joint angles putting each site at its target (scipy least squares on MuJoCo kinematics)."""
+    m = task.model
+    d = mujoco.MjData(m)
+    lo = np.where(m.jnt_limited, m.jnt_range[:, 0], -np.pi)
+    hi = np.where(m.jnt_limited, m.jnt_range[:, 1], np.pi)
+
+    def res(q):
+        d.qpos[:] = q
+        mujoco.mj_kinematics(m, d)
+        return np.concatenate([d.site(s).xpos - np.asarray(p) for s, p in targets.items()] + [1e-4 * (q - q_start)])
+
+    q = least_squares(res, q_start, bounds=(lo, hi), xtol=1e-14, ftol=1e-14).x
+    return q, np.abs(res(q)[:-len(q)]).max()
+
+
+def test_peg_targets_are_reachable_within_joint_limits(peg):
+    q, err = _ik(peg, {"peg_top": [0, 0.3, -0.2], "peg_bottom": [0, 0.3, -0.5]}, START)
+    assert err < 1e-3
+    d = mujoco.MjData(peg.model)
+    d.qpos[:] = q
+    mujoco.mj_forward(peg.model, d)
+    assert d.ncon == 0  # inserted pose does not penetrate the table
+
+
+# ----------------------------------------------------------------- physics sanity
+
+
+def test_zero_torque_holds_still_from_rest(peg, door):
+    for t in (peg, door):
+        r = t.simulate(LinearGaussianPolicy(np.zeros((t.T, t.m, t.n)), np.zeros((t.T, t.m)), np.broadcast_to(np.eye(t.m), (t.T, t.m, t.m))))
+        assert np.abs(r.x[0] - t.x0).max() < 1e-12
+
+
+def _pd_policy(task, q_targets, steps_each, w=2 * np.pi, zeta=0.9):
+    """PD on joint angles/velocities as a LinearGaussianPolicy: ``a = Kp (q* - q) - Kd qd``,
+    i.e. ``K = [-Kp, -Kd, 0]``, ``k = Kp q*``; ``q*`` steps through ``q_targets`` (the last one is held)."""
+    m = task.model
+    d = mujoco.MjData(m)
+    d.qpos[:] = q_targets[0]
+    mujoco.mj_forward(m, d)
+    Mf = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, Mf)
+    Md = np.diag(Mf)  # gains scaled by the joint-space inertia: ~1 Hz, well damped
+    Kp, Kd = w**2 * Md, 2 * zeta * w * Md
+    T, n, mm = task.T, task.n, task.m
+    K = np.zeros((T, mm, n))
+    k = np.zeros((T, mm))
+    j = np.arange(mm)
+    K[:, j, j] = -Kp
+    K[:, j, mm + j] = -Kd
+    for t in range(T):
+        k[t] = Kp * q_targets[min(t // steps_each, len(q_targets) - 1)]
+    return LinearGaussianPolicy(K, k, np.broadcast_to(np.eye(mm), (T, mm, mm)))
+
+
+def test_pd_policy_to_ik_poses_inserts_the_peg(peg):
+    # hover 0.1 m above the table over the hole, then descend straight down through IK waypoints
+    qs, q = [], START
+    for dz in (0.2, 0.2, 0.15, 0.1, 0.05, 0.0):
+        q, err = _ik(peg, {"peg_top": [0, 0.3, -0.2 + dz], "peg_bottom": [0, 0.3, -0.5 + dz]}, q)
+        assert err < 1e-3
+        qs.append(q)
+    r = peg.simulate(_pd_policy(peg, qs, steps_each=15))
+    pts = peg.ee_points(r.x[0])
+    np.testing.assert_allclose(pts[29, 1], [0, 0.3, -0.3], atol=0.02)  # hovering over the hole
+    met = peg.metrics(r)
+    assert met["min_distance"] < 0.02 and met["success_rate"] == 1.0 and met["failure_rate"] == 0.0
+    assert pts[-1, 1, 2] < -0.45  # the bottom is inside the hole, below the table surface
+
+
+def test_door_can_be_hooked_and_pulled_open(door):
+    """Feasibility of the door model: IK waypoints (hook tip down, into the gap behind the handle
+    bar, then following the handle as the door turns) tracked by a joint PD policy open the door."""
+    m, T = door.model, door.T
+    qa, hq = door._qadr[:6], door._qadr[6]
+    jid = [m.joint(nm).id for nm in door.config.state.joints]
+    lo = np.where(m.jnt_limited[jid], m.jnt_range[jid, 0], -np.pi)
+    hi = np.where(m.jnt_limited[jid], m.jnt_range[jid, 1], np.pi)
+    hook, handle = m.site("hook").id, m.site("handle").id
+    d = mujoco.MjData(m)
+
+    def ik(offset, hinge, q0, local):
+        def res(q):
+            d.qpos[qa] = q
+            d.qpos[hq] = hinge
+            mujoco.mj_kinematics(m, d)
+            R = d.site_xmat[handle].reshape(3, 3)
+            target = d.site_xpos[handle] + (R @ offset if local else offset)
+            return np.r_[d.site_xpos[hook] - target, 0.3 * (d.site_xmat[hook].reshape(3, 3)[:, 2] - [0, 0, 1]), 1e-3 * (q - q0)]
+
+        return least_squares(res, q0, bounds=(lo, hi)).x
+
+    qs, q = [], door.x0[:6]
+    for off in ([-0.1, 0, 0.12], [0, 0, 0.12], [0, 0, 0]):  # above and in front, above the gap, into the gap
+        q = ik(np.array(off), 0.0, q, local=False)
+        qs.append(q)
+    for h in np.linspace(-0.1, -1.2, 12):  # pull: follow the handle as the door opens
+        q = ik(np.array([-0.02, 0, 0]), h, q, local=True)
+        qs.append(q)
+    sched = [0] * 12 + [1] * 12 + [2] * 12 + [3 + i for i in range(12) for _ in range(5)]
+    d.qpos[:] = door.qpos_from_state(door.x0)
+    mujoco.mj_forward(m, d)
+    Mf = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, Mf)
+    Md = np.diag(Mf)[door._dadr[:6]]
+    Kp, Kd = 64.0 * Md, 2 * 0.8 * 8.0 * Md
+    K = np.zeros((T, 6, door.n))
+    j = np.arange(6)
+    K[:, j, j] = -Kp
+    K[:, j, 6 + j] = -Kd
+    k = np.array([Kp * qs[sched[min(t, len(sched) - 1)]] for t in range(T)])
+    r = door.simulate(LinearGaussianPolicy(K, k, np.broadcast_to(np.eye(6), (T, 6, 6))))
+    assert door.metrics(r)["min_hinge"] < -0.8
+
+
+# ----------------------------------------------------------------- state layout
+
+
+def test_site_positions_in_state_equal_mj_kinematics(peg, door):
+    for t in (peg, door):
+        r = t.rollouts(t.initial_policy(), 2, np.random.default_rng(1))
+        d = mujoco.MjData(t.model)
+        sl = t.layout["site_pos"]
+        for i, k in [(0, 0), (0, 37), (1, 100)]:
+            d.qpos[:] = t.qpos_from_state(r.x[i, k])
+            mujoco.mj_kinematics(t.model, d)
+            expected = np.concatenate([d.site(s).xpos for s in t.config.state.sites])
+            np.testing.assert_allclose(r.x[i, k, sl], expected, atol=1e-12)
+            np.testing.assert_allclose(t.ee_points(r.x[i, k]).ravel(), expected, atol=1e-12)
+
+
+def test_site_velocities_equal_finite_differences_of_positions(peg, door):
+    for t in (peg, door):
+        r = t.rollouts(t.initial_policy(), 1, np.random.default_rng(2))
+        d = mujoco.MjData(t.model)
+        sites = t.config.state.sites
+        for k in (10, 60):
+            x = r.x[0, k]
+            q = t.qpos_from_state(x)
+            qd = np.zeros(t.model.nv)
+            qd[t._dadr] = x[t._sqd]
+            assert np.abs(qd).max() > 1e-2  # moving
+            h = 1e-6
+            pos = []
+            for sign in (1, -1):
+                d.qpos[:] = q + sign * h * qd  # hinge joints: qpos and qvel share coordinates
+                mujoco.mj_kinematics(t.model, d)
+                pos.append(np.concatenate([d.site(s).xpos for s in sites]))
+            fd = (pos[0] - pos[1]) / (2 * h)
+            np.testing.assert_allclose(x[t.layout["site_vel"]], fd, atol=1e-6 * max(1, np.abs(fd).max()))
+
+
+# ----------------------------------------------------------------- rollouts
+
+
+def test_rollouts_shapes_costs_on_measured_state(peg):
+    r = peg.rollouts(peg.initial_policy(), 3, np.random.default_rng(0))
+    assert isinstance(r, Rollouts) and r.x.shape == (3, 101, 26) and r.a.shape == (3, 100, 7)
+    np.testing.assert_allclose(r.cost, peg.cost(r.s, r.a))
+    np.testing.assert_allclose(r.y, np.exp(-peg.y_scale * r.cost))
+    np.testing.assert_allclose(peg.true_cost(r), peg.cost(r.x, r.a))
+    assert not np.allclose(peg.true_cost(r), r.cost)
+    np.testing.assert_allclose(r.x[:, 0], np.broadcast_to(peg.x0, (3, 26)))
+
+
+def test_rollouts_actions_follow_policy_on_measured_state(peg):
+    rng = np.random.default_rng(5)
+    T, m, n = peg.T, peg.m, peg.n
+    pol = LinearGaussianPolicy(0.01 * rng.normal(size=(T, m, n)), rng.normal(size=(T, m)), np.broadcast_to(0.3 * np.eye(m), (T, m, m)))
+    r = peg.rollouts(pol, 2, np.random.default_rng(6))
+    # re-draw the same noise: eps first, then w
+    g = np.random.default_rng(6)
+    g.standard_normal((2, T + 1, n))
+    w = g.standard_normal((2, T, m))
+    expected = np.einsum("tij,mtj->mti", pol.K, r.s[:, :T]) + pol.k + np.einsum("tij,mtj->mti", pol.chol, w)
+    np.testing.assert_allclose(r.a, expected, atol=1e-12)
+
+
+def test_rollouts_are_reproducible_and_independent_of_workers(peg):
+    pol = peg.initial_policy()
+    r1 = peg.rollouts(pol, 5, np.random.default_rng(42))
+    r2 = peg.rollouts(pol, 5, np.random.default_rng(42))
+    r3 = peg.rollouts(pol, 5, np.random.default_rng(43))
+    r4 = peg.rollouts(pol, 5, np.random.default_rng(42), workers=2)
+    for f in ("x", "s", "a", "cost", "y"):
+        np.testing.assert_array_equal(getattr(r1, f), getattr(r2, f))
+        np.testing.assert_array_equal(getattr(r1, f), getattr(r4, f))
+    assert np.abs(r1.x - r3.x).max() > 1e-3
+
+
+def test_measurement_noise_has_variance_rho2(peg):
+    r = peg.rollouts(peg.initial_policy(), 4, np.random.default_rng(7))
+    eps = (r.s - r.x).ravel()
+    N = eps.size
+    se_var = peg.rho2 * np.sqrt(2.0 / (N - 1))
+    assert abs(eps.var(ddof=1) - peg.rho2) < 5 * se_var
+    assert abs(eps.mean()) < 5 * np.sqrt(peg.rho2 / N)
+    r0 = peg.rollouts(peg.initial_policy(), 2, np.random.default_rng(7), noise=False)
+    np.testing.assert_array_equal(r0.s, r0.x)
+
+
+def test_metrics_door_and_peg(peg, door):
+    r = door.rollouts(door.initial_policy(), 3, np.random.default_rng(0))
+    met = door.metrics(r)
+    ps = door.per_sample_metrics(r)
+    np.testing.assert_allclose(ps["min_hinge"], r.x[:, :, 24].min(axis=1))
+    assert met["min_hinge"] == pytest.approx(ps["min_hinge"].mean()) and met["min_hinge"] <= 0.0
+    r = peg.rollouts(peg.initial_policy(), 3, np.random.default_rng(0))
+    d = np.linalg.norm(r.x[:, :, 17:20] - [0, 0.3, -0.5], axis=-1).min(axis=1)
+    met = peg.metrics(r)
+    assert met["min_distance"] == pytest.approx(d.mean())
+    assert met["success_rate"] == pytest.approx(np.mean(d < 0.10))
+    assert met["failure_rate"] == pytest.approx(np.mean(d > 0.15))
+
+
+def test_cost_expansion_matches_task_cost(peg):
+    r = peg.rollouts(peg.initial_policy(), 1, np.random.default_rng(0))
+    q = peg.cost_expansion(r.s[0], r.a[0])
+    assert isinstance(q, QuadraticCost) and q.C.shape == (100, 33, 33)
+    np.testing.assert_allclose(q(r.s[0], r.a[0]), peg.cost(r.s[0], r.a[0]), rtol=1e-9)
+
+
+# ----------------------------------------------------------------- linear2d
+
+
+def test_linear2d_matches_continuous_point_mass(lin):
+    cfg = lin.config.linear
+    rng = np.random.default_rng(0)
+    x, u = rng.normal(size=6), rng.normal(size=2)
+
+    def f(t, z):
+        p, v, F = z[:2], z[2:4], z[4:]
+        return np.r_[v, F / cfg.mass, (u - F) / cfg.tau]
+
+    sol = scipy.integrate.solve_ivp(f, (0, lin.dt), x, rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(lin.step(x, u), sol.y[:, -1], atol=1e-8)
+    dyn = lin.linearize()
+    assert isinstance(dyn, LinearGaussianDynamics) and dyn.T == lin.T
+    np.testing.assert_allclose(dyn.A[3] @ x + dyn.B[3] @ u + dyn.c[3], lin.step(x, u))
+
+
+def test_linear2d_spec_cost(lin):
+    r = lin.rollouts(lin.initial_policy(), 2, np.random.default_rng(0), noise=False)
+    np.testing.assert_allclose(r.x, 0.0)
+    np.testing.assert_allclose(r.cost, 20.0**2 + 3.0**2)
+    r = lin.rollouts(lin.initial_policy(), 2, np.random.default_rng(0))
+    e = r.s[:, :-1] - [20, 3, 0, 0, 0, 0]
+    np.testing.assert_allclose(r.cost, (e**2).sum(-1) + 1e-5 * (r.a**2).sum(-1))
+
+
+# ----------------------------------------------------------------- custom model
+
+
+TWO_LINK = """
+<mujoco model="two_link_test">
+  <option timestep="0.005" gravity="0 0 0"/>
+  <worldbody>
+    <body name="l1">
+      <joint name="j1" type="hinge" axis="0 0 1" damping="0.1"/>
+      <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.03" mass="1"/>
+      <body name="l2" pos="0.5 0 0">
+        <joint name="j2" type="hinge" axis="0 0 1" damping="0.1"/>
+        <geom type="capsule" fromto="0 0 0 0.4 0 0" size="0.03" mass="0.5"/>
+        <site name="tip" pos="0.4 0 0"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor name="m1" joint="j1"/>
+    <motor name="m2" joint="j2"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def _two_link_config(**over):
+    cfg = {
+        "name": "two_link",
+        "T": 30,
+        "substeps": 4,
+        "q0": [0.3, 0.5],
+        "state": {"joints": ["j1", "j2"], "sites": ["tip"]},
+        "actuated": ["j1", "j2"],
+        "rho2": 0.01,
+        "init_var": 0.1,
+        "cost": [
+            {"type": "point", "sites": ["tip"], "target": [0.2, 0.6, 0.0], "l1": 0.1, "l2": 1.0, "ramp": "quadratic"},
+            {"type": "torque", "wu": [1e-2, 1e-2]},
+            {"type": "state", "labels": ["qd:j1", "qd:j2"], "weights": 0.1},
+        ],
+        "metric": {"type": "min_distance", "site": "tip", "target": [0.2, 0.6, 0.0], "success": 0.05},
+    }
+    cfg.update(over)
+    return cfg
+
+
+def test_custom_mjcf_string_task_end_to_end():
+    t = build_task(_two_link_config(), xml=TWO_LINK)
+    assert (t.n, t.m, t.T) == (2 + 2 + 3 + 3, 2, 30) and t.dt == pytest.approx(0.02)
+    r = t.rollouts(t.initial_policy(), 6, np.random.default_rng(0), workers=2)
+    met = t.metrics(r)
+    assert set(met) >= {"min_distance", "success_rate", "cost"}
+    q = t.cost_expansion(r.s[0], r.a[0])
+    np.testing.assert_allclose(q(r.s[0], r.a[0]), t.cost(r.s[0], r.a[0]), rtol=1e-9)
+    dyn = t.linearize(r.x[0], r.a[0])
+    assert dyn.A.shape == (30, 10, 10)
+    # the tip is 0.9 m from the origin at the start configuration (q0 = (0.3, 0.5))
+    tip = t.ee_points(t.x0)[0]
+    np.testing.assert_allclose(tip[:2], [0.5 * np.cos(0.3) + 0.4 * np.cos(0.8), 0.5 * np.sin(0.3) + 0.4 * np.sin(0.8)])
+
+
+def test_task_toml_with_relative_model_path(tmp_path):
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "arm.xml").write_text(TWO_LINK)
+    lines = [
+        'name = "two_link_file"', "T = 10", 'model = "models/arm.xml"', "q0 = [0.1, 0.2]",
+        "[state]", 'joints = ["j1", "j2"]', 'sites = ["tip"]',
+        "[[cost]]", 'type = "torque"', "wu = 0.1",
+    ]
+    (tmp_path / "task.toml").write_text("\n".join(lines))
+    t = load_task(tmp_path / "task.toml")
+    assert t.n == 10 and t.m == 2 and t.actuated == ["m1", "m2"]
+
+
+# ----------------------------------------------------------------- config errors
+
+
+def test_config_errors_name_the_problem(tmp_path):
+    with pytest.raises(ConfigError, match="unknown config key 'horizon'"):
+        build_task(_two_link_config(horizon=3), xml=TWO_LINK)
+    bad_cost = _two_link_config(cost=[{"type": "torque", "wu": 1.0, "wp": 2.0}])
+    with pytest.raises(ConfigError, match=r"'wp' in \[cost\[0\]\]"):
+        build_task(bad_cost, xml=TWO_LINK)
+    with pytest.raises(ConfigError, match="T: expected an integer"):
+        build_task(_two_link_config(T="30"), xml=TWO_LINK)
+    with pytest.raises(ConfigError, match="state.joints: expected a list"):
+        build_task(_two_link_config(state={"joints": "j1"}), xml=TWO_LINK)
+    with pytest.raises(ConfigError, match="cost\\[0\\].type: 'pointy'"):
+        build_task(_two_link_config(cost=[{"type": "pointy"}]), xml=TWO_LINK)
+    with pytest.raises(ConfigError, match="ramp: 'cubic' is not one of"):
+        build_task(_two_link_config(cost=[{"type": "torque", "ramp": "cubic"}]), xml=TWO_LINK)
+    with pytest.raises(ConfigError, match="no_such_model.xml"):
+        build_task(_two_link_config(model="no_such_model.xml"), base_dir=tmp_path)
+    with pytest.raises(ConfigError, match="site 'fingertip' not found"):
+        build_task(_two_link_config(state={"joints": ["j1", "j2"], "sites": ["fingertip"]}), xml=TWO_LINK)
+    with pytest.raises(ConfigError, match="joint 'elbow' not found"):
+        build_task(_two_link_config(state={"joints": ["j1", "elbow"], "sites": ["tip"]}), xml=TWO_LINK)
+    with pytest.raises(ConfigError, match="no joint or actuator named 'j3'"):
+        build_task(_two_link_config(actuated=["j1", "j3"]), xml=TWO_LINK)
+    with pytest.raises(ConfigError, match="site 'elbow_site' is not in the state"):
+        build_task(_two_link_config(cost=[{"type": "point", "sites": ["elbow_site"], "target": [0, 0, 0]}]), xml=TWO_LINK)
+    with pytest.raises(ConfigError, match="q0: expected 2 numbers"):
+        build_task(_two_link_config(q0=[0.1]), xml=TWO_LINK)
+    with pytest.raises(ConfigError, match="task 'bogus': not a built-in task"):
+        load_task("bogus")
+
+
+def test_missing_model_file_is_reported_before_simulation(tmp_path):
+    (tmp_path / "t.toml").write_text('name = "x"\nT = 5\nmodel = "missing.xml"\n')
+    with pytest.raises(ConfigError, match="missing.xml.*does not exist"):
+        load_task(tmp_path / "t.toml")
+
+
+def test_config_roundtrip_and_parsed_cost_terms():
+    cfg = TaskConfig.from_dict(_two_link_config())
+    assert [type(c).__name__ for c in cfg.cost] == ["PointTermConfig", "TorqueTermConfig", "StateTermConfig"]
+    again = TaskConfig.from_dict(cfg.to_dict())
+    assert again == cfg
+
+
+# ----------------------------------------------------------------- divergence
+
+
+def test_divergence_raises_simulation_error_naming_sample_and_step():
+    t = build_task(_two_link_config(rho2=0.0), xml=TWO_LINK)
+    T, m, n = t.T, t.m, t.n
+    K = np.zeros((T, m, n))
+    K[:, 0, 2] = K[:, 1, 3] = 1e6  # absurd positive velocity feedback
+    pol = LinearGaussianPolicy(K, np.zeros((T, m)), np.broadcast_to(1e-2 * np.eye(m), (T, m, m)))
+    for workers in (1, 2):
+        with pytest.raises(SimulationError, match=r"sample 0 diverged at control step \d+"):
+            t.rollouts(pol, 3, np.random.default_rng(0), workers=workers)
+
+
+# ----------------------------------------------------------------- linearisation
+
+
+def _fd_step(task, x, u, h=1e-6):
+    A = np.zeros((task.n, task.n))
+    B = np.zeros((task.n, task.m))
+    joint_cols = np.r_[task._sq, task._sqd]
+    for i in joint_cols:
+        e = np.zeros(task.n)
+        e[i] = h
+        A[:, i] = (task.step(x + e, u) - task.step(x - e, u)) / (2 * h)
+    for j in range(task.m):
+        e = np.zeros(task.m)
+        e[j] = h
+        B[:, j] = (task.step(x, u + e) - task.step(x, u - e)) / (2 * h)
+    return A, B
+
+
+@pytest.mark.parametrize("name", ["peg", "door"])
+def test_linearize_matches_finite_differences_of_step(name):
+    task = load_task(name, overrides={"T": 2})
+    rng = np.random.default_rng(3)
+    x = task.x0.copy()
+    x[task._sq] += 0.05 * rng.normal(size=len(task._sq))
+    x[task._sqd] += 0.3 * rng.normal(size=len(task._sqd))
+    x = task.step(x, np.zeros(task.m))  # consistent site components
+    u = rng.normal(size=task.m)
+    X = np.stack([x, x, x])
+    U = np.stack([u, u])
+    dyn = task.linearize(X, U)
+    A_fd, B_fd = _fd_step(task, x, u)
+    np.testing.assert_allclose(dyn.A[0], A_fd, atol=1e-5 * np.abs(A_fd).max())
+    np.testing.assert_allclose(dyn.B[0], B_fd, atol=1e-5 * np.abs(B_fd).max())
+    np.testing.assert_allclose(dyn.A[0] @ x + dyn.B[0] @ u + dyn.c[0], task.step(x, u), atol=1e-10)
+    # site components of the state carry no information of their own
+    site_cols = np.setdiff1d(np.arange(task.n), np.r_[task._sq, task._sqd])
+    assert np.all(dyn.A[0][:, site_cols] == 0)
+
+
+# ----------------------------------------------------------------- rendering
+
+
+def test_render_fallback_writes_a_picture(tmp_path, peg, lin):
+    r = peg.rollouts(peg.initial_policy(), 2, np.random.default_rng(0))
+    res = render_filmstrip(peg, r, tmp_path / "peg.png", frames=3, backends=())
+    assert res.backend == "matplotlib" and "unavailable" in res.message
+    assert (tmp_path / "peg.png").read_bytes()[:4] == b"\x89PNG"
+    res = render_filmstrip(lin, lin.simulate(lin.initial_policy()), tmp_path / "lin.png")
+    assert res.backend == "matplotlib" and os.path.getsize(tmp_path / "lin.png") > 0
+
+
+@pytest.mark.slow
+def test_render_filmstrip_offscreen(tmp_path, peg):
+    r = peg.simulate(peg.initial_policy())
+    res = render_filmstrip(peg, r, tmp_path / "strip.png", frames=4, width=160, height=120)
+    assert (tmp_path / "strip.png").read_bytes()[:4] == b"\x89PNG"
+    if res.backend != "matplotlib":
+        from PIL import Image
+
+        assert Image.open(tmp_path / "strip.png").size == (4 * 160, 120)
