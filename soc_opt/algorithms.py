@@ -61,7 +61,8 @@ class LQRFLMConfig(Config):
     adapt_step:  adapt ``mult`` from predicted vs actual improvement (GPS rule, see lqg.adapt_step).
     workers:     parallel rollout workers (results do not depend on it).
     fit:         dynamics-fitting configuration (SPEC §2).
-    kl:          KL-step solver configuration (SPEC §6).
+    kl:          KL-step solver configuration (SPEC §6); inside the loop the dual is solved to
+                 ``kl_rtol = 1e-6`` (a budget is a step size, not a quantity to hit to 1e-10).
     """
 
     iterations: int = 14
@@ -72,7 +73,7 @@ class LQRFLMConfig(Config):
     adapt_step: bool = True
     workers: int = 1
     fit: fit.FitConfig = field(default_factory=fit.FitConfig)
-    kl: lqg.KLStepConfig = field(default_factory=lqg.KLStepConfig)
+    kl: lqg.KLStepConfig = field(default_factory=lambda: lqg.KLStepConfig(kl_rtol=1e-6))
 
     def __post_init__(self):
         if self.iterations < 1:

@@ -1,0 +1,91 @@
+"""Tests for soc_opt/experiment.py and soc_opt/compare.py: run directories, resume, reports."""
+
+import json
+
+import numpy as np
+import pytest
+
+from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig
+from soc_opt.experiment import run_experiment
+from soc_opt.tasks import load_task
+
+
+@pytest.fixture(scope="module")
+def task():
+    return load_task("linear2d", overrides={"T": 15})
+
+
+def _cfg(iterations=4, i_switch=1):
+    return DPSOCConfig(i_switch=i_switch, baseline=LQRFLMConfig(iterations=iterations, samples=6, kl_budget=1.0),
+                       em=EMConfig(n_em=1))
+
+
+class _Kill(Exception):
+    pass
+
+
+@pytest.mark.parametrize("method", ["lqr-flm", "dpsoc-em"])
+def test_killed_run_resumes_to_the_same_results(task, tmp_path, method):
+    cfg = _cfg()
+    full = run_experiment(task, method, cfg, seed=3, out=tmp_path / "full")
+
+    def kill_after_two(st):
+        if st.iteration == 2:
+            raise _Kill
+
+    with pytest.raises(_Kill):
+        run_experiment(task, method, cfg, seed=3, out=tmp_path / "killed", on_iteration=kill_after_two)
+    partial = json.loads((tmp_path / "killed" / "metrics.json").read_text())
+    assert max(r["iteration"] for r in partial) == 1  # two iterations (0, 1) were written
+    resumed = run_experiment(task, method, cfg, seed=3, out=tmp_path / "killed")
+    assert resumed.iteration == full.iteration == cfg.baseline.iterations
+    np.testing.assert_array_equal(resumed.policy.K, full.policy.K)
+    np.testing.assert_array_equal(resumed.policy.cov, full.policy.cov)
+    a = json.loads((tmp_path / "full" / "metrics.json").read_text())
+    b = json.loads((tmp_path / "killed" / "metrics.json").read_text())
+    strip = lambda rows: [{k: v for k, v in r.items() if not k.startswith("time")} for r in rows]  # noqa: E731
+    assert strip(a) == strip(b)
+
+
+def test_run_directory_holds_the_promised_files(task, tmp_path):
+    cfg = _cfg(iterations=2)
+    run_experiment(task, "dpsoc-em", cfg, seed=0, out=tmp_path / "r")
+    d = tmp_path / "r"
+    for name in ("config.json", "metrics.csv", "metrics.json", "checkpoint.pkl", "best_policy.npz",
+                 "policies/iter_002.npz", "samples/iter_001.npz"):
+        assert (d / name).exists(), name
+    rows = json.loads((d / "metrics.json").read_text())
+    assert [r["phase"] for r in rows] == ["baseline", "em", "baseline"]
+    pol = np.load(d / "policies" / "iter_002.npz")
+    assert pol["K"].shape == (task.T, task.m, task.n)
+
+
+def test_run_directory_refuses_a_different_configuration(task, tmp_path):
+    run_experiment(task, "lqr-flm", _cfg(iterations=1, i_switch=0), seed=0, out=tmp_path / "r")
+    with pytest.raises(ValueError, match="different configuration"):
+        run_experiment(task, "lqr-flm", _cfg(iterations=2, i_switch=0), seed=0, out=tmp_path / "r")
+
+
+def test_compare_writes_a_report_with_figures_and_claims(task, tmp_path):
+    from soc_opt.compare import compare
+
+    summary = compare(task, _cfg(iterations=3), seeds=[0, 1], out=tmp_path / "cmp")
+    out = tmp_path / "cmp"
+    md = (out / "report.md").read_text()
+    for fig in ("cost_per_iteration.png", "ee_trajectories.png", "actions.png"):
+        assert (out / fig).stat().st_size > 1000
+        assert fig in md
+    assert len(summary["claims"]) == 3
+    for row in summary["claims"]:
+        assert row["seeds"] == 2 and row["held"] == (row["dpsoc_mean"] < row["baseline_mean"])
+
+
+def test_compare_shares_the_baseline_prefix(task, tmp_path):
+    from soc_opt.compare import compare
+
+    compare(task, _cfg(iterations=3, i_switch=2), seeds=[5], out=tmp_path / "cmp")
+    base = json.loads((tmp_path / "cmp" / "seed_5" / "lqr-flm" / "metrics.json").read_text())
+    em = json.loads((tmp_path / "cmp" / "seed_5" / "dpsoc-em" / "metrics.json").read_text())
+    for r_base, r_em in zip(base[:2], em[:2]):
+        assert r_base["cost_mean"] == r_em["cost_mean"]
+    assert em[2]["phase"] == "em"
