@@ -1,0 +1,506 @@
+"""Tests of ``soc_opt.lqg`` (SPEC §6): LQR, moments, KL, the KL-constrained LQG step.
+
+Oracles: ``scipy.linalg.solve_discrete_are`` (LQR), Monte Carlo with tolerances from the
+sample standard errors (moments, expected cost, KL), CasADi/IPOPT on the same problem
+(policy and multipliers of the KL step), perturbation of the Lagrangian (optimality of the
+backward pass), and KKT conditions (feasibility, complementary slackness) under hypothesis.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from soc_opt.config import ConfigError
+from soc_opt.lqg import (
+    KLStepConfig,
+    LocalModel,
+    SolverError,
+    adapt_step,
+    expected_cost,
+    forward,
+    kl_divergence,
+    kl_step,
+    laplace_improvements,
+    lqr,
+)
+from soc_opt.models import (
+    LinearGaussianDynamics,
+    LinearGaussianPolicy,
+    NotPositiveDefiniteError,
+    QuadraticCost,
+    ShapeError,
+)
+
+# ----------------------------------------------------------------------------------------------
+# random well-posed instances
+# ----------------------------------------------------------------------------------------------
+
+
+def make_problem(rng, n=3, m=2, T=8, *, ref_var=0.5, convex=True):
+    """Stable time-varying dynamics, convex quadratic costs (PD action block), PD reference."""
+    A = np.empty((T, n, n))
+    for t in range(T):
+        Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+        A[t] = 0.9 * Q + 0.1 * rng.standard_normal((n, n)) / np.sqrt(n)
+    B = rng.standard_normal((T, n, m)) / np.sqrt(n)
+    c = 0.1 * rng.standard_normal((T, n))
+    Wf = 0.1 * rng.standard_normal((T, n, n))
+    W = Wf @ np.swapaxes(Wf, 1, 2) + 0.01 * np.eye(n)
+    M = rng.standard_normal((T, n + m, n + m))
+    C = M @ np.swapaxes(M, 1, 2) / (n + m) + 0.1 * np.eye(n + m)
+    if not convex:
+        C[:, n:, n:] -= 2.0 * np.eye(m)
+    cost = QuadraticCost(C, rng.standard_normal((T, n + m)), n, c0=rng.standard_normal(T))
+    Kh = 0.3 * rng.standard_normal((T, m, n)) / np.sqrt(n)
+    kh = 0.5 * rng.standard_normal((T, m))
+    Lf = 0.3 * rng.standard_normal((T, m, m))
+    Sh = Lf @ np.swapaxes(Lf, 1, 2) + ref_var * np.eye(m)
+    ref = LinearGaussianPolicy(Kh, kh, Sh)
+    mu0 = rng.standard_normal(n)
+    P0 = 0.1 * np.eye(n)
+    return LinearGaussianDynamics(A, B, c, W), cost, ref, mu0, P0
+
+
+def max_policy_diff(p, q):
+    return max(np.abs(p.K - q.K).max(), np.abs(p.k - q.k).max(), np.abs(p.cov - q.cov).max())
+
+
+def lagrangian(dyn, cost, pol, ref, mu0, P0, eta, nu):
+    kl = kl_divergence(dyn, pol, ref, mu0, P0)
+    return expected_cost(dyn, cost, pol, mu0, P0).sum() + np.sum(eta * (kl - nu))
+
+
+# ----------------------------------------------------------------------------------------------
+# moments: Monte Carlo
+# ----------------------------------------------------------------------------------------------
+
+
+def _gauss_logpdf(x, mean, L):
+    """log N(x; mean, L L^T) for rows of x (..., d)."""
+    z = sla.solve_triangular(L, (x - mean).T, lower=True)
+    d = x.shape[-1]
+    return -0.5 * (z * z).sum(0) - np.log(np.diag(L)).sum() - 0.5 * d * np.log(2 * np.pi)
+
+
+def test_moments_expected_cost_and_kl_match_monte_carlo():
+    rng = np.random.default_rng(0)
+    n, m, T, M = 3, 2, 6, 100_000
+    dyn, cost, ref, mu0, P0 = make_problem(rng, n, m, T)
+    Lp = 0.4 * rng.standard_normal((T, m, m))
+    pol = LinearGaussianPolicy(ref.K + 0.2 * rng.standard_normal((T, m, n)), ref.k + 0.3,
+                               Lp @ np.swapaxes(Lp, 1, 2) + 0.3 * np.eye(m))
+    marg = forward(dyn, pol, mu0, P0)
+    ec = expected_cost(dyn, cost, pol, mu0, P0)
+    kl = kl_divergence(dyn, pol, ref, mu0, P0)
+
+    s = rng.multivariate_normal(mu0, P0, size=M)
+    Lw = np.linalg.cholesky(dyn.cov)
+    Lpol, Lref = np.linalg.cholesky(pol.cov), np.linalg.cholesky(ref.cov)
+    for t in range(T):
+        a = pol.sample_action(t, s, rng)
+        # state marginal
+        np.testing.assert_allclose(s.mean(0), marg.mean[t], atol=6 * np.sqrt(np.diag(marg.cov[t]) / M).max())
+        z = np.concatenate([s, a], axis=1)
+        lk = 0.5 * np.einsum("mi,ij,mj->m", z, cost.C[t], z) + z @ cost.c[t] + cost.c0[t]
+        assert abs(lk.mean() - ec[t]) <= 5 * lk.std() / np.sqrt(M)
+        # KL: E[log p(a|s) - log phat(a|s)] with a ~ p(.|s), s ~ p(s_t)
+        lr = _gauss_logpdf(a, pol.mean_action(t, s), Lpol[t]) - _gauss_logpdf(a, ref.mean_action(t, s), Lref[t])
+        assert abs(lr.mean() - kl[t]) <= 5 * lr.std() / np.sqrt(M)
+        np.testing.assert_allclose(np.cov(a.T), marg.a_cov[t], atol=6 * np.abs(marg.a_cov[t]).max() * np.sqrt(2 / M))
+        s = s @ dyn.A[t].T + a @ dyn.B[t].T + dyn.c[t] + rng.standard_normal((M, n)) @ Lw[t].T
+    np.testing.assert_allclose(s.mean(0), marg.mean[T], atol=6 * np.sqrt(np.diag(marg.cov[T]) / M).max())
+
+
+def test_kl_of_reference_is_zero_and_singular_policy_is_infinite():
+    rng = np.random.default_rng(1)
+    dyn, cost, ref, mu0, P0 = make_problem(rng)
+    np.testing.assert_allclose(kl_divergence(dyn, ref, ref, mu0, P0), 0.0, atol=1e-12)
+    det = LinearGaussianPolicy(ref.K, ref.k, np.zeros_like(ref.cov), allow_singular=True)
+    assert np.all(np.isinf(kl_divergence(dyn, det, ref, mu0, P0)))
+
+
+# ----------------------------------------------------------------------------------------------
+# LQR
+# ----------------------------------------------------------------------------------------------
+
+
+def test_lqr_first_gain_matches_discrete_are_on_long_horizon():
+    rng = np.random.default_rng(2)
+    n, m, T = 4, 2, 400
+    A = rng.standard_normal((n, n)) / np.sqrt(n) * 1.1  # possibly unstable, (A, B) controllable
+    B = rng.standard_normal((n, m))
+    Qf = rng.standard_normal((n, n))
+    Q = Qf @ Qf.T + 0.1 * np.eye(n)
+    R = np.diag([0.5, 2.0])
+    C = np.zeros((T, n + m, n + m))
+    C[:, :n, :n], C[:, n:, n:] = Q, R  # l = 1/2 z^T blockdiag(Q, R) z: no cross terms
+    dyn = LinearGaussianDynamics(np.repeat(A[None], T, 0), np.repeat(B[None], T, 0), np.zeros((T, n)),
+                                 np.repeat(0.01 * np.eye(n)[None], T, 0))
+    pol = lqr(dyn, QuadraticCost(C, np.zeros((T, n + m)), n), np.zeros(n), np.eye(n))
+    X = sla.solve_discrete_are(A, B, Q, R)
+    K_are = -np.linalg.solve(R + B.T @ X @ B, B.T @ X @ A)
+    np.testing.assert_allclose(pol.K[0], K_are, atol=1e-6, rtol=0)
+    np.testing.assert_array_equal(pol.cov, 0.0)
+    np.testing.assert_allclose(pol.k, 0.0, atol=1e-12)
+
+
+def test_lqr_is_the_unconstrained_minimiser_of_expected_cost():
+    rng = np.random.default_rng(3)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
+    pol = lqr(dyn, cost, mu0, P0)
+    j0 = expected_cost(dyn, cost, pol, mu0, P0).sum()
+    for _ in range(20):
+        pert = LinearGaussianPolicy(pol.K + 1e-3 * rng.standard_normal(pol.K.shape),
+                                    pol.k + 1e-3 * rng.standard_normal(pol.k.shape), pol.cov, allow_singular=True)
+        assert expected_cost(dyn, cost, pert, mu0, P0).sum() >= j0 - 1e-12
+
+
+def test_lqr_raises_when_cost_not_convex_in_action():
+    rng = np.random.default_rng(4)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, convex=False)
+    with pytest.raises(NotPositiveDefiniteError, match=r"Quu\[\d+\]"):
+        lqr(dyn, cost, mu0, P0)
+
+
+# ----------------------------------------------------------------------------------------------
+# KL step: closed form
+# ----------------------------------------------------------------------------------------------
+
+
+def test_infinite_budget_gives_lqr():
+    rng = np.random.default_rng(5)
+    dyn, cost, ref, mu0, P0 = make_problem(rng)
+    pol = lqr(dyn, cost, mu0, P0)
+    for nu in (np.inf, np.full(dyn.T, np.inf)):
+        res = kl_step(dyn, cost, ref, nu, mu0, P0)
+        assert max_policy_diff(res.policy, pol) == 0.0
+        np.testing.assert_array_equal(res.eta, 0.0)
+        assert res.scalar_eta == np.isscalar(nu)
+    res = kl_step(dyn, cost, ref, np.inf, mu0, P0, method="casadi")
+    assert max_policy_diff(res.policy, pol) < 1e-6
+
+
+def test_zero_budget_gives_reference():
+    rng = np.random.default_rng(6)
+    dyn, cost, ref, mu0, P0 = make_problem(rng)
+    res = kl_step(dyn, cost, ref, 0.0, mu0, P0)
+    assert max_policy_diff(res.policy, ref) == 0.0
+    assert np.all(np.isinf(res.eta)) and np.all(res.kl == 0.0)
+
+
+def test_scalar_budget_is_met_with_one_multiplier():
+    rng = np.random.default_rng(7)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 4, 2, 10)
+    res = kl_step(dyn, cost, ref, 0.7, mu0, P0)
+    assert res.scalar_eta and res.eta.shape == (10,) and np.all(res.eta == res.eta[0]) and res.eta[0] > 0
+    assert abs(res.kl.sum() / 0.7 - 1) < 1e-9
+    assert res.expected_cost <= expected_cost(dyn, cost, ref, mu0, P0).sum()
+    assert abs(res.dual_value - res.expected_cost) < 1e-8 * abs(res.expected_cost)  # strong duality
+    # warm start from the solution: converged at the first backward pass
+    assert kl_step(dyn, cost, ref, 0.7, mu0, P0, eta0=res.eta).n_backward == 1
+
+
+def test_per_step_budgets_are_met_and_warm_start_is_cheap():
+    rng = np.random.default_rng(8)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 4, 2, 10)
+    nu = rng.uniform(0.05, 1.0, 10)
+    res = kl_step(dyn, cost, ref, nu, mu0, P0)
+    assert not res.scalar_eta
+    np.testing.assert_allclose(res.kl, nu, rtol=1e-9)
+    assert np.all(res.eta > 0)
+    assert kl_step(dyn, cost, ref, nu, mu0, P0, eta0=res.eta).n_backward == 1
+
+
+def test_backward_pass_minimises_the_lagrangian():
+    """For the returned multipliers, random perturbations of (K, k, Sigma) never lower L."""
+    rng = np.random.default_rng(9)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
+    nu = rng.uniform(0.1, 1.0, 6)
+    res = kl_step(dyn, cost, ref, nu, mu0, P0)
+    pol = res.policy
+    L0 = lagrangian(dyn, cost, pol, ref, mu0, P0, res.eta, nu)
+    Lc = np.linalg.cholesky(pol.cov)
+    for _ in range(30):
+        Lp = Lc + 1e-3 * np.tril(rng.standard_normal(Lc.shape))
+        pert = LinearGaussianPolicy(pol.K + 1e-3 * rng.standard_normal(pol.K.shape),
+                                    pol.k + 1e-3 * rng.standard_normal(pol.k.shape), Lp @ np.swapaxes(Lp, 1, 2))
+        assert lagrangian(dyn, cost, pert, ref, mu0, P0, res.eta, nu) >= L0 - 1e-10 * abs(L0)
+
+
+def test_slack_budgets_have_zero_multipliers():
+    rng = np.random.default_rng(10)
+    T = 10
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 4, 2, T)
+    nu = rng.uniform(0.05, 1.0, T)
+    nu[[1, 6]] = np.inf  # unconstrained: eta = 0 exactly, deterministic step
+    nu[[3, 8]] = 1e3  # finite but far above KL(eta_min): slack, eta = eta_min
+    nu[4] = 0.0  # pinned to the reference
+    cfg = KLStepConfig()
+    res = kl_step(dyn, cost, ref, nu, mu0, P0, config=cfg)
+    assert np.all(res.eta[[1, 6]] == 0.0) and np.all(res.policy.cov[[1, 6]] == 0.0)
+    assert np.all(res.eta[[3, 8]] == cfg.eta_min) and np.all(res.kl[[3, 8]] < nu[[3, 8]])
+    assert np.isinf(res.eta[4]) and res.kl[4] == 0.0
+    active = np.isfinite(nu) & (nu > 0) & (nu < 1e3)
+    np.testing.assert_allclose(res.kl[active], nu[active], rtol=1e-9)
+
+
+def test_nonconvex_cost_is_repaired_by_raising_eta():
+    rng = np.random.default_rng(11)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6, convex=False)
+    for nu in (0.5, np.full(6, 0.2)):
+        res = kl_step(dyn, cost, ref, nu, mu0, P0)
+        np.testing.assert_allclose(res.kl.sum() if np.isscalar(nu) else res.kl, nu, rtol=1e-9)
+        # every Quu(eta) was PD: the policy covariance eta Quu^-1 is PD
+        assert np.all(np.linalg.eigvalsh(res.policy.cov) > 0)
+    with pytest.raises(NotPositiveDefiniteError, match="eta_max"):
+        kl_step(dyn, cost, ref, 0.5, mu0, P0, config=KLStepConfig(eta_max=1e-3, eta_init=1e-4))
+    nu = np.full(6, 0.2)
+    nu[-1] = np.inf  # no KL term at a step whose cost is concave in the action: unbounded
+    with pytest.raises(NotPositiveDefiniteError, match=r"Quu\[5\].*without a finite KL budget"):
+        kl_step(dyn, cost, ref, nu, mu0, P0)
+
+
+# ----------------------------------------------------------------------------------------------
+# KL step: closed form vs CasADi / IPOPT
+# ----------------------------------------------------------------------------------------------
+
+CASES = [
+    # (seed, n, m, T, budget kind)
+    (20, 3, 1, 8, "per_step"),
+    (21, 4, 2, 10, "per_step_mixed"),
+    (22, 4, 2, 10, "total"),
+    (23, 2, 2, 15, "per_step_mixed"),
+    (24, 5, 2, 6, "total"),
+]
+
+
+def _budgets(rng, T, kind):
+    if kind == "total":
+        return float(rng.uniform(0.2, 3.0))
+    nu = rng.uniform(0.02, 1.0, T)
+    if kind == "per_step_mixed":
+        nu[::4] = np.inf  # slack, eta = 0
+        nu[2] = 1e3  # slack at eta_min
+        nu[-1] = 0.0  # pinned to the reference, eta = inf
+    return nu
+
+
+def _compare(seed, n, m, T, kind):
+    rng = np.random.default_rng(seed)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, n, m, T)
+    nu = _budgets(rng, T, kind)
+    cf = kl_step(dyn, cost, ref, nu, mu0, P0)
+    ip = kl_step(dyn, cost, ref, nu, mu0, P0, method="casadi")
+    assert ip.status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+    assert max_policy_diff(cf.policy, ip.policy) < 1e-5
+    assert abs(cf.expected_cost - ip.expected_cost) <= 1e-7 * max(1.0, abs(cf.expected_cost))
+    nu_full = np.full(T, nu) if np.isscalar(nu) else nu
+    for res in (cf, ip):
+        if np.isscalar(nu):
+            assert res.kl.sum() <= nu * (1 + 1e-6)
+        else:
+            fin = np.isfinite(nu_full)
+            assert np.all(res.kl[fin] <= nu_full[fin] * (1 + 1e-6) + 1e-12)
+    eta_min = KLStepConfig().eta_min
+    pinned = np.isinf(cf.eta)
+    assert np.all(np.isinf(ip.eta[pinned])) and np.all(cf.policy.K[pinned] == ref.K[pinned])
+    active = (cf.eta > 10 * eta_min) & ~pinned
+    np.testing.assert_allclose(ip.eta[active], cf.eta[active], rtol=1e-4)
+    slack = ~active & ~pinned
+    assert np.all(ip.eta[slack] < 1e-6) and np.all(cf.eta[slack] <= eta_min)
+    # CasADi's multipliers of g = KL <= nu are >= 0: no sign flip against eta
+    assert np.all(ip.lam_g >= -1e-9)
+    return cf, ip
+
+
+@pytest.mark.parametrize("seed,n,m,T,kind", CASES)
+def test_closed_form_matches_ipopt(seed, n, m, T, kind):
+    _compare(seed, n, m, T, kind)
+
+
+def test_closed_form_matches_ipopt_on_nonconvex_cost():
+    rng = np.random.default_rng(25)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6, convex=False)
+    nu = np.full(6, 0.3)
+    cf = kl_step(dyn, cost, ref, nu, mu0, P0)
+    ip = kl_step(dyn, cost, ref, nu, mu0, P0, method="casadi")
+    assert max_policy_diff(cf.policy, ip.policy) < 1e-5
+    np.testing.assert_allclose(ip.eta, cf.eta, rtol=1e-4)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["per_step_mixed", "total"])
+def test_closed_form_matches_ipopt_largest_documented_size(kind):
+    _compare(30, 6, 3, 20, kind)
+
+
+def test_ipopt_failure_raises_solver_error():
+    rng = np.random.default_rng(26)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
+    with pytest.raises(SolverError, match="IPOPT"):
+        kl_step(dyn, cost, ref, 0.5, mu0, P0, method="casadi", config=KLStepConfig(ipopt_max_iter=1))
+
+
+# ----------------------------------------------------------------------------------------------
+# KKT properties under hypothesis
+# ----------------------------------------------------------------------------------------------
+
+
+@st.composite
+def problems(draw):
+    seed = draw(st.integers(0, 2**32 - 1))
+    n = draw(st.integers(1, 4))
+    m = draw(st.integers(1, 3))
+    T = draw(st.integers(1, 8))
+    rng = np.random.default_rng(seed)
+    ref_var = float(10 ** rng.uniform(-1.5, 1))
+    convex = draw(st.booleans()) or n > 2
+    prob = make_problem(rng, n, m, T, ref_var=ref_var, convex=convex)
+    kind = draw(st.sampled_from(["total", "per_step"]))
+    if kind == "total":
+        nu = float(10 ** rng.uniform(-3, 1.5))
+    else:
+        nu = 10 ** rng.uniform(-3, 1, T)
+        if convex:  # an unconstrained step of a non-convex cost is unbounded (tested elsewhere)
+            nu[rng.random(T) < 0.2] = np.inf
+        nu[rng.random(T) < 0.15] = 1e3
+    return prob, nu
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(problems())
+def test_kl_step_feasible_and_complementary(case):
+    (dyn, cost, ref, mu0, P0), nu = case
+    cfg = KLStepConfig()
+    res = kl_step(dyn, cost, ref, nu, mu0, P0, config=cfg)
+    if np.isscalar(nu):
+        total = res.kl.sum()
+        assert total <= nu * (1 + 1e-6) + 1e-12
+        if res.eta[0] > cfg.eta_min:
+            assert abs(total - nu) <= 1e-6 * nu + 1e-12  # active: KL = nu
+        else:
+            assert total < nu  # slack: eta = eta_min ~ 0
+    else:
+        fin = np.isfinite(nu)
+        assert np.all(res.kl[fin] <= nu[fin] * (1 + 1e-6) + 1e-12)
+        assert np.all((res.eta == 0) == ~fin)
+        act = fin & (res.eta > cfg.eta_min)
+        assert np.all(np.abs(res.kl[act] - nu[act]) <= 1e-6 * nu[act] + 1e-12)
+        assert np.all(res.eta[fin & ~act] == cfg.eta_min)
+    # the reference is feasible (KL = 0), so the optimum is no worse; strong duality
+    assert res.expected_cost <= expected_cost(dyn, cost, ref, mu0, P0).sum() + 1e-8 * (1 + abs(res.expected_cost))
+    assert abs(res.dual_value - res.expected_cost) <= 1e-6 * (1 + abs(res.expected_cost)) + 1e-9 * np.sum(
+        np.where(np.isfinite(res.eta), res.eta, 0.0)
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# errors
+# ----------------------------------------------------------------------------------------------
+
+
+def test_error_non_pd_reference_cov():
+    rng = np.random.default_rng(40)
+    dyn, cost, ref, mu0, P0 = make_problem(rng)
+    cov = ref.cov.copy()
+    cov[2] = 0.0
+    bad = LinearGaussianPolicy(ref.K, ref.k, cov, allow_singular=True)
+    with pytest.raises(NotPositiveDefiniteError, match=r"reference cov\[2\]"):
+        kl_step(dyn, cost, bad, 0.5, mu0, P0)
+
+
+def test_error_negative_budget_names_the_step():
+    rng = np.random.default_rng(41)
+    dyn, cost, ref, mu0, P0 = make_problem(rng)
+    nu = np.full(dyn.T, 0.5)
+    nu[3] = -0.1
+    with pytest.raises(ValueError, match="infeasible budget.*step 3"):
+        kl_step(dyn, cost, ref, nu, mu0, P0)
+    with pytest.raises(ValueError, match="infeasible budget.*total"):
+        kl_step(dyn, cost, ref, -1.0, mu0, P0)
+
+
+def test_error_shapes_and_nan():
+    rng = np.random.default_rng(42)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 8)
+    with pytest.raises(ShapeError, match="nu"):
+        kl_step(dyn, cost, ref, np.ones(9), mu0, P0)
+    with pytest.raises(ShapeError, match="mu0"):
+        kl_step(dyn, cost, ref, 0.5, np.zeros(4), P0)
+    with pytest.raises(ShapeError, match="P0"):
+        kl_step(dyn, cost, ref, 0.5, mu0, np.eye(2))
+    short = LinearGaussianPolicy(ref.K[:5], ref.k[:5], ref.cov[:5])
+    with pytest.raises(ShapeError, match="reference"):
+        kl_step(dyn, cost, short, 0.5, mu0, P0)
+    other = make_problem(rng, 3, 1, 8)[1]
+    with pytest.raises(ShapeError, match="cost"):
+        kl_step(dyn, other, ref, 0.5, mu0, P0)
+    nu = np.full(8, 0.5)
+    nu[5] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        kl_step(dyn, cost, ref, nu, mu0, P0)
+    with pytest.raises(ValueError, match="mu0 contains NaN"):
+        kl_step(dyn, cost, ref, 0.5, np.array([0.0, np.nan, 0.0]), P0)
+    with pytest.raises(ValueError, match="unknown method"):
+        kl_step(dyn, cost, ref, 0.5, mu0, P0, method="newton")
+
+
+def test_config_is_strict():
+    with pytest.raises(ConfigError, match="unknown config key"):
+        KLStepConfig.from_dict({"eta_mn": 1.0})
+    with pytest.raises(ConfigError, match="eta_min"):
+        KLStepConfig.from_dict({"eta_min": -1.0})
+    cfg = KLStepConfig.from_dict({"kl_rtol": 1e-8, "ipopt_options": {"mu_strategy": "adaptive"}})
+    assert cfg.kl_rtol == 1e-8 and KLStepConfig.from_dict(cfg.to_dict()) == cfg
+
+
+# ----------------------------------------------------------------------------------------------
+# step-size adaptation
+# ----------------------------------------------------------------------------------------------
+
+
+def test_adapt_step_gps_rule():
+    cfg = KLStepConfig(min_mult=0.1, max_mult=5.0, nu_min=1e-3, nu_max=10.0)
+    # mult = pred / (2 (pred - act)), clipped to [0.1, 5]
+    assert adapt_step(1.0, 2.0, 0.0, cfg) == pytest.approx(0.5)  # no actual improvement: halve
+    assert adapt_step(1.0, 2.0, 1.0, cfg) == pytest.approx(1.0)  # half realised: keep
+    assert adapt_step(1.0, 2.0, 1.8, cfg) == pytest.approx(5.0)  # good model: grow (clipped)
+    assert adapt_step(1.0, 2.0, 2.0, cfg) == pytest.approx(5.0)  # perfect prediction
+    assert adapt_step(1.0, 1.0, -3.0, cfg) == pytest.approx(0.125)  # cost went up
+    assert adapt_step(1.0, -1.0, 0.5, cfg) == pytest.approx(0.1)  # nothing predicted
+    assert adapt_step(5.0, 2.0, 2.0, cfg) == pytest.approx(10.0)  # nu_max
+    assert adapt_step(2e-3, 2.0, -10.0, cfg) == pytest.approx(1e-3)  # nu_min
+    np.testing.assert_allclose(adapt_step(np.array([1.0, 2.0]), 2.0, 0.0, cfg), [0.5, 1.0])
+    with pytest.raises(ValueError):
+        adapt_step(1.0, np.nan, 0.0, cfg)
+    with pytest.raises(ValueError):
+        adapt_step(-1.0, 1.0, 0.0, cfg)
+
+
+def test_laplace_improvements():
+    rng = np.random.default_rng(50)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
+    new = kl_step(dyn, cost, ref, 0.5, mu0, P0).policy
+    prev = LocalModel(dyn, cost, mu0, P0)
+    pred, act = laplace_improvements(ref, new, prev, prev)
+    j_old = expected_cost(dyn, cost, ref, mu0, P0).sum()
+    j_new = expected_cost(dyn, cost, new, mu0, P0).sum()
+    assert pred == pytest.approx(j_old - j_new) and act == pytest.approx(pred) and pred > 0
+    dyn2 = LinearGaussianDynamics(dyn.A, dyn.B, dyn.c + 0.5, dyn.cov)
+    pred2, act2 = laplace_improvements(ref, new, prev, LocalModel(dyn2, cost, mu0, P0))
+    assert pred2 == pytest.approx(pred)
+    assert act2 == pytest.approx(j_old - expected_cost(dyn2, cost, new, mu0, P0).sum())
+
+
+def test_benchmark_rows():
+    from soc_opt.bench.lqg import run
+
+    rows = run(sizes=((2, 1, 4),), repeats=1)
+    assert [r["budget"] for r in rows] == ["total", "per_step"]
+    for r in rows:
+        assert r["ipopt_size"] == (2, 1, 4) and r["n_backward"] >= 1
+        assert r["max_policy_diff"] < 1e-5 and r["max_rel_eta_diff"] < 1e-4 and r["worst_violation"] < 1e-6
