@@ -26,6 +26,12 @@ __all__ = ["compare"]
 METHODS = ("lqr-flm", "dpsoc-em")
 
 
+def point_names(task) -> list[str] | None:
+    """Names of the end-effector points drawn in the figures (the task's state sites)."""
+    sites = list(getattr(getattr(task.config, "state", None), "sites", ()) or ())
+    return sites or None
+
+
 def _evaluate(task, policy, samples: int, seed: int, workers: int):
     rng = np.random.default_rng(10_000 + seed)
     return task.rollouts(policy, samples, rng, workers=workers)
@@ -114,7 +120,7 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> 
     pts = {m: np.concatenate([np.asarray(task.ee_points(ro.x)) for ro in eval_ro[m]]) for m in METHODS}
     figs["End-effector trajectories of the final policies"] = report.plot_ee(
         pts, task.dt, out / "ee_trajectories.png", f"{name}: end-effector points",
-        point_names=getattr(task, "point_names", None), targets=getattr(task, "point_targets", None))
+        point_names=point_names(task))
     acts = {m: np.concatenate([ro.a for ro in eval_ro[m]]) for m in METHODS}
     figs["Actions per joint of the final policies (over samples and time)"] = report.plot_actions(
         acts, out / "actions.png", f"{name}: actions per joint")
