@@ -1,0 +1,101 @@
+"""Tests for soc_opt/algorithms.py: LQR-FLM, DPSOC-EM, model-based iLQG (SPEC §7)."""
+
+import numpy as np
+import pytest
+
+from soc_opt import fit, lqg
+from soc_opt.algorithms import (
+    DPSOCConfig,
+    EMConfig,
+    ILQGConfig,
+    LQRFLMConfig,
+    ilqg,
+    run_algorithm,
+)
+from soc_opt.tasks import load_task
+
+# Documented in docs/choices.md: LQR-FLM needs 3 iterations (10 samples each) on this problem.
+LQR_FLM_ITERATIONS_TO_5_PERCENT = 3
+
+
+def test_lqr_flm_reaches_known_model_lqr_cost_within_5_percent():
+    """Unknown linear-Gaussian dynamics (no sensor noise): LQR-FLM vs LQR on the true model."""
+    task = load_task("linear2d", overrides={"rho2": 0.0, "T": 30})
+    dyn = task.linearize()
+    cost = task.cost_expansion(np.zeros((task.T + 1, task.n)), np.zeros((task.T, task.m)))
+    J_lqr = lqg.expected_cost(dyn, cost, lqg.lqr(dyn, cost, task.mu0, task.P0), task.mu0, task.P0).sum()
+    base = LQRFLMConfig(iterations=LQR_FLM_ITERATIONS_TO_5_PERCENT, samples=10, kl_budget=0.5, init_var=10.0,
+                        fit=fit.FitConfig(prior="none"))
+    state = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
+    J = lqg.expected_cost(dyn, cost, state.policy, task.mu0, task.P0).sum()
+    assert J >= J_lqr * (1 - 1e-9)  # LQR is optimal on the true model
+    assert J <= 1.05 * J_lqr
+
+
+def test_lqr_flm_lowers_the_cost_on_linear2d():
+    task = load_task("linear2d", overrides={"T": 20})
+    base = LQRFLMConfig(iterations=4, samples=8, kl_budget=0.5, init_var=10.0)
+    state = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=1)
+    costs = [np.mean(r.cost) for r in state.history]
+    assert costs[-1] < costs[0]
+    assert state.best[0] == min(costs)
+
+
+@pytest.mark.parametrize("y_mode", ["model", "measured", "optimistic"])
+def test_dpsoc_em_runs_its_em_phase_at_the_switch(y_mode):
+    task = load_task("linear2d", overrides={"T": 15})
+    cfg = DPSOCConfig(i_switch=2, baseline=LQRFLMConfig(iterations=3, samples=6, init_var=10.0),
+                      em=EMConfig(n_em=2, y_mode=y_mode))
+    state = run_algorithm(task, "dpsoc-em", cfg, seed=0)
+    phases = [(r.iteration, r.phase) for r in state.history]
+    assert phases == [(0, "baseline"), (1, "baseline"), (2, "em"), (2, "em"), (2, "baseline")]
+    em = [r for r in state.history if r.phase == "em"]
+    # each EM recursion maximises the surrogate for its own smoothed moments
+    for r in em:
+        assert r.extra["surrogate_new"] >= r.extra["surrogate_old"] - 1e-9 * abs(r.extra["surrogate_old"])
+    assert state.em_done
+
+
+def test_em_update_respects_the_covariance_floor_and_raises_the_surrogate():
+    from soc_opt.algorithms import em_update
+
+    task = load_task("linear2d", overrides={"T": 15})
+    cfg = DPSOCConfig(i_switch=0, baseline=LQRFLMConfig(iterations=1, samples=8), em=EMConfig(cov_floor_scale=0.5))
+    rng = np.random.default_rng(0)
+    policy = task.initial_policy(2.0)
+    ro = task.rollouts(policy, 8, rng)
+    prior = fit.update_prior(None, ro, cfg.baseline.fit, rng)
+    new, diag = em_update(task, cfg, policy, ro, prior, rng)
+    gap = np.linalg.eigvalsh(np.asarray(new.cov) - 0.5 * np.asarray(policy.cov))
+    assert gap.min() >= -1e-9
+    assert diag["surrogate_new"] >= diag["surrogate_old"]
+
+
+def test_dpsoc_em_and_lqr_flm_share_the_iterations_before_the_switch():
+    task = load_task("linear2d", overrides={"T": 15})
+    cfg = DPSOCConfig(i_switch=2, baseline=LQRFLMConfig(iterations=3, samples=6, init_var=10.0))
+    a = run_algorithm(task, "lqr-flm", cfg, seed=4)
+    b = run_algorithm(task, "dpsoc-em", cfg, seed=4)
+    for ra, rb in zip(a.history[:2], b.history[:2]):
+        np.testing.assert_array_equal(ra.cost, rb.cost)
+
+
+def test_ilqg_lowers_the_cost_at_every_accepted_iteration_on_the_arm():
+    task = load_task("peg", overrides={"T": 30})
+    seen = []
+    policy, costs = ilqg(task, cfg=ILQGConfig(iterations=4), on_iteration=lambda it, J, mu: seen.append(J))
+    assert len(costs) >= 2, "iLQG accepted no step"
+    assert all(b < a for a, b in zip(costs, costs[1:]))
+    assert seen == costs[1:]
+    assert policy.K.shape == (task.T, task.m, task.n)
+
+
+def test_unknown_method_is_rejected():
+    task = load_task("linear2d", overrides={"T": 5})
+    with pytest.raises(ValueError, match="unknown method"):
+        run_algorithm(task, "ppo", DPSOCConfig(baseline=LQRFLMConfig(iterations=1, samples=2), i_switch=0))
+
+
+def test_config_rejects_switch_outside_the_run():
+    with pytest.raises(ValueError, match="i_switch"):
+        DPSOCConfig(i_switch=14, baseline=LQRFLMConfig(iterations=14))
