@@ -118,7 +118,7 @@ def _cmd_run(args) -> int:
 
 def _write_run_figures(task, state, out: Path) -> None:
     from . import report
-    from .compare import point_names
+    from .compare import point_names, point_targets
 
     costs = {"dpsoc-em" if any(r.phase == "em" for r in state.history) else "lqr-flm":
              [np.asarray(r.cost) for r in state.history if r.phase == "baseline"]}
@@ -127,7 +127,7 @@ def _write_run_figures(task, state, out: Path) -> None:
         meth = next(iter(costs))
         report.plot_ee({meth: np.asarray(task.ee_points(state.last_rollouts.x))}, task.dt,
                        out / "ee_trajectories.png", f"{task.name}: end-effector points (last iteration)",
-                       point_names=point_names(task))
+                       point_names=point_names(task), targets=point_targets(task))
 
 
 def _cmd_compare(args) -> int:

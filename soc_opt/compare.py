@@ -32,6 +32,22 @@ def point_names(task) -> list[str] | None:
     return sites or None
 
 
+def point_targets(task) -> np.ndarray | None:
+    """``(P, 3)`` targets of the drawn points, from the task's point cost (or its metric target)."""
+    sites = point_names(task)
+    cfg = task.config
+    if sites:
+        for term in getattr(cfg, "cost", ()):
+            tgt = getattr(term, "target", None)
+            if tuple(getattr(term, "sites", ()) or ()) == tuple(sites) and tgt and len(tgt) == 3 * len(sites):
+                return np.asarray(tgt, float).reshape(len(sites), 3)
+        return None
+    tgt = tuple(getattr(getattr(cfg, "metric", None), "target", ()) or ())
+    if 0 < len(tgt) <= 3:
+        return np.pad(np.asarray(tgt, float), (0, 3 - len(tgt)))[None]
+    return None
+
+
 def _evaluate(task, policy, samples: int, seed: int, workers: int):
     rng = np.random.default_rng(10_000 + seed)
     return task.rollouts(policy, samples, rng, workers=workers)
@@ -120,7 +136,7 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> 
     pts = {m: np.concatenate([np.asarray(task.ee_points(ro.x)) for ro in eval_ro[m]]) for m in METHODS}
     figs["End-effector trajectories of the final policies"] = report.plot_ee(
         pts, task.dt, out / "ee_trajectories.png", f"{name}: end-effector points",
-        point_names=point_names(task))
+        point_names=point_names(task), targets=point_targets(task))
     acts = {m: np.concatenate([ro.a for ro in eval_ro[m]]) for m in METHODS}
     figs["Actions per joint of the final policies (over samples and time)"] = report.plot_actions(
         acts, out / "actions.png", f"{name}: actions per joint")

@@ -58,29 +58,34 @@ def plot_costs(costs: dict, path: Path, title: str, i_switch: int | None = None)
 
 
 def plot_ee(points: dict, dt: float, path: Path, title: str, point_names=None, targets=None) -> Path:
-    """``points[method]``: ``(S, T+1, P, 3)`` end-effector points over samples ``S``."""
+    """``points[method]``: ``(S, T+1, P, 3)`` end-effector points over samples ``S``.
+
+    Coordinates that are identically zero for every method (e.g. ``z`` of a planar task) are
+    left out; ``targets`` (``(P, 3)``, optional) are drawn as dotted lines.
+    """
     P = next(iter(points.values())).shape[2]
-    fig, axes = plt.subplots(P, 3, figsize=(12, 3 * P), squeeze=False, sharex=True)
+    used = [c for c in range(3) if any(np.any(pts[..., c] != 0) for pts in points.values())] or [0]
+    fig, axes = plt.subplots(P, len(used), figsize=(4 * len(used), 3 * P), squeeze=False, sharex=True)
     for meth, pts in points.items():
         t = np.arange(pts.shape[1]) * dt
         mean, std = pts.mean(axis=0), pts.std(axis=0)
         ls = "--" if meth == "lqr-flm" else "-"
         for p in range(P):
-            for c in range(3):
-                ax = axes[p, c]
+            for j, c in enumerate(used):
+                ax = axes[p, j]
                 ax.plot(t, mean[:, p, c], ls, color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
                 ax.fill_between(t, mean[:, p, c] - std[:, p, c], mean[:, p, c] + std[:, p, c],
                                 color=COLORS.get(meth, "gray"), alpha=0.2)
     for p in range(P):
-        for c, name in enumerate("xyz"):
-            ax = axes[p, c]
+        for j, c in enumerate(used):
+            ax = axes[p, j]
             pname = point_names[p] if point_names else f"point {p}"
-            ax.set_title(f"{pname}: {name}")
+            ax.set_title(f"{pname}: {'xyz'[c]}")
             if targets is not None:
-                ax.axhline(targets[p][c], color="k", lw=0.8, ls=":")
+                ax.axhline(targets[p][c], color="k", lw=0.8, ls=":", label="target" if (p, j) == (0, 0) else None)
             ax.grid(alpha=0.3)
-    for c in range(3):
-        axes[-1, c].set_xlabel("time [s]")
+    for j in range(len(used)):
+        axes[-1, j].set_xlabel("time [s]")
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(title + " (mean ± std over samples; dashed baseline, solid DPSOC-EM)")
     fig.tight_layout()
@@ -90,26 +95,36 @@ def plot_ee(points: dict, dt: float, path: Path, title: str, point_names=None, t
 
 
 def plot_actions(actions: dict, path: Path, title: str) -> Path:
-    """``actions[method]``: ``(S, T, m)``; box plot per joint of the actions over samples and time."""
+    """``actions[method]``: ``(S, T, m)``.
+
+    Left: box plots per joint of the actions over samples and time.  Right: the same for the
+    deviation of each action from the mean action at its time step, i.e. the spread over
+    samples that the claims table measures.
+    """
     m = next(iter(actions.values())).shape[-1]
-    fig, ax = plt.subplots(figsize=(max(6, 1.4 * m), 4))
+    fig, axes = plt.subplots(1, 2, figsize=(max(10, 2.6 * m), 4))
     methods = list(actions)
     width = 0.8 / len(methods)
-    for j, meth in enumerate(methods):
-        a = actions[meth].reshape(-1, m)
-        pos = np.arange(m) + 1 + (j - (len(methods) - 1) / 2) * width
-        bp = ax.boxplot([a[:, i] for i in range(m)], positions=pos, widths=width * 0.9, patch_artist=True,
-                        showfliers=False, manage_ticks=False)
-        for b in bp["boxes"]:
-            b.set_facecolor(COLORS.get(meth, "gray"))
-            b.set_alpha(0.5)
-        ax.plot([], [], "s", color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
-    ax.set_xticks(np.arange(1, m + 1))
-    ax.set_xticklabels([f"joint {i + 1}" for i in range(m)])
-    ax.set_ylabel("action")
-    ax.set_title(title)
-    ax.legend()
-    ax.grid(alpha=0.3)
+    for ax, centred in zip(axes, (False, True)):
+        for j, meth in enumerate(methods):
+            a = np.asarray(actions[meth])
+            if centred:
+                a = a - a.mean(axis=0, keepdims=True)
+            a = a.reshape(-1, m)
+            pos = np.arange(m) + 1 + (j - (len(methods) - 1) / 2) * width
+            bp = ax.boxplot([a[:, i] for i in range(m)], positions=pos, widths=width * 0.9, patch_artist=True,
+                            showfliers=False, manage_ticks=False)
+            for b in bp["boxes"]:
+                b.set_facecolor(COLORS.get(meth, "gray"))
+                b.set_alpha(0.5)
+            ax.plot([], [], "s", color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
+        ax.set_xticks(np.arange(1, m + 1))
+        ax.set_xticklabels([f"joint {i + 1}" for i in range(m)], rotation=30 if m > 4 else 0)
+        ax.set_ylabel("action - mean action at that step" if centred else "action")
+        ax.set_title("spread over samples (centred per time step)" if centred else "actions over samples and time")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper left", fontsize=8, framealpha=0.9)
+    fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
