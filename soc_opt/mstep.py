@@ -61,9 +61,56 @@ optimum of the quadratic is exactly 0).  ``parameter @ variable @ parameter`` is
 CVXPY (a product of two parameter-dependent factors), so an auxiliary variable ``Z = F Ls`` is
 introduced and the residual is ``Lh^T Z - C``.  The time-invariant quadratic
 ``sum_k Stilde_k kron H_k`` does not factor, so it is written ``-1/2 ||Lq^T vec(F) - c||^2``
-with ``Lq Lq^T = sum_k Stilde_k kron H_k``.  Problems are built once per
-``(form, n, m, constraint structure)``, cached, and re-solved per step by updating parameter
-values.  Solver statuses other than optimal raise :class:`SolverError`.
+with ``Lq Lq^T = sum_k Stilde_k kron H_k``.  These two forms are used when ``F`` is unconstrained
+(only covariance constraints).  With an ``offset_bound`` and/or a ``trust_region`` the spectral
+form below is used instead.  Problems are built once per ``(form, n, m, constraint structure)``,
+cached, and re-solved per step by updating parameter values.  Solver statuses other than optimal
+raise :class:`SolverError`.
+
+Trust region in CVXPY.  The spectral form writes the ``F`` part in the eigenbasis of its Hessian
+``Q`` (``Stilde kron H``, eigenpairs from those of ``Stilde`` and ``H``; time-invariant: the eigenpairs
+of ``sum_k Stilde_k kron H_k``): ``vec F = f0 + U y`` with ``Q = U Diag(lam) U^T`` (``U`` orthogonal) and
+reference point ``f0`` (the trust-region centre; the mean of the ``T`` centres for the time-invariant
+variant; 0 without a trust region), so the objective is ``-1/2 sum_i lam_i y_i^2 + g^T y`` (plus the
+constant ``-1/2 f0^T Q f0 + r^T f0``), a diagonal quadratic with no auxiliary variable or equality
+constraint, and, ``U`` being orthogonal, ``||F - F_prev,j||_F = ||y - a_j||_2`` with
+``a_j = U^T (vec F_prev,j - f0)``: the trust region is an SOC on the variable itself.  The offset
+column of ``F`` is ``f0n + Un y`` with ``Un`` the corresponding ``m`` rows of ``U``.  ``F`` is recovered as
+``f0 + U y`` (an exact change of variables; the solver's duals are those of the original
+constraints).
+
+Why.  With Clarabel's default step length (``max_step_fraction=0.99``) the factored and Kronecker
+forms with a trust region ended as ``optimal_inaccurate`` on 12-50% of random well-posed instances
+(``T = 4``; sizes ``(n, m) = (3, 2), (6, 2), (26, 7)``; both variants).  The failures occur when the
+trust region is active with a multiplier comparable to the curvature (``mu/delta <~ 10
+lambda_max(Q)``): the duality gap keeps decreasing but the primal residual stalls near 1e-11 and
+then grows about 10x per iteration as the barrier parameter goes to 0, so the gap reaches
+``clarabel_tol`` only after the residual has left it.  The same happens on an 8-variable ball-
+constrained QP as soon as its Hessian is not isotropic (condition number 100: 35-67% failures, also
+with a diagonal Hessian; isotropic: ~1%).  That anisotropy between ``Q`` and the ball is invariant
+under linear changes of variables (whitening ``F`` makes the objective ``||G - C||^2`` and the trust
+region an ellipsoid), and no reformulation removed the failures: whitened variable, epigraph of
+the objective (fewer failures for small sizes, more for ``(26, 7)``, ``F`` errors up to 2e-5), norm
+epigraph (no failures, ``F`` errors up to 2e-5: a linear objective on a curved boundary), the SOC
+without the auxiliary ``Z``, unit-radius scaling, squared-norm trust region; nor did Clarabel's
+regularisation, iterative refinement or equilibration settings.  The cause is the path following:
+as the multiplier decreases the boundary point of the ball turns (it does not when ``Q`` is
+isotropic), long steps leave the central path (``sqrt(det s det z)/(s^T z)`` of the SOC block
+0.3-0.75 instead of 1) and the Newton systems near the solution lose accuracy.  Trust-region
+problems are therefore solved with ``max_step_fraction=0.8`` (that ratio stays at 0.999), and with
+a fresh Clarabel solver per solve: CVXPY's default warm start updates the cached solver's data in
+place, which keeps the Ruiz equilibration of the first instance solved, so that whether an
+instance solved depended on the instances solved before it.  A solve that still ends inaccurately
+is repeated once with ``max_step_fraction=0.5``.  Tolerances are never changed and no closed form is
+involved.  Shorter steps alone fix the factored form too; the spectral form is more accurate and
+faster: against the More-Sorensen (secular equation) solution the largest relative error of ``F``
+over 720 time-varying steps is 1e-7 (factored form at 0.8: 5e-7; at the default steps, solved
+cases only: 2e-6), for ``(26, 7)`` 3e-9 (6e-8; 1e-6); and a ``(26, 7)`` step takes ~1/3 of the
+time (time-varying) and ~1/20 (time-invariant, which had a dense ``d x d`` parameter).  Remaining
+limitation: time-invariant problems whose ``T`` centres are about ``delta`` apart (pairwise ~1.4
+``delta``: a small lens-shaped intersection with all spheres active) still fail on ~10% of random
+``(26, 7)`` instances, mostly for ``delta >= 0.1`` (24% before).
+
 Entropy floor in CVXPY.  ``log det Sigma >= c`` is not written with ``cp.log_det`` (which CVXPY
 lowers to a PSD cone plus exponential cones) but as the equivalent ``det(Sigma)^(1/m) >= e^(c/m)``
 in the standard SDP + geometric-mean form, with only PSD and second-order cones: for ``Sigma > 0``,
@@ -438,6 +485,9 @@ class MStepConfig(Config):
             (not below 1e-13 unless ``clarabel_tol`` is; falling back to ``clarabel_tol`` if that
             ends in round-off), shorter steps and no chordal decomposition (module docstring,
             "Entropy floor in CVXPY").
+            Problems with a trust region are solved with shorter steps (``max_step_fraction`` 0.8,
+            retried at 0.5) and a fresh Clarabel solver per solve (module docstring, "Trust region
+            in CVXPY"); their tolerances are the same.
         clarabel_max_iter: Clarabel iteration limit (default 200).
         scs_eps: SCS ``eps_abs`` and ``eps_rel`` (default 1e-9; SCS is first order, so tight).
         scs_max_iters: SCS iteration limit (default 200000).
@@ -853,10 +903,11 @@ def _sigma_closed(Hs: np.ndarray, rc: _Resolved, cfg: MStepConfig, labels: list[
 @dataclass
 class _CvxProblem:
     problem: cp.Problem
-    F: cp.Variable | None
+    F: cp.Variable | None  # None for the spectral form (F is recovered from ``y``) and "prec"
     Sigma: cp.Variable | None
     params: dict
     cons: dict
+    y: cp.Variable | None = None  # spectral form: coordinates of vec(F - F0) in the eigenbasis
 
 
 _CACHE: dict[tuple, _CvxProblem] = {}
@@ -871,6 +922,19 @@ _CACHE: dict[tuple, _CvxProblem] = {}
 _ENTROPY_CLARABEL_SETTINGS = dict(max_step_fraction=0.8, chordal_decomposition_enable=False)
 _ENTROPY_GAP_FACTOR = 1e-2
 _ENTROPY_GAP_MIN = 1e-13
+
+# Clarabel settings for problems with a trust region (see "Trust region in CVXPY" in the module
+# docstring).  Clarabel's default max_step_fraction (0.99) lets the iterates leave the central path
+# of the trust-region SOC, whose boundary point turns as the multiplier decreases whenever the
+# Hessian is not isotropic; the Newton systems near the solution then lose accuracy and the solve
+# ends as optimal_inaccurate.  Every attempt builds a fresh Clarabel solver (CVXPY's warm_start
+# would update the cached solver's data in place and keep the Ruiz equilibration computed for the
+# first instance it saw, so that the outcome depended on the history of solves).  If the first
+# attempt still ends inaccurately (a nearly degenerate active set, e.g. a barely active one of the
+# time-invariant variant's T trust regions) it is repeated once with still shorter steps.
+# Tolerances are never changed.
+_TRUST_CLARABEL_SETTINGS = dict(max_step_fraction=0.8, warm_start=False)
+_TRUST_RETRY_STEP = 0.5
 
 
 def _entropy_floor_constraint(Sigma: cp.Variable, m: int, p: dict, aux: list) -> cp.Constraint:
@@ -897,8 +961,11 @@ def _entropy_floor_constraint(Sigma: cp.Variable, m: int, p: dict, aux: list) ->
 
 def _build_problem(key: tuple) -> _CvxProblem:
     """Build a DPP problem.  ``key = (form, n, m, sigma, offset, n_trust)`` with ``form`` one of
-    ``"factored"`` (``||LhT F Ls - C||``), ``"kron"`` (``||LqT vec F - c||``) or ``"prec"`` (exact
-    Sigma-step in the precision ``P``: ``max log det P - <W, P>`` s.t. ``Pmin <= P <= Pmax``)."""
+    ``"factored"`` (``||LhT F Ls - C||``), ``"kron"`` (``||LqT vec F - c||``), both for an
+    unconstrained ``F``, ``"spectral"`` (``F`` constrained by an offset bound and/or trust regions:
+    ``-1/2 sum_i lam_i y_i^2 + g^T y`` in the eigenbasis of the Hessian, see "Trust region in CVXPY")
+    or ``"prec"`` (exact Sigma-step in the precision ``P``: ``max log det P - <W, P>`` s.t.
+    ``Pmin <= P <= Pmax``)."""
     form, n, m, sigma, offset, n_trust = key
     n1 = n + 1
     p: dict = {}
@@ -914,9 +981,30 @@ def _build_problem(key: tuple) -> _CvxProblem:
         if not prob.is_dpp():  # pragma: no cover
             raise RuntimeError(f"internal error: M-step CVXPY problem {key} is not DPP")
         return _CvxProblem(prob, None, P, p, cons)
-    F = cp.Variable((m, n1), name="F")
+    if form in ("factored", "kron") and (offset or n_trust):  # pragma: no cover - internal misuse
+        raise RuntimeError(f"internal error: {form} form is for an unconstrained F; use the spectral form")
+    F = y = None
     aux: list = []
-    if form == "factored":
+    if form == "spectral":
+        d = m * n1
+        y = cp.Variable(d, name="y")
+        p["lam"] = cp.Parameter(d, nonneg=True, name="lam")
+        p["g"] = cp.Parameter(d, name="g")
+        # diagonal quadratic: Clarabel receives P = Diag(lam), no auxiliary variables or equalities
+        obj = -0.5 * cp.sum(cp.multiply(p["lam"], cp.square(y))) + p["g"] @ y
+        if offset:  # the offset column of F = F0 + unvec(U y): rows n*m .. n*m+m-1 of vec F
+            p["b"] = cp.Parameter(m, nonneg=True, name="b")
+            p["Un"] = cp.Parameter((m, d), name="Un")
+            p["f0n"] = cp.Parameter(m, name="f0n")
+            kn = p["Un"] @ y + p["f0n"]
+            cons["offset_upper"] = kn <= p["b"]
+            cons["offset_lower"] = -kn <= p["b"]
+        if n_trust:  # ||F - Fp_j||_F = ||y - a_j||_2, a_j = U^T vec(Fp_j - F0) (U orthogonal)
+            p["delta"] = cp.Parameter(nonneg=True, name="delta")
+            p["a"] = [cp.Parameter(d, name=f"a{j}") for j in range(n_trust)]
+            cons["trust"] = [cp.norm(y - a, 2) <= p["delta"] for a in p["a"]]
+    elif form == "factored":
+        F = cp.Variable((m, n1), name="F")
         p["LhT"] = cp.Parameter((m, m), name="LhT")
         p["Ls"] = cp.Parameter((n1, n1), name="Ls")
         p["C"] = cp.Parameter((m, n1), name="C")
@@ -926,20 +1014,14 @@ def _build_problem(key: tuple) -> _CvxProblem:
         Z = cp.Variable((m, n1), name="Z")
         aux = [Z == F @ p["Ls"]]
         resid = p["LhT"] @ Z - p["C"]
+        obj = -0.5 * cp.sum_squares(resid)
     else:
+        F = cp.Variable((m, n1), name="F")
         d = m * n1
         p["LqT"] = cp.Parameter((d, d), name="LqT")
         p["c"] = cp.Parameter(d, name="c")
         resid = p["LqT"] @ cp.vec(F, order="F") - p["c"]
-    obj = -0.5 * cp.sum_squares(resid)
-    if offset:
-        p["b"] = cp.Parameter(m, nonneg=True, name="b")
-        cons["offset_upper"] = F[:, n] <= p["b"]
-        cons["offset_lower"] = -F[:, n] <= p["b"]
-    if n_trust:
-        p["delta"] = cp.Parameter(nonneg=True, name="delta")
-        p["Fprev"] = [cp.Parameter((m, n1), name=f"Fprev{j}") for j in range(n_trust)]
-        cons["trust"] = [cp.norm(F - Fp, "fro") <= p["delta"] for Fp in p["Fprev"]]
+        obj = -0.5 * cp.sum_squares(resid)
     Sigma = None
     if sigma is not None:
         floor, entropy, ceiling = sigma
@@ -961,7 +1043,7 @@ def _build_problem(key: tuple) -> _CvxProblem:
     prob = cp.Problem(cp.Maximize(obj), flat)
     if not prob.is_dpp():  # pragma: no cover - a construction bug, not a user error
         raise RuntimeError(f"internal error: M-step CVXPY problem {key} is not DPP")
-    return _CvxProblem(prob, F, Sigma, p, cons)
+    return _CvxProblem(prob, F, Sigma, p, cons, y)
 
 
 def _get_problem(key: tuple) -> _CvxProblem:
@@ -971,25 +1053,31 @@ def _get_problem(key: tuple) -> _CvxProblem:
     return prob
 
 
-def _solver_options(solver: str, cfg: MStepConfig, entropy: bool = False) -> list[dict]:
+def _solver_options(solver: str, cfg: MStepConfig, entropy: bool = False, trust: bool = False) -> list[dict]:
     """Solver options, one dict per attempt (a later attempt is tried only if the earlier failed)."""
     if solver == "CLARABEL":
         t = cfg.clarabel_tol
         opts = dict(tol_gap_abs=t, tol_gap_rel=t, tol_feas=t, max_iter=cfg.clarabel_max_iter)
+        # trust region: shorter steps and a fresh solver, then a retry with still shorter steps
+        # (see _TRUST_CLARABEL_SETTINGS); the tolerances are the same in every attempt
+        if trust:
+            opts.update(_TRUST_CLARABEL_SETTINGS)
+        if entropy:
+            opts.update(_ENTROPY_CLARABEL_SETTINGS)
+        retry = [dict(opts, max_step_fraction=_TRUST_RETRY_STEP)] if trust else []
         if not entropy:
-            return [opts]
+            return [opts] + retry
         # see "Entropy floor in CVXPY" in the module docstring; the gap is tightened, never loosened
-        opts.update(_ENTROPY_CLARABEL_SETTINGS)
         g = max(t * _ENTROPY_GAP_FACTOR, min(t, _ENTROPY_GAP_MIN))
         tight = dict(opts, tol_gap_abs=g, tol_gap_rel=g)
         # if the tightened gap runs into round-off (status optimal_inaccurate), retry at clarabel_tol
-        return [tight, opts] if g < t else [opts]
+        return ([tight, opts] if g < t else [opts]) + retry
     return [dict(eps_abs=cfg.scs_eps, eps_rel=cfg.scs_eps, max_iters=cfg.scs_max_iters)]
 
 
 def _solve(prob: _CvxProblem, solver: str, cfg: MStepConfig, where: str, step: int | None) -> str:
     ok = {cp.OPTIMAL} | ({cp.OPTIMAL_INACCURATE} if cfg.accept_inaccurate else set())
-    attempts = _solver_options(solver, cfg, entropy="t_ent" in prob.params)
+    attempts = _solver_options(solver, cfg, entropy="t_ent" in prob.params, trust="delta" in prob.params)
     for i, opts in enumerate(attempts):
         last = i == len(attempts) - 1
         try:
@@ -1039,13 +1127,78 @@ def _set_sigma_params(prob: _CvxProblem, H: np.ndarray, rc: _Resolved, j: int) -
         prob.params["t_ent"].value = math.exp((float(rc.c[j]) + float(_logdet_chol(Lh))) / m)
 
 
-def _set_f_params(prob: _CvxProblem, rc: _Resolved, Fprev: np.ndarray | None) -> None:
+def _vec_batch(X: np.ndarray) -> np.ndarray:
+    """Column-major ``vec`` over the last two axes (batched)."""
+    return _T(X).reshape(X.shape[:-2] + (-1,))
+
+
+_THREADPOOLS = None  # threadpoolctl.ThreadpoolController, created on first use (it scans the loaded libraries)
+
+
+def _blas_one_thread():
+    """Context: BLAS limited to one thread.  The eigendecompositions of the spectral form are of
+    small matrices, where threaded BLAS (LAPACK ``syevd``) gains nothing and, on a loaded machine,
+    made them erratic (0.5 to ~100 ms for a few 27 x 27 matrices; spin-waiting threads)."""
+    global _THREADPOOLS
+    if _THREADPOOLS is None:
+        from threadpoolctl import ThreadpoolController
+
+        _THREADPOOLS = ThreadpoolController()
+    return _THREADPOOLS.limit(limits=1, user_api="blas")
+
+
+def _kron_eig(H: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``S kron H = U Diag(lam) U^T`` (batched; ``U`` orthogonal) from the factors' eigenpairs.
+
+    ``S kron H`` is the Hessian of ``1/2 tr(H F S F^T)`` in column-major ``vec F``; with
+    ``H = Uh Diag(dh) Uh^T`` and ``S = Us Diag(ds) Us^T``, ``U = Us kron Uh`` and ``lam = ds kron dh``.
+    """
+    with _blas_one_thread():
+        dh, Uh = np.linalg.eigh(symmetrize(H))
+        ds, Us = np.linalg.eigh(symmetrize(S))
+    m, n1 = dh.shape[-1], ds.shape[-1]
+    lead = dh.shape[:-1]
+    lam = (ds[..., :, None] * dh[..., None, :]).reshape(lead + (n1 * m,))
+    U = (Us[..., :, None, :, None] * Uh[..., None, :, None, :]).reshape(lead + (n1 * m, n1 * m))
+    return lam, U
+
+
+def _spectral_data(lam: np.ndarray, U: np.ndarray, r: np.ndarray, f0: np.ndarray):
+    """Data of the spectral form of ``-1/2 f^T Q f + r^T f`` around ``f0`` (batched).
+
+    With ``Q = U Diag(lam) U^T`` and ``f = f0 + U y`` the quadratic is ``q0 - 1/2 sum_i lam_i y_i^2 + g^T y``,
+    ``g = U^T r - lam * (U^T f0)`` and ``q0 = -1/2 f0^T Q f0 + r^T f0``.  Returns ``(lam, g, q0)``.
+    """
+    lam = np.maximum(lam, 0.0)  # round-off only: Q > 0 was checked by the callers
+    Ut = _T(U)
+    w0 = (Ut @ f0[..., None])[..., 0]
+    g = (Ut @ r[..., None])[..., 0] - lam * w0
+    q0 = -0.5 * np.sum(lam * w0 * w0, -1) + np.sum(r * f0, -1)
+    return lam, g, q0
+
+
+def _set_spectral_params(prob: _CvxProblem, rc: _Resolved, n: int, lam: np.ndarray, g: np.ndarray,
+                         U: np.ndarray, f0: np.ndarray, centres: np.ndarray | None) -> None:
+    """One solve of the spectral form: ``centres`` are the vec'd trust-region centres (one per
+    trust constraint of the problem) or None."""
+    m = rc.m
+    prob.params["lam"].value = lam
+    prob.params["g"].value = g
     if rc.b is not None:
         prob.params["b"].value = rc.b
+        prob.params["Un"].value = U[n * m : (n + 1) * m]
+        prob.params["f0n"].value = f0[n * m : (n + 1) * m]
     if rc.delta is not None:
         prob.params["delta"].value = rc.delta
-        for j, P in enumerate(prob.params["Fprev"]):
-            P.value = Fprev[j]
+        if len(prob.params["a"]) != len(centres):  # pragma: no cover - internal misuse
+            raise RuntimeError("internal error: number of trust-region centres does not match the problem")
+        for a, c in zip(prob.params["a"], centres):
+            a.value = _T(U) @ (c - f0)
+
+
+def _spectral_F(prob: _CvxProblem, U: np.ndarray, f0: np.ndarray, m: int, n1: int) -> np.ndarray:
+    """``F = unvec(f0 + U y)`` from the spectral form's solution."""
+    return _unvec(f0 + U @ np.asarray(prob.y.value, dtype=float), m, n1)
 
 
 def _factored_data(H: np.ndarray, S: np.ndarray, R: np.ndarray):
@@ -1131,10 +1284,18 @@ def _closed_form_ti(model, st, rc, cfg, min_norm):
 
 def _cvxpy_tv(model, st, rc, cfg, solver, Fprev):
     T, n, m = model.T, model.n, model.m
-    key = ("factored", n, m, rc.sigma_key, rc.b is not None, 1 if rc.delta is not None else 0)
+    n1 = n + 1
+    spectral = rc.f_constrained
+    if spectral:  # offset bound / trust region: the spectral form (module docstring)
+        key = ("spectral", n, m, rc.sigma_key, rc.b is not None, 1 if rc.delta is not None else 0)
+        lam, U = _kron_eig(st.H, st.S)
+        f0 = _vec_batch(Fprev) if rc.delta is not None else np.zeros((T, m * n1))
+        lam, g, q0 = _spectral_data(lam, U, _vec_batch(st.R), f0)
+    else:
+        key = ("factored", n, m, rc.sigma_key, False, 0)
+        LhT, Ls, C = _factored_data(st.H, st.S, st.R)
     prob = _get_problem(key)
-    LhT, Ls, C = _factored_data(st.H, st.S, st.R)
-    F = np.empty((T, m, n + 1))
+    F = np.empty((T, m, n1))
     Sigma = np.empty((T, m, m))
     value = np.empty(T)
     status = []
@@ -1142,38 +1303,61 @@ def _cvxpy_tv(model, st, rc, cfg, solver, Fprev):
     times = np.empty(T)
     for j in range(T - 1, -1, -1):  # the Proposition's backward sweep
         t0 = time.perf_counter()
-        prob.params["LhT"].value = LhT[j]
-        prob.params["Ls"].value = Ls[j]
-        prob.params["C"].value = C[j]
+        if spectral:
+            _set_spectral_params(prob, rc, n, lam[j], g[j], U[j], f0[j],
+                                 None if rc.delta is None else f0[j : j + 1])
+        else:
+            prob.params["LhT"].value = LhT[j]
+            prob.params["Ls"].value = Ls[j]
+            prob.params["C"].value = C[j]
         _set_sigma_params(prob, st.H[j], rc, j)
-        _set_f_params(prob, rc, None if Fprev is None else Fprev[j : j + 1])
         status.append(_solve(prob, solver, cfg, f"M-step (cvxpy, time step k={j})", j))
         times[j] = time.perf_counter() - t0
-        F[j] = prob.F.value
+        if spectral:
+            F[j] = _spectral_F(prob, U[j], f0[j], m, n1)
+            value[j] = st.const[j] + q0[j] + float(prob.problem.value)
+        else:
+            F[j] = prob.F.value
+            value[j] = st.const[j] + 0.5 * float(np.sum(C[j] ** 2)) + float(prob.problem.value)
         Sigma[j] = _clean_sigma(prob.Sigma.value, rc)
-        value[j] = st.const[j] + 0.5 * float(np.sum(C[j] ** 2)) + float(prob.problem.value)
         duals[j] = _duals(prob)
     return F, Sigma, value, tuple(status), tuple(duals), times
 
 
 def _cvxpy_ti(model, st, rc, cfg, solver, Fprev, hint=_MIN_NORM_HINT):
     n, m, T = model.n, model.m, model.T
+    n1 = n + 1
     Q, r = _ti_normal_equations(st)
     _ti_degenerate(model, st, cfg, Q, min_norm=False, hint=hint)
-    Lq = _chol(Q, "sum_k Stilde_k kron H_k")
-    c = _tri_solve(Lq, r)
-    key = ("kron", n, m, rc.sigma_key, rc.b is not None, T if rc.delta is not None else 0)
+    spectral = rc.f_constrained
+    if spectral:  # offset bound / trust regions: the spectral form (module docstring)
+        key = ("spectral", n, m, rc.sigma_key, rc.b is not None, T if rc.delta is not None else 0)
+        with _blas_one_thread():
+            lam, U = np.linalg.eigh(Q)
+        centres = _vec_batch(Fprev) if rc.delta is not None else None
+        f0 = centres.mean(0) if centres is not None else np.zeros(m * n1)
+        lam, g, q0 = _spectral_data(lam, U, r, f0)
+    else:
+        key = ("kron", n, m, rc.sigma_key, False, 0)
+        Lq = _chol(Q, "sum_k Stilde_k kron H_k")
+        c = _tri_solve(Lq, r)
     prob = _get_problem(key)
     t0 = time.perf_counter()
-    prob.params["LqT"].value = Lq.T
-    prob.params["c"].value = c
+    if spectral:
+        _set_spectral_params(prob, rc, n, lam, g, U, f0, centres)
+    else:
+        prob.params["LqT"].value = Lq.T
+        prob.params["c"].value = c
     _set_sigma_params(prob, st.H.sum(0), rc.time_invariant(), 0)
-    _set_f_params(prob, rc, Fprev)
     status = _solve(prob, solver, cfg, "time-invariant M-step (cvxpy)", None)
     times = np.array([time.perf_counter() - t0])
-    value = float(st.const.sum()) + 0.5 * float(c @ c) + float(prob.problem.value)
-    return (np.asarray(prob.F.value), _clean_sigma(prob.Sigma.value, rc), np.array([value]), (status,),
-            (_duals(prob),), times)
+    if spectral:
+        F = _spectral_F(prob, U, f0, m, n1)
+        value = float(st.const.sum()) + float(q0) + float(prob.problem.value)
+    else:
+        F = np.asarray(prob.F.value)
+        value = float(st.const.sum()) + 0.5 * float(c @ c) + float(prob.problem.value)
+    return (F, _clean_sigma(prob.Sigma.value, rc), np.array([value]), (status,), (_duals(prob),), times)
 
 
 # --------------------------------------------------------------------------- exact EM
@@ -1266,25 +1450,26 @@ def _f_step_exact(model, Eas, S, Sigma, rc, method, solver, cfg, Fprev, min_norm
             "offset_bound and trust_region have no closed form (also in the exact-EM step); use method='cvxpy'"
         )
     N = F.shape[0]
+    n1 = n + 1
     n_trust = 0 if rc.delta is None else (1 if N == model.T else model.T)
-    prob = _get_problem(("factored", n, m, None, rc.b is not None, n_trust))
-    Ls = _chol(S, "Stilde")
-    Lsig = _chol(Sigma, "Sigma")
-    eye = np.broadcast_to(np.eye(m), Lsig.shape)
-    LhT = _tri_solve(Lsig, eye)  # Lsig^{-1}: H = Sigma^{-1} = LhT^T LhT
-    C = LhT @ F @ Ls
+    prob = _get_problem(("spectral", n, m, None, rc.b is not None, n_trust))
+    _chol(S, "Stilde")  # the constrained step needs Stilde > 0
+    H = _inv_from_chol(_chol(Sigma, "Sigma"))  # Sigma^{-1}
+    # E[log N(a; F stilde, Sigma)] = const - 1/2 tr(H F S F^T) + tr(F^T H E[a stilde^T])
+    lam, U = _kron_eig(H, S)
+    if rc.delta is not None:
+        Fp = _vec_batch(Fprev)
+        centres = [Fp[i : i + 1] if n_trust == 1 else Fp for i in range(N)]
+        f0 = np.stack([c.mean(0) for c in centres])
+    else:
+        centres = [None] * N
+        f0 = np.zeros((N, m * n1))
+    lam, g, _ = _spectral_data(lam, U, _vec_batch(H @ Eas), f0)
     out = np.empty_like(F)
     for i in range(N - 1, -1, -1):
-        prob.params["LhT"].value = LhT[i]
-        prob.params["Ls"].value = Ls[i]
-        prob.params["C"].value = C[i]
-        if rc.delta is not None:
-            centres = Fprev[i : i + 1] if n_trust == 1 else Fprev
-        else:
-            centres = None
-        _set_f_params(prob, rc, centres)
+        _set_spectral_params(prob, rc, n, lam[i], g[i], U[i], f0[i], centres[i])
         _solve(prob, solver, cfg, f"{labels[i]} (exact-EM mean step)", None)
-        out[i] = prob.F.value
+        out[i] = _spectral_F(prob, U[i], f0[i], m, n1)
     return out
 
 
