@@ -289,13 +289,15 @@ def _budgets(rng, T, kind):
     return nu
 
 
-def _compare(seed, n, m, T, kind):
+def _compare(seed, n, m, T, kind, config=None, make=make_problem):
     rng = np.random.default_rng(seed)
-    dyn, cost, ref, mu0, P0 = make_problem(rng, n, m, T)
+    dyn, cost, ref, mu0, P0 = make(rng, n, m, T)
     nu = _budgets(rng, T, kind)
     cf = kl_step(dyn, cost, ref, nu, mu0, P0)
-    ip = kl_step(dyn, cost, ref, nu, mu0, P0, method="casadi")
+    ip = kl_step(dyn, cost, ref, nu, mu0, P0, method="casadi", config=config)
     assert ip.status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+    if config is not None and config.casadi_nlp != "auto":
+        assert ip.solver_stats["formulation"] == config.casadi_nlp
     assert max_policy_diff(cf.policy, ip.policy) < 1e-5
     assert abs(cf.expected_cost - ip.expected_cost) <= 1e-7 * max(1.0, abs(cf.expected_cost))
     nu_full = np.full(T, nu) if np.isscalar(nu) else nu
@@ -319,17 +321,133 @@ def _compare(seed, n, m, T, kind):
 
 @pytest.mark.parametrize("seed,n,m,T,kind", CASES)
 def test_closed_form_matches_ipopt(seed, n, m, T, kind):
-    _compare(seed, n, m, T, kind)
+    cf, ip = _compare(seed, n, m, T, kind)
+    assert ip.solver_stats["formulation"] == "symbolic"  # "auto" below casadi_auto_max_vars
 
 
-def test_closed_form_matches_ipopt_on_nonconvex_cost():
+STRUCTURED = KLStepConfig(casadi_nlp="structured")
+
+
+@pytest.mark.parametrize("seed,n,m,T,kind", CASES)
+def test_closed_form_matches_structured_ipopt(seed, n, m, T, kind):
+    _compare(seed, n, m, T, kind, STRUCTURED)
+
+
+@pytest.mark.parametrize("kind", ["per_step_mixed", "per_step", "total"])
+def test_structured_ipopt_matches_closed_form_moderate_size(kind):
+    """The scalable NLP on n=6, m=3, T=20: policy 1e-5, multipliers 1e-4 relative (about 1e-11 in fact)."""
+    cf, ip = _compare(30, 6, 3, 20, kind, STRUCTURED)
+    assert ip.n_iter <= 60
+    if kind != "per_step_mixed":
+        assert ip.solver_stats["n_vars"] == 540
+
+
+@pytest.mark.parametrize("config", [KLStepConfig(), STRUCTURED], ids=["symbolic", "structured"])
+def test_closed_form_matches_ipopt_on_nonconvex_cost(config):
     rng = np.random.default_rng(25)
     dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6, convex=False)
     nu = np.full(6, 0.3)
     cf = kl_step(dyn, cost, ref, nu, mu0, P0)
-    ip = kl_step(dyn, cost, ref, nu, mu0, P0, method="casadi")
+    ip = kl_step(dyn, cost, ref, nu, mu0, P0, method="casadi", config=config)
     assert max_policy_diff(cf.policy, ip.policy) < 1e-5
     np.testing.assert_allclose(ip.eta, cf.eta, rtol=1e-4)
+
+
+def test_casadi_formulation_is_chosen_by_size():
+    rng = np.random.default_rng(28)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
+    n_vars = 6 * (3 * 2 + 2 + 3)
+    res = kl_step(dyn, cost, ref, 0.5, mu0, P0, method="casadi")
+    assert res.solver_stats == {**res.solver_stats, "n_vars": n_vars, "formulation": "symbolic"}
+    cfg = KLStepConfig(casadi_auto_max_vars=n_vars - 1)
+    res2 = kl_step(dyn, cost, ref, 0.5, mu0, P0, method="casadi", config=cfg)
+    assert res2.solver_stats["formulation"] == "structured"
+    assert max_policy_diff(res.policy, res2.policy) < 1e-8
+    np.testing.assert_allclose(res2.eta, res.eta, rtol=1e-7)
+    # structured edge cases: no constraint (nu = inf: LQR), no variable (nu = 0: the reference)
+    res3 = kl_step(dyn, cost, ref, np.inf, mu0, P0, method="casadi", config=STRUCTURED)
+    assert res3.solver_stats["formulation"] == "structured" and res3.lam_g.size == 0
+    assert max_policy_diff(res3.policy, lqr(dyn, cost, mu0, P0)) < 1e-6
+    res4 = kl_step(dyn, cost, ref, 0.0, mu0, P0, method="casadi", config=STRUCTURED)
+    assert max_policy_diff(res4.policy, ref) == 0.0 and np.all(np.isinf(res4.eta))
+
+
+@pytest.mark.parametrize("nu", [0.8, np.full(8, 0.1)], ids=["total", "per_step"])
+def test_structured_ipopt_with_singular_initial_covariance(nu):
+    """P0 = 0: K_0 is identified only through K_0 mu0 + k_0 (the NLP is flat in the other
+    directions); IPOPT still converges and everything identifiable matches the closed form."""
+    rng = np.random.default_rng(3)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 8)
+    P0 = np.zeros_like(P0)
+    cf = kl_step(dyn, cost, ref, nu, mu0, P0)
+    ip = kl_step(dyn, cost, ref, nu, mu0, P0, method="casadi", config=STRUCTURED)
+    assert ip.status == "Solve_Succeeded"
+    p, q = cf.policy, ip.policy
+    assert max(np.abs(p.K[1:] - q.K[1:]).max(), np.abs(p.k[1:] - q.k[1:]).max(), np.abs(p.cov - q.cov).max()) < 1e-5
+    np.testing.assert_allclose(q.K[0] @ mu0 + q.k[0], p.K[0] @ mu0 + p.k[0], atol=1e-5)
+    np.testing.assert_allclose(ip.eta, cf.eta, rtol=1e-4)
+    assert abs(cf.expected_cost - ip.expected_cost) <= 1e-7 * abs(cf.expected_cost)
+
+
+def _structured_point(nlp, policy):
+    """NLP variables of the structured formulation that represent ``policy``."""
+    x = np.zeros(nlp.nx)
+    n, m, n1 = nlp.n, nlp.m, nlp.n1
+    for t in np.flatnonzero(nlp.var):
+        G = np.concatenate([policy.K[t], policy.k[t][:, None]], axis=1)
+        Z = np.linalg.solve(nlp.Lh[t], G - nlp.Gh[t]) @ np.linalg.inv(nlp.Mx[t])
+        o = nlp.off[t]
+        x[o : o + m * n1] = Z.T.ravel()
+        if nlp.free[t]:
+            Gam = np.linalg.solve(nlp.Lh[t], np.linalg.cholesky(policy.cov[t]))
+            x[o + m * n1 : o + m * n1 + nlp.nt] = Gam[nlp.tl]
+    return x
+
+
+@pytest.mark.parametrize("nu", [np.array([0.3, np.inf, 0.2, 0.0, 0.5, 0.4]), 1.2], ids=["per_step", "total"])
+def test_structured_nlp_derivatives_match_casadi_ad(nu):
+    """Analytic gradient, Jacobian and Hessian blocks of the structured NLP against CasADi AD of its
+    own CasADi objective/constraints; at the closed-form optimum the cross-step Hessian blocks vanish."""
+    import casadi as ca
+
+    from soc_opt.lqg import _casadi_kinds, _Problem, _StructuredNLP
+
+    rng = np.random.default_rng(29)
+    T = 6
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, T)
+    nu_a, scalar = np.atleast_1d(np.asarray(nu, float)), np.isscalar(nu)
+    _, kind = _casadi_kinds(nu_a, scalar, T)
+    nlp = _StructuredNLP(_Problem(dyn, cost, ref, mu0, P0), kind, scalar, 1e-9)
+    x, f, g = nlp.oracle(ca)
+    sf, lg = ca.MX.sym("sf"), ca.MX.sym("lg", nlp.ng)
+    H = ca.hessian(sf * f + ca.dot(lg, g), x)[0]
+    ad = ca.Function("ad", [x, sf, lg], [f, g, ca.gradient(f, x), ca.jacobian(g, x), H])
+
+    def blocks(Hd):
+        return [Hd[o : o + sz, o : o + sz] for o, sz in zip(nlp.off[:-1], nlp.sizes) if sz]
+
+    xv = nlp.x0 + 0.1 * rng.standard_normal(nlp.nx)
+    sig, lam = 0.7, rng.uniform(0.5, 2.0, nlp.ng)
+    fa, ga, gfa, Ja, Ha = (v.full() for v in ad(xv, sig, lam))
+    assert nlp._cost(xv) == pytest.approx(fa.item(), rel=1e-12)
+    np.testing.assert_allclose(nlp.constraints(xv), ga.ravel(), rtol=1e-12)
+    np.testing.assert_allclose(nlp.grad_f(xv), gfa.ravel(), rtol=1e-10, atol=1e-10 * np.abs(gfa).max())
+    np.testing.assert_allclose(nlp.jac_g(xv), Ja, rtol=1e-10, atol=1e-10 * np.abs(Ja).max())
+    for mine, theirs in zip(nlp.hess_blocks(xv, sig, lam), blocks(Ha)):
+        np.testing.assert_allclose(mine, theirs, rtol=1e-9, atol=1e-10 * np.abs(Ha).max())
+    # away from the solution the exact Hessian has cross-step blocks ...
+    off = Ha.copy()
+    for o, sz in zip(nlp.off[:-1], nlp.sizes):
+        off[o : o + sz, o : o + sz] = 0.0
+    assert np.abs(off).max() > 1e-3 * np.abs(Ha).max()
+    # ... which vanish at the KKT point (closed-form policy and multipliers)
+    cf = kl_step(dyn, cost, ref, nu, mu0, P0)
+    xs = _structured_point(nlp, cf.policy)
+    lam_s = cf.eta[:1] if scalar else cf.eta[nlp.cons]
+    Hs = ad(xs, 1.0, lam_s)[4].full()
+    for o, sz in zip(nlp.off[:-1], nlp.sizes):
+        Hs[o : o + sz, o : o + sz] = 0.0
+    assert np.abs(Hs).max() < 1e-8 * np.abs(Ha).max()
 
 
 @pytest.mark.slow
@@ -338,11 +456,25 @@ def test_closed_form_matches_ipopt_largest_documented_size(kind):
     _compare(30, 6, 3, 20, kind)
 
 
-def test_ipopt_failure_raises_solver_error():
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["per_step", "total"])
+def test_structured_ipopt_at_benchmark_size(kind):
+    """n=26, m=7, T=100 (21 700 NLP variables): "auto" picks the structured NLP; 10-60 s."""
+    from soc_opt.bench.lqg import make_instance
+
+    def make(rng, n, m, T):
+        return make_instance(n, m, T, rng)
+
+    cf, ip = _compare(31, 26, 7, 100, kind, make=make)
+    assert ip.solver_stats["formulation"] == "structured" and ip.solver_stats["n_vars"] == 21_700
+
+
+@pytest.mark.parametrize("form", ["symbolic", "structured"])
+def test_ipopt_failure_raises_solver_error(form):
     rng = np.random.default_rng(26)
     dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
     with pytest.raises(SolverError, match="IPOPT"):
-        kl_step(dyn, cost, ref, 0.5, mu0, P0, method="casadi", config=KLStepConfig(ipopt_max_iter=1))
+        kl_step(dyn, cost, ref, 0.5, mu0, P0, method="casadi", config=KLStepConfig(ipopt_max_iter=1, casadi_nlp=form))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -456,6 +588,14 @@ def test_config_is_strict():
         KLStepConfig.from_dict({"eta_min": -1.0})
     cfg = KLStepConfig.from_dict({"kl_rtol": 1e-8, "ipopt_options": {"mu_strategy": "adaptive"}})
     assert cfg.kl_rtol == 1e-8 and KLStepConfig.from_dict(cfg.to_dict()) == cfg
+    cfg = KLStepConfig.from_dict({"casadi_nlp": "structured", "casadi_auto_max_vars": 0})
+    assert cfg.casadi_nlp == "structured" and KLStepConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ConfigError, match="casadi_nlp"):
+        KLStepConfig.from_dict({"casadi_nlp": "lbfgs"})
+    with pytest.raises(ValueError, match="casadi_nlp"):
+        KLStepConfig(casadi_nlp="dense")
+    with pytest.raises(ValueError, match="casadi_auto_max_vars"):
+        KLStepConfig(casadi_auto_max_vars=-1)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -502,5 +642,10 @@ def test_benchmark_rows():
     rows = run(sizes=((2, 1, 4),), repeats=1)
     assert [r["budget"] for r in rows] == ["total", "per_step"]
     for r in rows:
-        assert r["ipopt_size"] == (2, 1, 4) and r["n_backward"] >= 1
+        assert r["ipopt_size"] == (2, 1, 4) and r["n_backward"] >= 1 and r["ipopt_formulation"] == "symbolic"
+        assert r["ipopt_status"] == "Solve_Succeeded" and r["note"] is None
         assert r["max_policy_diff"] < 1e-5 and r["max_rel_eta_diff"] < 1e-4 and r["worst_violation"] < 1e-6
+    rows = run(sizes=((2, 1, 4), (3, 1, 5)), repeats=1, budgets=("per_step",), ipopt_max_vars=20,
+               config=KLStepConfig(casadi_nlp="structured"))
+    assert rows[0]["ipopt_formulation"] == "structured" and rows[0]["max_rel_eta_diff"] < 1e-4
+    assert rows[1]["ipopt_s"] is None and "skipped" in rows[1]["note"]
