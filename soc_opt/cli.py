@@ -33,8 +33,13 @@ def _print(line: str) -> None:
     print(line, flush=True)
 
 
-def load_config(task_name: str, config_file: str | None, paper: bool, overrides: dict | None = None):
-    """The DPSOC-EM/LQR-FLM configuration: task default file, then ``--config``, then flags."""
+def load_config(task_name: str, config_file: str | None, paper: bool, overrides: dict | None = None,
+                method: str = "dpsoc-em"):
+    """The DPSOC-EM/LQR-FLM configuration: task default file, then ``--config``, then flags.
+
+    For ``method = "lqr-flm"`` the switch point is unused; it is clamped into the run so that a
+    short baseline run is not rejected for it.
+    """
     from .algorithms import DPSOCConfig
     from .config import ConfigError
 
@@ -57,6 +62,8 @@ def load_config(task_name: str, config_file: str | None, paper: bool, overrides:
             base_changes[key] = value
     try:
         base = cfg.baseline.replace(**base_changes) if base_changes else cfg.baseline
+        if method == "lqr-flm":
+            top_changes["i_switch"] = min(top_changes.get("i_switch", cfg.i_switch), base.iterations - 1)
         return cfg.replace(baseline=base, **top_changes)
     except (TypeError, ValueError) as e:
         raise ConfigError(str(e)) from e
@@ -108,9 +115,16 @@ def _cmd_run(args) -> int:
         _print(f"iLQG: cost {costs[0]:.6g} -> {costs[-1]:.6g} in {len(costs) - 1} accepted iterations; wrote {out}")
         return 0
     cfg = load_config(args.task, args.config, args.paper,
-                      {"iterations": args.iterations, "samples": args.samples, "workers": args.workers})
+                      {"iterations": args.iterations, "samples": args.samples, "workers": args.workers},
+                      method=args.method)
     state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_print)
     _write_run_figures(task, state, out)
+    if state.last_rollouts is not None:
+        from .tasks import render_filmstrip
+
+        res = render_filmstrip(task, state.last_rollouts, out / "filmstrip.png")
+        _print(f"filmstrip of the last iteration's first sample: {res.path} ({res.backend}"
+               + (f"; {res.message}" if res.message else "") + ")")
     best = state.best
     _print(f"done: best mean cost {best[0]:.6g} (iteration {best[2] + 1}); run directory {out}")
     return 0
