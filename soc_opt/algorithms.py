@@ -205,7 +205,7 @@ class RunState:
     prior:     mixture prior (fit.MixturePrior) or None.
     rng_state: ``numpy`` bit-generator state (JSON-able dict).
     history:   tuple of IterationRecord.
-    prev:      Laplace-objective bookkeeping of the previous iteration (dynamics, cost, policy, mu0, P0).
+    prev:      ``(LocalModel, reference policy)`` of the previous KL step, for the step adaptation.
     best:      (mean cost, policy) of the best policy sampled so far.
     em_done:   whether the DPSOC-EM phase has run.
     """
@@ -250,10 +250,6 @@ def _budget(cfg: LQRFLMConfig, T: int, mult: float):
     return np.full(T, cfg.kl_budget * mult)
 
 
-def _expected_total(dyn, cost, policy, mu0, P0) -> float:
-    return float(np.sum(lqg.expected_cost(dyn, cost, policy, mu0, P0)))
-
-
 def _record(iteration, phase, task, rollouts, *, kl=0.0, nu=0.0, mult=1.0, timings=None, extra=None):
     return IterationRecord(
         iteration=iteration,
@@ -291,11 +287,10 @@ def lqr_flm_iteration(task, cfg: LQRFLMConfig, state: RunState, reference: Linea
 
     mult = state.mult
     if cfg.adapt_step and state.prev is not None:
-        p_dyn, p_cost, p_policy, p_mu0, p_P0, p_ref = state.prev
-        previous_obj = _expected_total(p_dyn, p_cost, p_ref, p_mu0, p_P0)
-        predicted_obj = _expected_total(p_dyn, p_cost, p_policy, p_mu0, p_P0)
-        actual_obj = _expected_total(dyn, cost, state.policy, mu0, P0)
-        mult = lqg.adapt_step(mult, previous_obj - predicted_obj, previous_obj - actual_obj, cfg.kl)
+        previous, old_policy = state.prev
+        predicted, actual = lqg.laplace_improvements(old_policy, state.policy, previous,
+                                                     lqg.LocalModel(dyn, cost, mu0, P0))
+        mult = lqg.adapt_step(mult, predicted, actual, cfg.kl)
 
     t0 = time.perf_counter()
     nu = _budget(cfg, task.T, mult)
@@ -319,7 +314,7 @@ def lqr_flm_iteration(task, cfg: LQRFLMConfig, state: RunState, reference: Linea
         prior=prior,
         rng_state=rng.bit_generator.state,
         history=state.history + (record,),
-        prev=(dyn, cost, res.policy, mu0, P0, ref),
+        prev=(lqg.LocalModel(dyn, cost, mu0, P0), ref),
         best=best,
         last_rollouts=rollouts,
     )

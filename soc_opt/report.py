@@ -27,6 +27,24 @@ COLORS = {"lqr-flm": "tab:blue", "dpsoc-em": "tab:red"}
 LABELS = {"lqr-flm": "LQR-FLM (baseline)", "dpsoc-em": "DPSOC-EM"}
 
 
+def _boxes(ax, data, pos, width: float, color: str) -> None:
+    """Semi-transparent box plots of ``data`` (list of 1-D arrays) at ``pos``."""
+    bp = ax.boxplot(data, positions=pos, widths=width * 0.9, patch_artist=True, showfliers=False,
+                    manage_ticks=False)
+    for b in bp["boxes"]:
+        b.set_facecolor(color)
+        b.set_alpha(0.5)
+
+
+def _save(fig, ax, path: Path, title: str, dpi: int = 120) -> Path:
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def plot_costs(costs: dict, path: Path, title: str, i_switch: int | None = None) -> Path:
     """``costs[method]`` is a list over iterations of 1-D arrays of per-sample costs."""
     fig, ax = plt.subplots(figsize=(10, 4.5))
@@ -35,11 +53,7 @@ def plot_costs(costs: dict, path: Path, title: str, i_switch: int | None = None)
     for j, meth in enumerate(methods):
         data = costs[meth]
         pos = np.arange(len(data)) + 1 + (j - (len(methods) - 1) / 2) * width
-        bp = ax.boxplot(data, positions=pos, widths=width * 0.9, patch_artist=True, showfliers=False,
-                        manage_ticks=False)
-        for b in bp["boxes"]:
-            b.set_facecolor(COLORS.get(meth, "gray"))
-            b.set_alpha(0.5)
+        _boxes(ax, data, pos, width, COLORS.get(meth, "gray"))
         ax.plot(pos, [np.mean(d) for d in data], "o-", color=COLORS.get(meth, "gray"), ms=3, label=LABELS.get(meth, meth))
     if i_switch is not None:
         ax.axvline(i_switch + 0.5, color="k", ls=":", lw=1, label=f"EM switch (after iteration {i_switch})")
@@ -48,13 +62,8 @@ def plot_costs(costs: dict, path: Path, title: str, i_switch: int | None = None)
     ax.set_xlabel("iteration")
     ax.set_ylabel("total cost per sample (true state)")
     ax.set_yscale("symlog" if min(np.min(np.concatenate(d)) for d in costs.values()) <= 0 else "log")
-    ax.set_title(title)
     ax.legend()
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, ax, path, title)
 
 
 def plot_ee(points: dict, dt: float, path: Path, title: str, point_names=None, targets=None) -> Path:
@@ -112,11 +121,7 @@ def plot_actions(actions: dict, path: Path, title: str) -> Path:
                 a = a - a.mean(axis=0, keepdims=True)
             a = a.reshape(-1, m)
             pos = np.arange(m) + 1 + (j - (len(methods) - 1) / 2) * width
-            bp = ax.boxplot([a[:, i] for i in range(m)], positions=pos, widths=width * 0.9, patch_artist=True,
-                            showfliers=False, manage_ticks=False)
-            for b in bp["boxes"]:
-                b.set_facecolor(COLORS.get(meth, "gray"))
-                b.set_alpha(0.5)
+            _boxes(ax, [a[:, i] for i in range(m)], pos, width, COLORS.get(meth, "gray"))
             ax.plot([], [], "s", color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
         ax.set_xticks(np.arange(1, m + 1))
         ax.set_xticklabels([f"joint {i + 1}" for i in range(m)], rotation=30 if m > 4 else 0)
@@ -142,13 +147,8 @@ def plot_metric(values: dict, path: Path, title: str, ylabel: str) -> Path:
         ax.fill_between(it, v.mean(0) - v.std(0), v.mean(0) + v.std(0), color=COLORS.get(meth, "gray"), alpha=0.2)
     ax.set_xlabel("iteration")
     ax.set_ylabel(ylabel)
-    ax.set_title(title)
     ax.legend()
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, ax, path, title)
 
 
 def claims_table(per_seed: dict) -> list[dict]:
