@@ -144,7 +144,7 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> 
     extra_tables = {}
     for key in first_metrics:
         vals = {m: np.array([[row[key] for row in seed_rows] for seed_rows in metric_hist[m]]) for m in METHODS}
-        if key == "min_hinge_angle":
+        if key == "min_hinge":
             figs["Minimum hinge angle per iteration (lower is better)"] = report.plot_metric(
                 vals, out / "min_hinge.png", f"{name}: minimum hinge angle", "min hinge angle [rad]")
         elif key in ("min_distance",):

@@ -48,6 +48,17 @@ def _jsonable(v):
     return v
 
 
+def _same_settings(old, new) -> bool:
+    """Every setting recorded in ``old`` has the same value in ``new``.
+
+    Keys only in ``new`` are options added by a later version of soc_opt after the run was
+    started; they do not make the run a different one.
+    """
+    if isinstance(old, dict) and isinstance(new, dict):
+        return all(k in new and _same_settings(v, new[k]) for k, v in old.items())
+    return old == new
+
+
 @dataclass(frozen=True)
 class RunDirectory:
     """Files of one run (see module docstring)."""
@@ -64,7 +75,7 @@ class RunDirectory:
         meta_path = self.path / "config.json"
         if meta_path.exists():
             old = json.loads(meta_path.read_text())
-            if old != json.loads(json.dumps(meta)):
+            if not _same_settings(old, json.loads(json.dumps(meta))):
                 raise ValueError(
                     f"run directory {str(self.path)!r} holds a run with a different configuration; "
                     "use another --out or delete it"
