@@ -30,7 +30,7 @@ import numpy as np
 
 from . import estep, fit, lqg, mstep
 from .config import Config
-from .models import LinearGaussianPolicy, Rollouts, symmetrize
+from .models import LinearGaussianPolicy, Rollouts
 
 __all__ = [
     "LQRFLMConfig",
@@ -239,8 +239,8 @@ def _rng(state: RunState) -> np.random.Generator:
     return rng
 
 
-def _initial_distribution(rollouts: Rollouts, task) -> tuple[np.ndarray, np.ndarray]:
-    """``s_0 ~ N(mu0, P0)`` from the task (measurement noise included)."""
+def _initial_distribution(task) -> tuple[np.ndarray, np.ndarray]:
+    """``s_0 ~ N(mu0, P0)`` from the task (measurement noise included; docs/choices.md)."""
     return np.asarray(task.mu0, float), np.asarray(task.P0, float)
 
 
@@ -279,7 +279,7 @@ def lqr_flm_iteration(task, cfg: LQRFLMConfig, state: RunState, reference: Linea
     dyn = fit.fit_dynamics(rollouts, cfg.fit, prior)
     timings["fit"] = time.perf_counter() - t0
 
-    mu0, P0 = _initial_distribution(rollouts, task)
+    mu0, P0 = _initial_distribution(task)
     s_bar = rollouts.s.mean(axis=0)
     a_bar = rollouts.a.mean(axis=0)
     cost = task.cost_expansion(s_bar, a_bar)
@@ -332,7 +332,7 @@ def em_update(task, cfg: DPSOCConfig, policy: LinearGaussianPolicy, rollouts: Ro
     t0 = time.perf_counter()
     model = fit.fit_augmented(rollouts, cfg.baseline.fit, prior)
     timings["fit_augmented"] = time.perf_counter() - t0
-    mu0, P0 = _initial_distribution(rollouts, task)
+    mu0, P0 = _initial_distribution(task)
     Y = fit.cost_observations(em.y_mode, rollouts, model, policy, mu0, P0, rng, n_samples=em.y_samples)
 
     t0 = time.perf_counter()

@@ -96,7 +96,6 @@ def _cmd_tasks(args) -> int:
 
 
 def _cmd_run(args) -> int:
-    from .compare import METHODS  # noqa: F401
     from .experiment import run_experiment
     from .tasks import load_task
 

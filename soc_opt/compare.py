@@ -19,7 +19,7 @@ import numpy as np
 from . import report
 from . import algorithms
 from .algorithms import DPSOCConfig, RunState
-from .experiment import RunDirectory, fork_state, run_experiment
+from .experiment import fork_state, run_experiment
 
 __all__ = ["compare"]
 
@@ -77,7 +77,6 @@ def compare(
     out.mkdir(parents=True, exist_ok=True)
     eval_samples = eval_samples or cfg.baseline.samples
     workers = cfg.baseline.workers
-    finals: dict[str, dict] = {m: {} for m in METHODS}
     per_seed = {m: {"cost": [], "state_spread": [], "action_spread": []} for m in METHODS}
     histories = {m: [] for m in METHODS}
     eval_ro = {m: [] for m in METHODS}

@@ -1334,7 +1334,7 @@ class _StructuredNLP:
         key = x.tobytes()
         if key == self._key:
             return self._cache
-        T, m, n1 = self.T, self.m, self.n1
+        T, n1 = self.T, self.n1
         Z, _ = self.unpack(x)
         G, S, Gam = self.policy(x)
         Acl = self.Fx + self.Fu @ G

@@ -1474,7 +1474,7 @@ def _f_step_exact(model, Eas, S, Sigma, rc, method, solver, cfg, Fprev, min_norm
 
 
 def _exact_em(model, mom, rc, cfg, method, solver, variant, previous, min_norm):
-    T, n, m = model.T, model.n, model.m
+    T, n = model.T, model.n
     if previous is None:
         raise ValueError("objective='exact' needs previous= (the current policy): the exact-EM M-step "
                          "is an iteration started from it")

@@ -675,8 +675,8 @@ def claim2_em_monotone(
          f"log p(Y) over {iterations} iterations",
          f"the EM lemma; M-step inner iterations capped at {inner} (generalized EM)"),
         ("surrogate", "2b surrogate EM in log p(Y) (informative)",
-         f"the paper's surrogate M-step (objective='surrogate', cov floor 0.1 I), same instances: is log p(Y) "
-         f"monotone too? Not implied by the EM lemma; not a failure of claim 2",
+         "the paper's surrogate M-step (objective='surrogate', cov floor 0.1 I), same instances: is log p(Y) "
+         "monotone too? Not implied by the EM lemma; not a failure of claim 2",
          "the surrogate is a Jensen lower bound of the exact objective"),
     ):
         r = results[label]
