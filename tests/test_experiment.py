@@ -89,3 +89,13 @@ def test_compare_shares_the_baseline_prefix(task, tmp_path):
     for r_base, r_em in zip(base[:2], em[:2]):
         assert r_base["cost_mean"] == r_em["cost_mean"]
     assert em[2]["phase"] == "em"
+
+
+def test_door_report_plots_the_minimum_hinge_angle_per_iteration(tmp_path):
+    from soc_opt.compare import compare
+
+    door = load_task("door", overrides={"T": 10})
+    cfg = DPSOCConfig(i_switch=1, baseline=LQRFLMConfig(iterations=2, samples=4), em=EMConfig(n_em=1))
+    compare(door, cfg, seeds=[0], out=tmp_path / "door")
+    assert (tmp_path / "door" / "min_hinge.png").stat().st_size > 1000
+    assert "Minimum hinge angle per iteration" in (tmp_path / "door" / "report.md").read_text()
