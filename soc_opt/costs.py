@@ -35,6 +35,7 @@ and afterwards ``r_{T-1} *= final_multiplier`` (default 1).
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -100,7 +101,7 @@ def _zeros(T: int, n: int, m: int) -> Derivatives:
     )
 
 
-class CostTerm:
+class CostTerm(ABC):
     """Base class: ``weight * r_k * l_k(s_k, a_k)``.
 
     Subclasses implement ``_value(s (...,T,n), a (...,T,m)) -> (...,T)`` and
@@ -146,11 +147,13 @@ class CostTerm:
             d.lux * r[:, None, None],
         )
 
-    def _value(self, s, a):  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def _value(self, s, a) -> np.ndarray:
+        """Unramped stage values ``(..., T)``."""
 
-    def _derivatives(self, s, a):  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def _derivatives(self, s, a) -> Derivatives:
+        """Unramped value and derivatives along one trajectory."""
 
 
 def _vec(name: str, v, size: int) -> np.ndarray:
