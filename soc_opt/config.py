@@ -15,7 +15,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-__all__ = ["Config", "ConfigError"]
+__all__ = ["Config", "ConfigError", "read_toml"]
 
 C = TypeVar("C", bound="Config")
 
@@ -85,6 +85,17 @@ def _check_type(path: str, value: Any, tp: Any) -> Any:
     return value
 
 
+def read_toml(path: str | Path) -> dict:
+    """The table of a TOML file; a missing or invalid file raises :class:`ConfigError` naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {str(path)!r} does not exist")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from e
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
     """Base class: a frozen dataclass with strict ``from_dict`` / ``from_toml`` / ``to_dict``."""
@@ -115,13 +126,7 @@ class Config:
 
     @classmethod
     def from_toml(cls: type[C], path: str | Path, table: str | None = None) -> C:
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"config file {str(path)!r} does not exist")
-        try:
-            data = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from e
+        data = read_toml(path)
         if table is not None:
             data = data.get(table, {})
         return cls.from_dict(data)

@@ -26,7 +26,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import tomllib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,7 +34,7 @@ from typing import Any, Literal, Protocol, runtime_checkable
 import numpy as np
 import scipy.linalg
 
-from .config import Config, ConfigError
+from .config import Config, ConfigError, read_toml
 from .costs import (
     CostSum,
     PointCost,
@@ -1124,10 +1123,7 @@ def load_task(name_or_path: str | Path, *, condition: int = 0, overrides: dict |
     path = _problems_dir() / BUILTIN_TASKS[name] if name in BUILTIN_TASKS else Path(name)
     if not path.is_file():
         raise ConfigError(f"task {name!r}: not a built-in task ({', '.join(BUILTIN_TASKS)}) and no file {str(path)!r}")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from e
+    data = read_toml(path)
     data.update(overrides or {})
     try:
         config = TaskConfig.from_dict(data)

@@ -298,6 +298,19 @@ def _known_component_smoothed(sm: Smoothed, steps, value: float = 1.0) -> Smooth
     return Smoothed(mean, cov, cross, sm.loglik)
 
 
+def _singularity_scan(model, mom, rel_tol: float) -> tuple[float, bool, bool]:
+    """Per-step Hessians of an ill-posed instance: ``(largest lambda_max, every step singular,
+    time-invariant sum negative definite)``."""
+    worst, singular_all, Hsum = -np.inf, True, 0.0
+    for k in range(model.T):
+        Hk = surrogate_hessian(model, mom.Sss[k], k)
+        lam, ok = _nd_margin(Hk, rel_tol)
+        singular_all &= not ok
+        worst = max(worst, lam)
+        Hsum = Hsum + Hk
+    return worst, singular_all, _nd_margin(Hsum, rel_tol)[1]
+
+
 def claim1_uniqueness(seed: int = 0, instances: int = 20, *, fd_instances: int = 5, rel_tol: float = 1e-10) -> list[ClaimResult]:
     """Claim 1 (Theorem "uniqueness"): the M-step Hessian of ``Lbar_k`` in ``vec([K_k k_k])``.
 
@@ -369,14 +382,8 @@ def claim1_uniqueness(seed: int = 0, instances: int = 20, *, fd_instances: int =
         model, policy, mu0, P0, y = _claim1_instance(rng, b_rank_deficient=True)
         sm = _smooth(model, policy, y, mu0, P0)
         mom = _moments(sm, y)
-        Hsum, singular_all = 0.0, True
-        for k in range(model.T):
-            Hk = surrogate_hessian(model, mom.Sss[k], k)
-            lam, ok = _nd_margin(Hk, rel_tol)
-            singular_all &= not ok
-            Hsum = Hsum + Hk
-            bd_worst = max(bd_worst, lam)
-        lam_ti, ok_ti = _nd_margin(Hsum, rel_tol)
+        lam, singular_all, ok_ti = _singularity_scan(model, mom, rel_tol)
+        bd_worst = max(bd_worst, lam)
         if singular_all:
             bd_held += 1
         if not ok_ti:
@@ -402,14 +409,8 @@ def claim1_uniqueness(seed: int = 0, instances: int = 20, *, fd_instances: int =
         model, policy, sm, y, mom0 = wellposed[i]
         sm_all = _known_component_smoothed(sm, range(model.T + 1))
         mom = _moments(sm_all, y)
-        Hsum, singular_all = 0.0, True
-        for k in range(model.T):
-            Hk = surrogate_hessian(model, mom.Sss[k], k)
-            lam, ok = _nd_margin(Hk, rel_tol)
-            singular_all &= not ok
-            sp_worst = max(sp_worst, lam)
-            Hsum = Hsum + Hk
-        lam_ti, ok_ti = _nd_margin(Hsum, rel_tol)
+        lam, singular_all, ok_ti = _singularity_scan(model, mom, rel_tol)
+        sp_worst = max(sp_worst, lam)
         if singular_all:
             sp_held += 1
         if not ok_ti:
