@@ -185,9 +185,9 @@ from typing import Literal, NamedTuple
 import cvxpy as cp
 import numpy as np
 
-from .config import Config, ConfigError
-from .estep import Moments, moments
-from .models import (
+from ..config import Config, ConfigError
+from ..estep import Moments, moments
+from ..models import (
     AugmentedModel,
     LinearGaussianPolicy,
     NotPositiveDefiniteError,
