@@ -7,16 +7,17 @@ built-in task is a TOML file under ``problems/`` loaded through the same
 Modules:
 
 * :mod:`.config`: :class:`TaskConfig` and the state, cost-term, metric and linear-system configs (TOML schema).
-* :mod:`.base`: the :class:`Task` protocol, the shared base class and :class:`SimulationError`.
-* :mod:`.linear`: :class:`LinearTask` (``kind = "linear"``).
-* :mod:`.mujoco`: :class:`MujocoTask` (state layout, rollouts, finite-difference linearisation).
+* :mod:`.base`: the :class:`Task` protocol, the shared base class, :class:`RolloutNoise` and :class:`SimulationError`.
+* :mod:`.linear`: :class:`LinearTask` (``kind = "linear"``) and its step-by-step :class:`LinearSimulator`.
+* :mod:`.mujoco`: :class:`MujocoTask` (state layout, rollouts, finite-difference linearisation)
+  and its step-by-step :class:`MujocoSimulator`.
 * :mod:`.loading`: :data:`BUILTIN_TASKS`, :func:`build_task`, :func:`load_task`.
 * :mod:`.render`: :func:`render_filmstrip` (offscreen frames in :mod:`.render_worker`, matplotlib fallback).
 """
 
 from __future__ import annotations
 
-from .base import SimulationError, Task
+from .base import RolloutNoise, SimulationError, Task
 from .config import (
     TERM_TYPES,
     FloatOrList,
@@ -30,13 +31,14 @@ from .config import (
     TaskConfig,
     TorqueTermConfig,
 )
-from .linear import LinearTask
+from .linear import LinearSimulator, LinearTask
 from .loading import BUILTIN_TASKS, build_task, load_task
-from .mujoco import MujocoTask
+from .mujoco import MujocoSimulator, MujocoTask
 from .render import RenderResult, render_filmstrip
 
 __all__ = [
     "SimulationError",
+    "RolloutNoise",
     "TaskConfig",
     "StateConfig",
     "MetricConfig",
@@ -47,7 +49,9 @@ __all__ = [
     "QuadraticTermConfig",
     "Task",
     "LinearTask",
+    "LinearSimulator",
     "MujocoTask",
+    "MujocoSimulator",
     "BUILTIN_TASKS",
     "load_task",
     "build_task",

@@ -7,6 +7,8 @@ metrics, the initial distribution of ``s_0`` and the initial policy.
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -35,11 +37,26 @@ from .config import (
     TorqueTermConfig,
 )
 
-__all__ = ["SimulationError", "Task", "TaskBase"]
+__all__ = ["SimulationError", "RolloutNoise", "Task", "TaskBase"]
 
 
 class SimulationError(RuntimeError):
     """The simulation diverged (NaN/inf or a MuJoCo instability warning); names the sample and step."""
+
+
+@dataclass(frozen=True)
+class RolloutNoise:
+    """The random draws of ``M`` rollouts, in the order :meth:`TaskBase.draw_noise` takes them.
+
+    eps: (M, T+1, n) measurement noise ``s_k - x_k`` (already scaled by ``sqrt(rho2)``).
+    w:   (M, T, m)   standard normal policy noise (``a_k = K_k s_k + k_k + L_k w_k``).
+    xi:  (M, T, n)   process noise added to the transition (scaled), or ``None`` when the
+                     task has none (MuJoCo tasks).
+    """
+
+    eps: np.ndarray
+    w: np.ndarray
+    xi: np.ndarray | None = None
 
 
 @runtime_checkable
@@ -250,6 +267,18 @@ class TaskBase:
         """Zero gains and offsets (zero torque: with gravity off the arm holds still), cov ``var I``."""
         var = self.config.init_var if var is None else float(var)
         return LinearGaussianPolicy.zeros(self.T, self.n, self.m, var)
+
+    def draw_noise(self, M: int, rng: np.random.Generator) -> RolloutNoise:
+        """The noise of ``M`` rollouts drawn from ``rng``: ``eps`` then ``w`` (SPEC §0).
+
+        :meth:`rollouts` draws through this method, so a caller replaying a rollout step by
+        step (e.g. :class:`soc_opt.envs.SocOptEnv`) gets the same numbers from the same
+        Generator state.
+        """
+        T, n, m = self.T, self.n, self.m
+        eps = rng.standard_normal((M, T + 1, n)) * math.sqrt(self.rho2)
+        w = rng.standard_normal((M, T, m))
+        return RolloutNoise(eps, w)
 
     def simulate(self, policy: LinearGaussianPolicy, x0=None) -> Rollouts:
         """One noise-free rollout of the policy mean (``eps = 0``, ``w = 0``) from ``x0`` (default ``x_0``)."""

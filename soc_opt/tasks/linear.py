@@ -9,10 +9,10 @@ import scipy.linalg
 
 from ..config import ConfigError
 from ..models import LinearGaussianDynamics, Rollouts
-from .base import TaskBase, _rng
+from .base import RolloutNoise, TaskBase, _rng
 from .config import TaskConfig
 
-__all__ = ["LinearTask"]
+__all__ = ["LinearTask", "LinearSimulator"]
 
 
 class LinearTask(TaskBase):
@@ -79,9 +79,8 @@ class LinearTask(TaskBase):
         rng = _rng(rng)
         T, n, m = self.T, self.n, self.m
         if noise:
-            eps = rng.standard_normal((M, T + 1, n)) * math.sqrt(self.rho2)
-            w = rng.standard_normal((M, T, m))
-            xi = rng.standard_normal((M, T, n)) * math.sqrt(self.config.linear.process_var)
+            draws = self.draw_noise(M, rng)
+            eps, w, xi = draws.eps, draws.w, draws.xi
         else:
             eps = np.zeros((M, T + 1, n))
             w = np.zeros((M, T, m))
@@ -94,13 +93,23 @@ class LinearTask(TaskBase):
         for k in range(T):
             s[:, k] = x[:, k] + eps[:, k]
             a[:, k] = s[:, k] @ policy.K[k].T + policy.k[k] + w[:, k] @ L[k].T
-            x[:, k + 1] = x[:, k] @ self.A.T + a[:, k] @ self.B.T + self.c + xi[:, k]
+            x[:, k + 1] = self.step(x[:, k], a[:, k]) + xi[:, k]
         s[:, T] = x[:, T] + eps[:, T]
         return self._finish(x, s, a)
 
+    def draw_noise(self, M: int, rng: np.random.Generator) -> RolloutNoise:
+        """``eps``, ``w`` (as for every task), then the process noise ``xi (M, T, n)``."""
+        base = super().draw_noise(M, rng)
+        xi = rng.standard_normal((M, self.T, self.n)) * math.sqrt(self.config.linear.process_var)
+        return RolloutNoise(base.eps, base.w, xi)
+
     def step(self, x, u) -> np.ndarray:
-        """Noise-free transition ``A x + B u + c``."""
-        return self.A @ np.asarray(x, dtype=float) + self.B @ np.asarray(u, dtype=float) + self.c
+        """Noise-free transition ``A x + B u + c`` of ``x (..., n)``, ``u (..., m)`` (batched)."""
+        return np.asarray(x, dtype=float) @ self.A.T + np.asarray(u, dtype=float) @ self.B.T + self.c
+
+    def simulator(self) -> "LinearSimulator":
+        """A step-by-step simulator of this task (what :class:`soc_opt.envs.SocOptEnv` steps)."""
+        return LinearSimulator(self)
 
     def linearize(self, x=None, u=None, cov=None) -> LinearGaussianDynamics:
         """The exact model, repeated over ``T`` (process noise ``W`` unless ``cov`` is given)."""
@@ -122,3 +131,27 @@ class LinearTask(TaskBase):
         p = np.zeros(x.shape[:-1] + (1, 3))
         p[..., 0, : len(self._point)] = x[..., self._point]
         return p
+
+
+class LinearSimulator:
+    """One trajectory of a :class:`LinearTask`, one control step at a time.
+
+    ``reset(x0)`` then ``step(u, xi)`` computes exactly what :meth:`LinearTask.rollouts`
+    computes for one sample (same expression on ``(1, n)`` rows), so an episode replayed
+    with the rollout's noise matches it bit for bit.  ``x``: the current true state ``(n,)``.
+    """
+
+    def __init__(self, task: LinearTask):
+        self.task = task
+        self.x = task.x0.copy()
+
+    def reset(self, x0=None) -> np.ndarray:
+        """Back to ``x0`` (default the task's ``x_0``); returns a copy of the state."""
+        self.x = self.task.x0.copy() if x0 is None else np.array(x0, dtype=float)
+        return self.x.copy()
+
+    def step(self, u, xi=None) -> np.ndarray:
+        """``x <- A x + B u + c (+ xi)``; returns a copy of the new state."""
+        nxt = self.task.step(self.x[None], np.asarray(u, dtype=float)[None])[0]
+        self.x = nxt if xi is None else nxt + xi
+        return self.x.copy()

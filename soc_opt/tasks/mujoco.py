@@ -19,7 +19,6 @@ Also here: the finite-difference linearisation in task coordinates
 
 from __future__ import annotations
 
-import math
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -29,7 +28,7 @@ from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts, Sha
 from .base import SimulationError, TaskBase, _rng
 from .config import StateConfig, TaskConfig
 
-__all__ = ["MujocoTask"]
+__all__ = ["MujocoTask", "MujocoSimulator"]
 
 
 def _mujoco():
@@ -364,8 +363,8 @@ class MujocoTask(TaskBase):
         M = int(M)
         T, n, m = self.T, self.n, self.m
         if noise:
-            eps = rng.standard_normal((M, T + 1, n)) * math.sqrt(self.rho2)
-            w = rng.standard_normal((M, T, m))
+            draws = self.draw_noise(M, rng)
+            eps, w = draws.eps, draws.w
             offs = policy.k[None] + np.einsum("tij,mtj->mti", policy.chol, w)
         else:
             eps = np.zeros((M, T + 1, n))
@@ -394,15 +393,13 @@ class MujocoTask(TaskBase):
     # -- deterministic step and linearisation
     def step(self, x, u) -> np.ndarray:
         """One noise-free control step from task state ``x (n,)`` with action ``u (m,)`` held for ``substeps``."""
-        mj = _mujoco()
-        d = mj.MjData(self.model)
-        self._reset(d, x)
-        d.ctrl[self._act] = u
-        mj.mj_step(self.model, d, self.substeps)
-        mj.mj_forward(self.model, d)
-        out = np.empty(self.n)
-        self._read(d, out, np.empty(6))
-        return out
+        sim = self.simulator()
+        sim.reset(x)
+        return sim.step(u)
+
+    def simulator(self) -> "MujocoSimulator":
+        """A step-by-step simulator with its own ``MjData`` (what :class:`soc_opt.envs.SocOptEnv` steps)."""
+        return MujocoSimulator(self)
 
     def _output_jacobian(self, d) -> np.ndarray:
         """``H = d s / d (dq, dv)`` at the state in ``d`` (positions computed): ``(n, 2 nv)``.
@@ -507,3 +504,53 @@ class MujocoTask(TaskBase):
         """``(..., P, 3)`` positions of the state sites (for figures)."""
         x = np.asarray(x, dtype=float)
         return x[..., self.layout["site_pos"]].reshape(x.shape[:-1] + (len(self._site_ids), 3))
+
+
+class MujocoSimulator:
+    """One trajectory of a :class:`MujocoTask`, one control step at a time, in its own ``MjData``.
+
+    The physics calls are those of :meth:`MujocoTask.rollouts` for one sample (positions and
+    velocities computed, state read, ``ctrl`` held for ``substeps`` steps), so an episode
+    with the same actions reproduces a rollout's true states.  ``data``: the ``MjData``
+    (e.g. for rendering); ``x``: the current true state ``(n,)``; ``k``: control steps taken.
+    """
+
+    def __init__(self, task: MujocoTask):
+        mj = _mujoco()
+        self.task = task
+        self.data = mj.MjData(task.model)
+        self._read = task._reader(self.data)
+        self._act = _as_index(task._act)
+        self.x = np.empty(task.n)
+        self.k = 0
+        self.reset()
+
+    def reset(self, x0=None) -> np.ndarray:
+        """Back to ``x0`` (task coordinates; default the task's ``x_0``); returns a copy of the state."""
+        mj = _mujoco()
+        self.task._reset(self.data, x0)
+        mj.mj_forward(self.task.model, self.data)
+        self._read(self.x)
+        self.k = 0
+        return self.x.copy()
+
+    def step(self, u, xi=None) -> np.ndarray:
+        """Hold ``u (m,)`` as ``ctrl`` for ``substeps`` physics steps; returns a copy of the new state.
+
+        Raises :class:`SimulationError` on a divergence warning or a non-finite state.
+        """
+        if xi is not None:
+            raise ValueError(f"task {self.task.name!r}: MuJoCo tasks have no process noise (xi must be None)")
+        mj = _mujoco()
+        task, d = self.task, self.data
+        d.ctrl[self._act] = u
+        mj.mj_step(task.model, d, task.substeps)
+        warn = d.warning.number
+        if warn.any():
+            task._diverged(0, self.k, d, warn, task._bad_warn)
+        mj.mj_forward(task.model, d)
+        self._read(self.x)
+        self.k += 1
+        if not np.isfinite(self.x).all():
+            raise SimulationError(f"task {task.name!r} diverged at control step {self.k - 1}: non-finite state")
+        return self.x.copy()
