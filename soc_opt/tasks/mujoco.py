@@ -3,8 +3,12 @@
 State of a MuJoCo task (``x`` true, ``s = x + eps`` measured, SPEC §0)::
 
     [ qpos(state.joints), qvel(state.joints),
-      site positions (3 per state.sites), site velocities (3 per site, world frame),
+      point positions (3 per state.sites), point velocities (3 per point, world frame),
       qpos(state.extra_joints), qvel(state.extra_joints) ]
+
+A point named in ``state.sites`` (and in the cost terms' ``sites``/``target_sites`` and the
+metric's ``site``) is a site of the model, or, if no site has that name, the origin of the body
+of that name.
 
 Rollouts: from ``x_0`` (``q0`` + condition offset, zero velocity) the action
 ``a_k = K_k s_k + k_k + L_k w_k`` is computed from the *measured* state and held
@@ -13,8 +17,8 @@ All noise (``eps`` then ``w``) is drawn from the Generator before simulating,
 so results do not depend on ``workers``.  The stage cost ``Y_k`` is evaluated on
 the measured ``s_k`` (SPEC §0) and ``y_k = exp(-y_scale * Y_k)``.
 
-Also here: the finite-difference linearisation in task coordinates
-(:meth:`MujocoTask.linearize`).
+The finite-difference linearisation in task coordinates (:meth:`MujocoTask.linearize`) is in
+:mod:`soc_opt.tasks.linearize`.
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..config import ConfigError
-from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts, ShapeError, check_array
+from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
+from . import linearize as _linearize
 from .base import SimulationError, TaskBase, _rng
 from .config import StateConfig, TaskConfig
 
@@ -44,6 +49,9 @@ def _as_index(idx) -> slice | np.ndarray:
         return slice(int(idx[0]), int(idx[-1]) + 1)
     return idx
 
+
+#: Degrees of freedom per joint type (free, ball, slide, hinge).
+_JOINT_DOFS = {0: 6, 1: 3, 2: 1, 3: 1}
 
 _BAD_WARNINGS = ("mjWARN_CONTACTFULL", "mjWARN_CNSTRFULL", "mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC", "mjWARN_BADCTRL")
 
@@ -84,7 +92,8 @@ class MujocoTask(TaskBase):
         model = self.model
         self._joint_ids = [self._find(mj.mjtObj.mjOBJ_JOINT, j, "state.joints") for j in sc.joints]
         self._extra_ids = [self._find(mj.mjtObj.mjOBJ_JOINT, j, "state.extra_joints") for j in sc.extra_joints]
-        self._site_ids = [self._find(mj.mjtObj.mjOBJ_SITE, s, "state.sites") for s in sc.sites]
+        self._points = [self._find_point(s, "state.sites") for s in sc.sites]
+        self._site_ids = [pid for kind, pid in self._points if kind == "site"]
         alljoints = list(sc.joints) + list(sc.extra_joints)
         dup = {j for j in alljoints if alljoints.count(j) > 1} | {s for s in sc.sites if sc.sites.count(s) > 1}
         if dup:
@@ -168,7 +177,7 @@ class MujocoTask(TaskBase):
         mj = _mujoco()
         model = self.model
         o_v = self.layout["site_vel"].start
-        ns = len(self._site_ids)
+        ns = len(self._points)
         self._q_src, self._q_dst = self._split_plan(self._qadr, self._sq)
         self._qd_src, self._qd_dst = self._split_plan(self._dadr, self._sqd)
         self._site_arr = np.array(self._site_ids, dtype=int)
@@ -177,6 +186,8 @@ class MujocoTask(TaskBase):
         self._split_step = int(model.opt.integrator) != int(mj.mjtIntegrator.mjINT_RK4)
         self._bad_warn = np.array([int(getattr(mj.mjtWarning, w)) for w in _BAD_WARNINGS])
         self._obj_site = mj.mjtObj.mjOBJ_SITE
+        self._obj_of = {"site": mj.mjtObj.mjOBJ_SITE, "body": mj.mjtObj.mjOBJ_XBODY}
+        self._all_sites = all(kind == "site" for kind, _ in self._points)
 
     # -- lookups
     def _find(self, objtype, name, key) -> int:
@@ -188,6 +199,20 @@ class MujocoTask(TaskBase):
             names = [mj.mj_id2name(self.model, objtype, k) for k in range(count)]
             raise ConfigError(f"{key}: {kind} {name!r} not found in model {self.source}; {kind}s: {names}")
         return i
+
+    def _find_point(self, name, key) -> tuple[str, int]:
+        """``("site", id)`` for a site named ``name``, else ``("body", id)`` for a body (its origin)."""
+        mj = _mujoco()
+        i = mj.mj_name2id(self.model, mj.mjtObj.mjOBJ_SITE, name)
+        if i >= 0:
+            return "site", i
+        i = mj.mj_name2id(self.model, mj.mjtObj.mjOBJ_BODY, name)
+        if i >= 0:
+            return "body", i
+        sites = [mj.mj_id2name(self.model, mj.mjtObj.mjOBJ_SITE, k) for k in range(self.model.nsite)]
+        bodies = [mj.mj_id2name(self.model, mj.mjtObj.mjOBJ_BODY, k) for k in range(self.model.nbody)]
+        raise ConfigError(f"{key}: site {name!r} not found in model {self.source}, nor a body of that name; "
+                          f"sites: {sites}; bodies: {bodies}")
 
     def _actuator_for(self, name) -> int:
         mj = _mujoco()
@@ -245,13 +270,18 @@ class MujocoTask(TaskBase):
         array views of ``d`` and the copy plan are bound once: this runs every control step.
         """
         ov = _mujoco().mj_objectVelocity
-        m, obj = self.model, self._obj_site
+        m = self.model
         qpos, qvel, site_xpos = d.qpos, d.qvel, d.site_xpos
         qplan = list(zip(self._q_src, self._q_dst))
         qdplan = list(zip(self._qd_src, self._qd_dst))
         sites = self._site_arr
         pos_sl = self._site_pos_sl
-        vplan = list(zip(self._site_ids, self._site_vel_slices))
+        vplan = [(self._obj_of[kind], pid, sl) for (kind, pid), sl in zip(self._points, self._site_vel_slices)]
+        # positions: one fancy-index copy when every point is a site, else one copy per point
+        o_p = pos_sl.start
+        pplan = [((site_xpos if kind == "site" else d.xpos), pid, slice(o_p + 3 * j, o_p + 3 * j + 3))
+                 for j, (kind, pid) in enumerate(self._points)]
+        all_sites = self._all_sites
         res = np.empty(6)
         lin = res[3:]
 
@@ -261,9 +291,13 @@ class MujocoTask(TaskBase):
             for src, dst in qdplan:
                 out[dst] = qvel[src]
             if vplan:
-                out[pos_sl] = site_xpos[sites].ravel()
-                for sid, sl in vplan:
-                    ov(m, d, obj, sid, res, 0)
+                if all_sites:
+                    out[pos_sl] = site_xpos[sites].ravel()
+                else:
+                    for arr, pid, sl in pplan:
+                        out[sl] = arr[pid]
+                for obj, pid, sl in vplan:
+                    ov(m, d, obj, pid, res, 0)
                     out[sl] = lin
 
         return read
@@ -401,109 +435,42 @@ class MujocoTask(TaskBase):
         """A step-by-step simulator with its own ``MjData`` (what :class:`soc_opt.envs.SocOptEnv` steps)."""
         return MujocoSimulator(self)
 
-    def _output_jacobian(self, d) -> np.ndarray:
-        """``H = d s / d (dq, dv)`` at the state in ``d`` (positions computed): ``(n, 2 nv)``.
+    def check_linearizable(self) -> None:
+        """Raise :class:`ConfigError` unless every degree of freedom of the model is in the state.
 
-        Joint rows are selections; site positions use ``mj_jacSite``; site
-        velocities ``v = J(q) qdot`` use ``J`` for ``d v / d qdot`` and central
-        differences of ``J(q) qdot`` in ``q`` (hinge/slide joints only).
+        Model-based iLQG (:meth:`linearize`) needs it; the message names the joints that are
+        missing and where to add them (``state.extra_joints``), or says why they cannot be added.
         """
+        if self._all_dofs_in_state:
+            return
         mj = _mujoco()
         m = self.model
-        nv = m.nv
-        H = np.zeros((self.n, 2 * nv))
-        H[self._sq, self._dadr] = 1.0
-        H[self._sqd, nv + self._dadr] = 1.0
-        if not self._site_ids:
-            return H
-        jac = np.zeros((3, nv))
-        o_p = self.layout["site_pos"].start
-        o_v = self.layout["site_vel"].start
-        qd = d.qvel.copy()
-        for j, sid in enumerate(self._site_ids):
-            mj.mj_jacSite(m, d, jac, None, sid)
-            H[o_p + 3 * j : o_p + 3 * j + 3, :nv] = jac
-            H[o_v + 3 * j : o_v + 3 * j + 3, nv:] = jac
-        h = 1e-6
-        q = d.qpos.copy()
-        d2 = mj.MjData(m)
-        for dof in range(nv):
-            jnt = m.dof_jntid[dof]
-            adr = m.jnt_qposadr[jnt]
-            vs = []
-            for sign in (1.0, -1.0):
-                d2.qpos[:] = q
-                d2.qpos[adr] += sign * h
-                mj.mj_kinematics(m, d2)
-                mj.mj_comPos(m, d2)
-                v = []
-                for sid in self._site_ids:
-                    mj.mj_jacSite(m, d2, jac, None, sid)
-                    v.append(jac @ qd)
-                vs.append(np.concatenate(v))
-            H[o_v : o_v + 3 * len(self._site_ids), dof] = (vs[0] - vs[1]) / (2 * h)
-        return H
+        in_state = set(self._dadr.tolist())
+        missing = [j for j in range(m.njnt) if any(
+            dof not in in_state for dof in range(m.jnt_dofadr[j], m.jnt_dofadr[j] + _JOINT_DOFS[int(m.jnt_type[j])]))]
+        names = [mj.mj_id2name(m, mj.mjtObj.mjOBJ_JOINT, j) or f"<joint {j}>" for j in missing]
+        unsupported = [nm for nm, j in zip(names, missing)
+                       if int(m.jnt_type[j]) not in (int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE))]
+        msg = (f"task {self.name!r}: model-based iLQG needs every degree of freedom of model {self.source} "
+               f"in the state; joints not in it: {', '.join(map(repr, names))}")
+        if unsupported:
+            raise ConfigError(msg + f"; {', '.join(map(repr, unsupported))} {'is a' if len(unsupported) == 1 else 'are'}"
+                              " free/ball joint(s), which the state cannot hold, so iLQG cannot run on this model")
+        raise ConfigError(msg + f"; add them to state.extra_joints in the task TOML, e.g. "
+                          f"extra_joints = [{', '.join(repr(n) for n in names)}]".replace("'", '"'))
 
     def linearize(self, x, u, cov=0.0, eps: float = 1e-6) -> LinearGaussianDynamics:
-        """Local linear model ``s_{k+1} ~ A_k s_k + B_k a_k + c_k`` around ``(x_k, u_k)`` in task coordinates.
+        """Local linear model in task coordinates (:func:`soc_opt.tasks.linearize.linearize`)."""
+        return _linearize.linearize(self, x, u, cov, eps)
 
-        Per control step: ``mjd_transitionFD`` (centred, ``eps``) at each of the
-        ``substeps`` physics steps along the nominal substep trajectory, chained
-        (``A = A_S...A_1``, ``B = sum_j A_S...A_{j+1} B_j``, ctrl held), then mapped
-        to task coordinates: ``A_k = H_{k+1} A G``, ``B_k = H_{k+1} B`` with ``G``
-        picking ``(q, qdot)`` from the task state (site components are functions of
-        them, so their columns are zero) and ``H`` the output Jacobian (site
-        Jacobians).  ``c_k = step(x_k, u_k) - A_k x_k - B_k u_k``.  ``cov``: process
-        noise (scalar times identity, or ``(n, n)``).  Needs every degree of freedom
-        of the model in the state.
-        """
-        mj = _mujoco()
-        if not self._all_dofs_in_state:
-            raise ValueError(
-                f"linearize: task {self.name!r} does not have every degree of freedom of the model in its state"
-            )
-        T = self.T
-        x = check_array("linearize x", x, (None, self.n))
-        u = check_array("linearize u", u, (None, self.m))
-        if x.shape[0] not in (T, T + 1) or u.shape[0] != T:
-            raise ShapeError(f"linearize needs x ({T + 1}, {self.n}) and u ({T}, {self.m}), got {x.shape}, {u.shape}")
-        m = self.model
-        nv = m.nv
-        d = mj.MjData(m)
-        G = np.zeros((2 * nv, self.n))
-        G[self._dadr, self._sq] = 1.0
-        G[nv + self._dadr, self._sqd] = 1.0
-        Aj = np.zeros((2 * nv, 2 * nv))
-        Bj = np.zeros((2 * nv, m.nu))
-        A = np.zeros((T, self.n, self.n))
-        B = np.zeros((T, self.n, self.m))
-        c = np.zeros((T, self.n))
-        nxt = np.empty(self.n)
-        res = np.empty(6)
-        for k in range(T):
-            self._reset(d, x[k])
-            d.ctrl[self._act] = u[k]
-            Atot = np.eye(2 * nv)
-            Btot = np.zeros((2 * nv, m.nu))
-            for _ in range(self.substeps):
-                mj.mjd_transitionFD(m, d, eps, True, Aj, Bj, None, None)
-                Atot = Aj @ Atot
-                Btot = Aj @ Btot + Bj
-                mj.mj_step(m, d)
-            mj.mj_forward(m, d)
-            self._read(d, nxt, res)
-            H = self._output_jacobian(d)
-            A[k] = H @ Atot @ G
-            B[k] = H @ Btot[:, self._act]
-            c[k] = nxt - A[k] @ x[k] - B[k] @ u[k]
-        W = np.asarray(cov, dtype=float)
-        W = W * np.eye(self.n) if W.ndim == 0 else W
-        return LinearGaussianDynamics(A, B, c, np.broadcast_to(W, (T, self.n, self.n)).copy())
+    def _output_jacobian(self, d) -> np.ndarray:
+        """``H = d s / d (dq, dv)`` (:func:`soc_opt.tasks.linearize.output_jacobian`)."""
+        return _linearize.output_jacobian(self, d)
 
     def ee_points(self, x) -> np.ndarray:
-        """``(..., P, 3)`` positions of the state sites (for figures)."""
+        """``(..., P, 3)`` positions of the state points (for figures)."""
         x = np.asarray(x, dtype=float)
-        return x[..., self.layout["site_pos"]].reshape(x.shape[:-1] + (len(self._site_ids), 3))
+        return x[..., self.layout["site_pos"]].reshape(x.shape[:-1] + (len(self._points), 3))
 
 
 class MujocoSimulator:
