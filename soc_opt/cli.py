@@ -38,6 +38,13 @@ def _table(rows: list[dict]) -> str:
     return format_table(rows)
 
 
+def _progress(args):
+    """Progress of ``run``/``compare``: a bar on a terminal, plain lines otherwise (``--progress``)."""
+    from .progress import Progress
+
+    return Progress(getattr(args, "progress", "auto"), print_line=_print)
+
+
 def _cmd_tasks(args) -> int:
     from .tasks import load_task
 
@@ -53,8 +60,9 @@ def _run_ilqg(args, task, out: Path) -> int:
     cfg = ILQGConfig.from_toml(args.config) if args.config else ILQGConfig()
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    policy, costs = ilqg(task, cfg=cfg, on_iteration=lambda it, J, mu: _print(
-        f"[ilqg] iter {it + 1:3d} cost {J:.6g} mu {mu:.1e} ({time.perf_counter() - t0:.1f}s)"))
+    with _progress(args).bar(cfg.iterations, "ilqg") as bar:
+        policy, costs = ilqg(task, cfg=cfg, on_iteration=lambda it, J, mu: bar.advance(
+            f"[ilqg] iter {it + 1:3d} cost {J:.6g} mu {mu:.1e} ({time.perf_counter() - t0:.1f}s)", cost=J, mu=mu))
     np.savez_compressed(out / "policy.npz", **policy.to_dict())
     (out / "costs.json").write_text(json.dumps(costs))
     _print(f"iLQG: cost {costs[0]:.6g} -> {costs[-1]:.6g} in {len(costs) - 1} accepted iterations; wrote {out}")
@@ -69,7 +77,7 @@ def _run_sampled(args, task, out: Path) -> int:
                           overrides={"iterations": args.iterations, "samples": args.samples,
                                      "workers": args.workers},
                           method=args.method)
-    state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_print)
+    state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_progress(args))
     _write_run_figures(task, state, out)
     if state.last_rollouts is not None:
         from .tasks import render_filmstrip
@@ -122,7 +130,7 @@ def _cmd_compare(args) -> int:
     _print(f"comparing LQR-FLM and DPSOC-EM on {args.task}: seeds {seeds}, {cfg.baseline.iterations} iterations, "
            f"{cfg.baseline.samples} samples, EM switch after iteration {cfg.i_switch}; output {out}")
     t0 = time.perf_counter()
-    summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_print)
+    summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_progress(args))
     _print("")
     _print(_table([{k: r[k] for k in ("claim", "baseline_mean", "dpsoc_mean", "seeds_lower", "held")}
                    for r in summary["claims"]]))
@@ -200,6 +208,8 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--samples", type=int, help="override baseline.samples")
         sp.add_argument("--workers", type=int, help="parallel rollout workers")
         sp.add_argument("--out", help="run directory (resumes if it holds a checkpoint)")
+        sp.add_argument("--progress", choices=["auto", "bar", "lines"], default="auto",
+                        help="progress bar (auto: on a terminal) or plain lines (default: auto)")
 
     r = sub.add_parser("run", help="run one method on a task, writing a resumable run directory")
     common_algo(r)

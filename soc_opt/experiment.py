@@ -31,11 +31,12 @@ import numpy as np
 from . import algorithms
 from .algorithms import DPSOCConfig, RunState
 from .config import ConfigError
+from .progress import Progress, as_progress
 
 if TYPE_CHECKING:
     from .tasks import Task
 
-__all__ = ["EXPERIMENTS", "load_run_config", "RunDirectory", "run_experiment", "fork_state"]
+__all__ = ["EXPERIMENTS", "load_run_config", "RunDirectory", "run_experiment", "fork_state", "headline_metric"]
 
 CHECKPOINT = "checkpoint.pkl"
 #: Default run configurations of the built-in tasks: ``EXPERIMENTS / "<task>.toml"``.
@@ -171,11 +172,18 @@ def run_experiment(
     out: str | Path | None,
     *,
     task_name: str | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | Callable[[str], None] | None = None,
     start_state: RunState | None = None,
     on_iteration: Callable[[RunState], None] | None = None,
+    bar_level: int = 0,
 ) -> RunState:
-    """Run one method on one task and seed, writing every iteration to ``out`` (resumable)."""
+    """Run one method on one task and seed, writing every iteration to ``out`` (resumable).
+
+    ``progress``: a :class:`soc_opt.progress.Progress` (a bar over the iterations, showing the
+    mean cost, the KL and the task's headline metric, or plain lines), a callable printing
+    one line per iteration, or ``None`` (silent).  ``bar_level``: nesting of the bar (compare).
+    """
+    prog = as_progress(progress)
     rd = RunDirectory(out) if out is not None else None
     state = start_state
     if rd is not None:
@@ -183,11 +191,13 @@ def run_experiment(
         saved = rd.load_checkpoint()
         if saved is not None:
             state = saved
-            if progress:
-                progress(f"resuming {method} from iteration {state.iteration} in {rd.path}")
+            if prog:
+                prog.message(f"resuming {method} from iteration {state.iteration} in {rd.path}")
     if state is None:
         state = algorithms.initial_state(task, cfg.baseline, seed)
     t_last = [time.perf_counter()]
+    bar = prog.bar(cfg.baseline.iterations, f"{method} seed {seed}", initial=state.iteration,
+                   level=bar_level) if prog else None
 
     user_callback = on_iteration
 
@@ -196,7 +206,7 @@ def run_experiment(
             rd.save(st)
         if user_callback is not None:
             user_callback(st)
-        if progress:
+        if bar is not None:
             rec = st.history[-1]
             dt = time.perf_counter() - t_last[0]
             t_last[0] = time.perf_counter()
@@ -207,10 +217,24 @@ def run_experiment(
                 e = em[-1].em
                 em_txt = (f" | EM: cost {np.mean(em[-1].cost):.4g}, surrogate {e.surrogate_old:.4g}->{e.surrogate_new:.4g},"
                           f" logp(Y) {e.loglik_old:.4g}->{e.loglik_new:.4g}")
-            progress(
+            line = (
                 f"[{method} seed {seed}] iter {rec.iteration + 1:2d}/{cfg.baseline.iterations}"
                 f" cost {np.mean(rec.cost):10.4g} ± {np.std(rec.cost):.3g}  KL {rec.kl:.3g}/{rec.nu:.3g}"
                 f"  {metrics}  {dt:.1f}s{em_txt}"
             )
+            bar.advance(line, cost=float(np.mean(rec.cost)), KL=float(rec.kl), **headline_metric(rec.metrics))
 
-    return algorithms.run_algorithm(task, method, cfg, seed=seed, state=state, on_iteration=on_iteration)
+    try:
+        return algorithms.run_algorithm(task, method, cfg, seed=seed, state=state, on_iteration=on_iteration)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def headline_metric(metrics: dict) -> dict:
+    """The task's first metric other than the cost (e.g. ``min_distance``, ``min_hinge``,
+    ``return``) as ``{name: value}``, or ``{}``: what progress bars show next to the cost."""
+    for k, v in metrics.items():
+        if k != "cost":
+            return {k: float(v)}
+    return {}
