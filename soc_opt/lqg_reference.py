@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import lqg as _lqg
-from .estimator import FilteredPolicy, check_noise_covariance, filter_step, kalman_filter, measurement_noise
+from .estimator import FilteredPolicy, check_noise_covariance, kalman_filter, measurement_noise
 from .linalg import T as _T
 from .linalg import as_generator
 from .models import LinearGaussianDynamics, QuadraticCost, ShapeError, check_array, symmetrize
