@@ -173,16 +173,20 @@ def expected_cost(dynamics: LinearGaussianDynamics, cost: QuadraticCost, R, fpol
     return _stage_costs(cost, mom.mean[:, :n], mom.cov[:, :n, :n], mom.a_mean, mom.a_cov, mom.xa_cov)
 
 
-def lqg(dynamics: LinearGaussianDynamics, cost: QuadraticCost, R, mu0, P0) -> LQGSolution:
+def lqg(dynamics: LinearGaussianDynamics, cost: QuadraticCost, R, mu0, P0, *, filter_P0=None) -> LQGSolution:
     """The LQG optimum: filter of the true model and prior, LQR gains on ``xhat`` (SPEC §10.3).
 
+    ``filter_P0`` replaces ``P0`` in the filter only.  It is needed in one case: without
+    measurement noise (``R = 0``) and with a deterministic start (``P0 = 0``) the innovation
+    covariance ``S_0`` is singular, while every positive definite prior gives the exact filter
+    ``G_k = I`` (``xhat = s = x``); pass e.g. ``filter_P0 = I`` (the cost is evaluated with ``P0``).
     Raises what :func:`soc_opt.lqg.lqr` raises when the cost-to-go is not strictly convex in the
     action, and what :func:`soc_opt.estimator.kalman_filter` raises for a bad noise model.
     """
-    kf = kalman_filter(dynamics, R, mu0, P0)
+    kf = kalman_filter(dynamics, R, mu0, P0 if filter_P0 is None else filter_P0)
     policy = _lqg.lqr(dynamics, cost, kf.mu0, kf.P0)
     fpol = FilteredPolicy(policy, kf)
-    stage = expected_cost(dynamics, cost, kf.R, fpol, kf.mu0, kf.P0)
+    stage = expected_cost(dynamics, cost, kf.R, fpol, kf.mu0, P0)
     return LQGSolution(fpol, stage, float(stage.sum()))
 
 
@@ -225,7 +229,7 @@ def task_reference(task, P0=None) -> LQGSolution:
 
     Uses the task's exact model (``task.linearize()``), its cost (quadratic, so its expansion is
     exact) and the true initial distribution: ``x_0 = task.mu0`` deterministic, i.e. ``P0 = 0``
-    unless given.
+    unless given.  At ``rho2 = 0`` the result is the LQR policy with perfect states (``G = I``).
     """
     for attr in ("linearize", "cost_expansion", "rho2", "mu0", "n", "m", "T"):
         if not hasattr(task, attr):
@@ -237,5 +241,7 @@ def task_reference(task, P0=None) -> LQGSolution:
     other = task.cost_expansion(s + 1.0, np.ones((task.T, task.m)))
     if not np.allclose(cost.C, other.C, rtol=1e-9, atol=1e-12):
         raise ValueError(f"task {getattr(task, 'name', '?')!r} has a non-quadratic cost; the LQG reference needs a quadratic one")
-    P0 = np.zeros((task.n, task.n)) if P0 is None else P0
-    return lqg(dyn, cost, measurement_noise(task.rho2, task.n), mu0, P0)
+    P0 = np.zeros((task.n, task.n)) if P0 is None else np.asarray(P0, dtype=float)
+    R = measurement_noise(task.rho2, task.n)
+    filter_P0 = np.eye(task.n) if task.rho2 == 0 else None
+    return lqg(dyn, cost, R, mu0, P0, filter_P0=filter_P0)

@@ -141,6 +141,11 @@ def test_linear2d_reference_lies_between_perfect_states_and_raw_measurements():
     smp = simulate(dyn, R, sol.policy, task.mu0, Z, 4000, np.random.default_rng(0))
     tot = task.cost(smp.x, smp.a).sum(axis=1)
     assert abs(tot.mean() - sol.total) < 4.0 * tot.std(ddof=1) / np.sqrt(len(tot))
+    # the noise sweep: rho^2 = 0 is the perfect-state LQR cost, and the cost grows with rho^2
+    sweep = [task_reference(load_task("linear2d", overrides={"rho2": r})).total for r in (0.0, 0.001, 0.01, 0.1)]
+    np.testing.assert_allclose(sweep[0], perfect, rtol=1e-12)
+    assert all(b > a for a, b in zip(sweep, sweep[1:]))
+    np.testing.assert_allclose(sweep[-1], sol.total, rtol=1e-12)
 
 
 def test_bad_reference_inputs_are_rejected_by_name():
@@ -162,3 +167,22 @@ def test_bad_reference_inputs_are_rejected_by_name():
         simulate(dyn, R, sol.policy, mu0, P0, 0, np.random.default_rng(0))
     with pytest.raises(ValueError, match="rho2"):
         measurement_noise(-1e-3, n)
+
+
+def test_kl_step_runs_unchanged_on_the_filtered_loop():
+    """SPEC §10.2: the KL step on the innovation form predicts the true closed-loop cost of its policy."""
+    n, m, T = 3, 2, 6
+    rng, _, dyn, cost, R, mu0, P0 = _problem(n, m, T, seed=7)
+    kf = kalman_filter(dyn, R, mu0, P0)
+    m0, c0 = initial_estimate(kf)
+    ref = LinearGaussianPolicy(0.2 * rng.standard_normal((T, m, n)), rng.standard_normal((T, m)),
+                               np.broadcast_to(np.eye(m), (T, m, m)).copy())
+    lqg_cost = lqg_solve(dyn, cost, R, mu0, P0).total
+    previous = np.inf
+    for nu in (0.5, 2.0, 8.0):
+        res = lqg.kl_step(innovation_dynamics(kf), filtered_cost(kf, cost), ref, nu, m0, c0)
+        np.testing.assert_allclose(res.kl.sum(), nu, rtol=1e-4)
+        true_cost = expected_cost(dyn, cost, R, FilteredPolicy(res.policy, kf), mu0, P0).sum()
+        np.testing.assert_allclose(res.expected_cost, true_cost, rtol=1e-9)
+        assert lqg_cost <= true_cost < previous  # a larger budget gets closer to the LQG optimum
+        previous = true_cost
