@@ -45,6 +45,23 @@ def _progress(args):
     return Progress(getattr(args, "progress", "auto"), print_line=_print)
 
 
+def _log_to_tensorboard(out: Path, *, figures=(), step: int = 0, scalars: dict | None = None) -> None:
+    """Figures (PNG paths) and scalar series into ``out``'s TensorBoard events (if tensorboardX is installed)."""
+    from .tblog import RunLog
+
+    log = RunLog.open(out)
+    if log is None:
+        return
+    try:
+        for tag, values in (scalars or {}).items():
+            log.series(tag, values)
+        n = log.figures(figures, step)
+    finally:
+        log.close()
+    if figures:
+        _print(f"TensorBoard: {n} figures in {out} (tensorboard --logdir {out})")
+
+
 def _cmd_tasks(args) -> int:
     from .tasks import load_task
 
@@ -65,6 +82,7 @@ def _run_ilqg(args, task, out: Path) -> int:
             f"[ilqg] iter {it + 1:3d} cost {J:.6g} mu {mu:.1e} ({time.perf_counter() - t0:.1f}s)", cost=J, mu=mu))
     np.savez_compressed(out / "policy.npz", **policy.to_dict())
     (out / "costs.json").write_text(json.dumps(costs))
+    _log_to_tensorboard(out, scalars={"ilqg/cost": costs})
     _print(f"iLQG: cost {costs[0]:.6g} -> {costs[-1]:.6g} in {len(costs) - 1} accepted iterations; wrote {out}")
     return 0
 
@@ -85,6 +103,7 @@ def _run_sampled(args, task, out: Path) -> int:
         res = render_filmstrip(task, state.last_rollouts, out / "filmstrip.png")
         _print(f"filmstrip of the last iteration's first sample: {res.path} ({res.backend}"
                + (f"; {res.message}" if res.message else "") + ")")
+    _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=max(state.iteration - 1, 0))
     best = state.best
     _print(f"done: best mean cost {best.mean_cost:.6g} (iteration {best.iteration + 1}); run directory {out}")
     return 0
@@ -134,6 +153,7 @@ def _cmd_compare(args) -> int:
     _print("")
     _print(_table([{k: r[k] for k in ("claim", "baseline_mean", "dpsoc_mean", "seeds_lower", "held")}
                    for r in summary["claims"]]))
+    _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=cfg.baseline.iterations - 1)
     _print(f"\nreport: {summary['report']}  ({time.perf_counter() - t0:.0f}s)")
     return 0
 

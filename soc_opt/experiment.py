@@ -6,6 +6,8 @@ A run directory holds
 - ``metrics.csv`` and ``metrics.json``: one row per sampling round (``IterationRecord.summary``);
 - ``policies/iter_XXX.npz``: the policy after each iteration (``K, k, cov``);
 - ``samples/iter_XXX.npz``: the rollouts of each iteration (``x, s, a, cost, y``);
+- ``events.out.tfevents.*``: the per-iteration scalars (and, from ``soc-opt``, the figures) as
+  TensorBoard events when ``tensorboardX`` is installed (:mod:`soc_opt.tblog`);
 - ``checkpoint.pkl``: the full :class:`~soc_opt.algorithms.RunState` after the last finished
   iteration.  Starting again with the same directory resumes from it; because the RNG state
   is part of the checkpoint, the resumed run ends with the same results as an uninterrupted one.
@@ -32,6 +34,7 @@ from . import algorithms
 from .algorithms import DPSOCConfig, RunState
 from .config import ConfigError
 from .progress import Progress, as_progress
+from .tblog import MISSING_MESSAGE, RunLog
 
 if TYPE_CHECKING:
     from .tasks import Task
@@ -186,15 +189,24 @@ def run_experiment(
     prog = as_progress(progress)
     rd = RunDirectory(out) if out is not None else None
     state = start_state
+    resumed = False
     if rd is not None:
         rd.prepare({"task": task_name or task.name, "method": method, "seed": seed, "config": cfg.to_dict()})
         saved = rd.load_checkpoint()
         if saved is not None:
             state = saved
+            resumed = True
             if prog:
                 prog.message(f"resuming {method} from iteration {state.iteration} in {rd.path}")
     if state is None:
         state = algorithms.initial_state(task, cfg.baseline, seed)
+    tb = RunLog.open(rd.path, purge_step=state.iteration if resumed else None) if rd is not None else None
+    if rd is not None and tb is None and prog:
+        prog.message(MISSING_MESSAGE)
+    if tb is not None and not resumed:  # a fresh run from a fork: log the iterations it shares
+        for rec in state.history:
+            tb.iteration(rec)
+    logged = [len(state.history)]
     t_last = [time.perf_counter()]
     bar = prog.bar(cfg.baseline.iterations, f"{method} seed {seed}", initial=state.iteration,
                    level=bar_level) if prog else None
@@ -204,6 +216,10 @@ def run_experiment(
     def on_iteration(st: RunState):
         if rd is not None:
             rd.save(st)
+        if tb is not None:
+            for rec in st.history[logged[0]:]:
+                tb.iteration(rec)
+            logged[0] = len(st.history)
         if user_callback is not None:
             user_callback(st)
         if bar is not None:
@@ -229,6 +245,8 @@ def run_experiment(
     finally:
         if bar is not None:
             bar.close()
+        if tb is not None:
+            tb.close()
 
 
 def headline_metric(metrics: dict) -> dict:
