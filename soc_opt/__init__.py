@@ -20,21 +20,22 @@ from .models import (
 
 __version__ = "0.1.0"
 
-#: Submodules reachable as ``soc_opt.<name>`` without importing them first (PEP 562).
-SUBMODULES = (
-    "algorithms", "compare", "config", "config_doc", "costs", "envs", "errors", "estep", "experiment", "fit",
-    "ilqg", "linalg", "lqg", "models", "mstep", "report", "rundir", "tasks", "testing", "verification", "bench",
-)
+def _submodules() -> set[str]:
+    """The package's submodules and subpackages (found on disk, so new ones need no listing)."""
+    import pkgutil
+
+    return {m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")}
 
 
 def __getattr__(name: str):
-    if name in SUBMODULES:
+    if not name.startswith("_") and name in _submodules():
         return _importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__():
-    return sorted(set(globals()) | set(SUBMODULES))
+    return sorted(set(globals()) | _submodules())
+
 
 __all__ = [
     "AugmentedModel",

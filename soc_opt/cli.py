@@ -46,6 +46,30 @@ def _table(rows: list[dict]) -> str:
     return format_table(rows)
 
 
+def _progress(args):
+    """Progress of ``run``/``compare``: a bar on a terminal, plain lines otherwise (``--progress``)."""
+    from .progress import Progress
+
+    return Progress(getattr(args, "progress", "auto"), print_line=_print)
+
+
+def _log_to_tensorboard(out: Path, *, figures=(), step: int = 0, scalars: dict | None = None) -> None:
+    """Figures (PNG paths) and scalar series into ``out``'s TensorBoard events (if tensorboardX is installed)."""
+    from .tblog import RunLog
+
+    log = RunLog.open(out)
+    if log is None:
+        return
+    try:
+        for tag, values in (scalars or {}).items():
+            log.series(tag, values)
+        n = log.figures(figures, step)
+    finally:
+        log.close()
+    if figures:
+        _print(f"TensorBoard: {n} figures in {out} (tensorboard --logdir {out})")
+
+
 def _cmd_tasks(args) -> int:
     from .tasks import load_task
 
@@ -63,7 +87,7 @@ def _run_method(args, task, out: Path) -> int:
                           overrides={"iterations": args.iterations, "samples": args.samples,
                                      "workers": args.workers},
                           method=args.method)
-    state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_print,
+    state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_progress(args),
                            restart=args.restart, previous_checkpoint=args.previous_checkpoint)
     _write_run_figures(task, args.method, state, out)
     if state.last_rollouts is not None:
@@ -72,6 +96,7 @@ def _run_method(args, task, out: Path) -> int:
         res = render_filmstrip(task, state.last_rollouts, out / "filmstrip.png")
         _print(f"filmstrip of the last iteration's first sample: {res.path} ({res.backend}"
                + (f"; {res.message}" if res.message else "") + ")")
+    _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=max(state.iteration - 1, 0))
     if args.method == "ilqg":
         np.savez_compressed(out / "policy.npz", **state.policy.to_dict())
         why = {"converged": "converged (relative decrease below tol)", "no_descent": "no descent step found",
@@ -128,11 +153,12 @@ def _cmd_compare(args) -> int:
     _print(f"comparing LQR-FLM and DPSOC-EM on {args.task}: seeds {seeds}, {cfg.baseline.iterations} iterations, "
            f"{cfg.baseline.samples} samples, EM switch after iteration {cfg.i_switch}; output {out}")
     t0 = time.perf_counter()
-    summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_print,
+    summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_progress(args),
                       restart=args.restart)
     _print("")
     _print(_table([{k: r[k] for k in ("claim", "baseline_mean", "dpsoc_mean", "seeds_lower", "held")}
                    for r in summary["claims"]]))
+    _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=cfg.baseline.iterations - 1)
     _print(f"\nreport: {summary['report']}  (total time {time.perf_counter() - t0:.0f}s)")
     return 0
 
@@ -210,6 +236,8 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--out", help="run directory (resumes if it holds a checkpoint)")
         sp.add_argument("--restart", action="store_true",
                         help="discard the run(s) already in --out and start from scratch")
+        sp.add_argument("--progress", choices=["auto", "bar", "lines"], default="auto",
+                        help="progress bar (auto: on a terminal) or plain lines (default: auto)")
 
     r = sub.add_parser("run", help="run one method on a task, writing a resumable run directory")
     common_algo(r)

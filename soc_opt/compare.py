@@ -23,6 +23,7 @@ from .algorithms import DPSOCConfig, EvalConfig, RunState
 from .experiment import fork_state, run_experiment
 from .rundir import _decode_checkpoint, _encode_checkpoint, atomic_write_bytes, lock_directory
 from .models import LinearGaussianPolicy, Rollouts
+from .progress import Progress, as_progress
 
 if TYPE_CHECKING:
     from .tasks import Task
@@ -93,15 +94,18 @@ def compare(
     *,
     task_name: str | None = None,
     eval_samples: int | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | Callable[[str], None] | None = None,
     restart: bool = False,
 ) -> dict:
     """Run both methods on ``seeds``, write figures and ``report.md`` under ``out``; return a summary.
 
     ``eval_samples`` (optional) overrides ``cfg.evaluation.samples`` for the final evaluation;
     ``restart`` discards the runs already in ``out``.
+    ``progress``: a :class:`soc_opt.progress.Progress` (a bar over the seeds above each run's
+    bar over its iterations, or plain lines), a callable printing lines, or ``None``.
     """
     cfg.check_for("dpsoc-em")
+    progress = as_progress(progress)
     out = Path(out)
     with lock_directory(out):
         return _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, restart)
@@ -113,41 +117,59 @@ def _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, re
     per_seed = {m: {"cost": [], "state_spread": [], "action_spread": []} for m in METHODS}
     histories = {m: [] for m in METHODS}
     eval_ro = {m: [] for m in METHODS}
-    for seed in seeds:
-        sdir = out / f"seed_{seed}"
-        sdir.mkdir(exist_ok=True)
-        fork_path = sdir / "fork_state.pkl"
-        if restart and fork_path.exists():
-            fork_path.unlink()
-
-        def keep_fork(st: RunState, _p=fork_path):
-            if st.iteration == cfg.i_switch and not _p.exists():
-                atomic_write_bytes(_p, _encode_checkpoint(st))
-
-        # Baseline, with a copy of its state kept at i_switch for DPSOC-EM to start from.
-        base = run_experiment(task, "lqr-flm", cfg, seed, sdir / "lqr-flm", task_name=task_name,
-                              progress=progress, on_iteration=keep_fork, restart=restart)
-        fork = _decode_checkpoint(fork_path) if fork_path.exists() else None
-        if fork is None or fork.iteration != cfg.i_switch:
-            # i_switch == 0, or a baseline resumed past i_switch without its fork: replay the
-            # deterministic baseline prefix in memory.
-            st = algorithms.initial_state(task, cfg.baseline, seed)
-            while st.iteration < cfg.i_switch:
-                st = algorithms.lqr_flm_iteration(task, cfg.baseline, st)
-            atomic_write_bytes(fork_path, _encode_checkpoint(st))
-            fork = st
-        em = run_experiment(
-            task, "dpsoc-em", cfg, seed, sdir / "dpsoc-em", task_name=task_name, progress=progress,
-            start_state=fork_state(fork), restart=restart,
-        )
-        for meth, st in (("lqr-flm", base), ("dpsoc-em", em)):
-            ro = evaluate_policy(task, st.policy, eval_samples, seed, workers, cfg.evaluation)
-            eval_ro[meth].append(ro)
-            for k, v in spreads(task, ro).items():
-                per_seed[meth][k].append(v)
-            histories[meth].append(st.history)
-            atomic_write_bytes(sdir / meth / "final_eval.npz", _npz(ro.to_dict()))
+    seeds_bar = progress.bar(len(seeds), "seeds") if progress else None
+    try:
+        for seed in seeds:
+            _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progress,
+                          per_seed, histories, eval_ro, restart)
+            if seeds_bar is not None:
+                final = {m: float(np.mean(per_seed[m]["cost"][-1])) for m in METHODS}
+                seeds_bar.advance(f"seed {seed}: final cost LQR-FLM {final['lqr-flm']:.4g}, "
+                                  f"DPSOC-EM {final['dpsoc-em']:.4g}",
+                                  **{f"cost {m}": v for m, v in final.items()})
+    finally:
+        if seeds_bar is not None:
+            seeds_bar.close()
     return _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, task_name or task.name)
+
+
+def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progress, per_seed, histories, eval_ro,
+                  restart):
+    """Both methods on one seed (see :func:`compare`); appends to the per-method accumulators."""
+    level = 1 if progress is not None and progress.mode == "bar" else 0
+    sdir = out / f"seed_{seed}"
+    sdir.mkdir(exist_ok=True)
+    fork_path = sdir / "fork_state.pkl"
+    if restart and fork_path.exists():
+        fork_path.unlink()
+
+    def keep_fork(st: RunState, _p=fork_path):
+        if st.iteration == cfg.i_switch and not _p.exists():
+            atomic_write_bytes(_p, _encode_checkpoint(st))
+
+    # Baseline, with a copy of its state kept at i_switch for DPSOC-EM to start from.
+    base = run_experiment(task, "lqr-flm", cfg, seed, sdir / "lqr-flm", task_name=task_name,
+                          progress=progress, on_iteration=keep_fork, bar_level=level, restart=restart)
+    fork = _decode_checkpoint(fork_path) if fork_path.exists() else None
+    if fork is None or fork.iteration != cfg.i_switch:
+        # i_switch == 0, or a baseline resumed past i_switch without its fork: replay the
+        # deterministic baseline prefix in memory.
+        st = algorithms.initial_state(task, cfg.baseline, seed)
+        while st.iteration < cfg.i_switch:
+            st = algorithms.lqr_flm_iteration(task, cfg.baseline, st)
+        atomic_write_bytes(fork_path, _encode_checkpoint(st))
+        fork = st
+    em = run_experiment(
+        task, "dpsoc-em", cfg, seed, sdir / "dpsoc-em", task_name=task_name, progress=progress,
+        start_state=fork_state(fork), bar_level=level, restart=restart,
+    )
+    for meth, st in (("lqr-flm", base), ("dpsoc-em", em)):
+        ro = evaluate_policy(task, st.policy, eval_samples, seed, workers, cfg.evaluation)
+        eval_ro[meth].append(ro)
+        for k, v in spreads(task, ro).items():
+            per_seed[meth][k].append(v)
+        histories[meth].append(st.history)
+        atomic_write_bytes(sdir / meth / "final_eval.npz", _npz(ro.to_dict()))
 
 
 def _npz(arrays: dict) -> bytes:

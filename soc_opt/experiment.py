@@ -4,6 +4,8 @@
 seed in a run directory (:mod:`soc_opt.rundir`: files, contract, lock, verified checkpoints).
 Starting again with the same directory resumes from its checkpoint; because the RNG state is
 part of the checkpoint, the resumed run ends with the same results as an uninterrupted one.
+With ``tensorboardX`` installed the directory also gets ``events.out.tfevents.*`` files with the
+per-iteration scalars (:mod:`soc_opt.tblog`).
 
 :func:`load_run_config` builds and validates the run configuration the way ``soc-opt run|compare``
 does (the task's default file, a TOML file, the paper scale, single-key overrides), before
@@ -23,13 +25,15 @@ from . import algorithms
 from . import ilqg as ilqg_mod
 from .algorithms import DPSOCConfig, RunState
 from .config import ConfigError, read_toml
+from .progress import Progress, as_progress
 from .rundir import CHECKPOINT, CheckpointError, RunDirectory, RunDirectoryError, lock_directory
+from .tblog import MISSING_MESSAGE, RunLog
 
 if TYPE_CHECKING:
     from .tasks import Task
 
 __all__ = ["EXPERIMENTS", "load_run_config", "RunDirectory", "RunDirectoryError", "CheckpointError",
-           "run_experiment", "fork_state", "lock_directory", "CHECKPOINT"]
+           "run_experiment", "fork_state", "lock_directory", "headline_metric", "CHECKPOINT"]
 
 #: Default run configurations of the built-in tasks: ``EXPERIMENTS / "<task>.toml"``.
 EXPERIMENTS = Path(__file__).resolve().parent.parent / "problems" / "experiments"
@@ -161,9 +165,10 @@ def run_experiment(
     out: str | Path | None,
     *,
     task_name: str | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | Callable[[str], None] | None = None,
     start_state: RunState | None = None,
     on_iteration: Callable[[RunState], None] | None = None,
+    bar_level: int = 0,
     restart: bool = False,
     previous_checkpoint: bool = False,
 ):
@@ -177,10 +182,15 @@ def run_experiment(
     (after a damaged one).  ``start_state`` (no checkpoint yet) starts from a given state, e.g. a
     fork of the baseline.  An exception during an iteration leaves the finished iterations saved;
     the run directory's path is added to it as a note.
+
+    ``progress``: a :class:`soc_opt.progress.Progress` (a bar over the iterations, showing the
+    mean cost, the KL and the task's headline metric, or plain lines), a callable printing
+    one line per iteration, or ``None`` (silent).  ``bar_level``: nesting of the bar (compare).
     """
     _check_inputs(task, method, cfg, seed)
+    prog = as_progress(progress)
     if out is None:
-        return _run(task, method, cfg, seed, None, start_state, on_iteration, progress)
+        return _run(task, method, cfg, seed, None, start_state, on_iteration, prog, bar_level, None)
     rd = RunDirectory(out)
     with rd.lock():
         if restart:
@@ -192,13 +202,19 @@ def run_experiment(
         if saved is not None:
             state = saved
             total = cfg.ilqg.iterations if method == "ilqg" else cfg.baseline.iterations
-            if progress and (state.iteration >= total or getattr(state, "status", "running") != "running"):
-                progress(f"{method} run in {rd.path} already finished ({state.iteration} iterations)")
-            elif progress:
-                progress(f"resuming {method} in {rd.path}: {state.iteration} iterations done "
-                         f"(next: iteration {state.iteration})")
+            if prog and (state.iteration >= total or getattr(state, "status", "running") != "running"):
+                prog.message(f"{method} run in {rd.path} already finished ({state.iteration} iterations)")
+            elif prog:
+                prog.message(f"resuming {method} in {rd.path}: {state.iteration} iterations done "
+                             f"(next: iteration {state.iteration})")
+        tb = RunLog.open(rd.path, purge_step=state.iteration if saved is not None else None)
+        if tb is None and prog:
+            prog.message(MISSING_MESSAGE)
+        if tb is not None and saved is None and state is not None:  # a fresh run from a fork
+            for rec in state.history:  # log the iterations it shares
+                tb.iteration(rec)
         try:
-            return _run(task, method, cfg, seed, rd, state, on_iteration, progress)
+            return _run(task, method, cfg, seed, rd, state, on_iteration, prog, bar_level, tb)
         except Exception as e:
             try:
                 done = rd.load_checkpoint()
@@ -208,23 +224,49 @@ def run_experiment(
             e.add_note(f"run directory {str(rd.path)!r} keeps {n} finished iteration{'s' if n != 1 else ''}; "
                        "running the same command again resumes after them")
             raise
+        finally:
+            if tb is not None:
+                tb.close()
 
 
-def _run(task, method, cfg, seed, rd: RunDirectory | None, state, user_callback, progress):
+def _run(task, method, cfg, seed, rd: RunDirectory | None, state, user_callback, prog, bar_level, tb):
     total = cfg.ilqg.iterations if method == "ilqg" else cfg.baseline.iterations
     t_start = t_last = time.perf_counter()
+    logged = len(state.history) if state is not None else 0
+    desc = "ilqg" if method == "ilqg" else f"{method} seed {seed}"
+    bar = prog.bar(total, desc, initial=state.iteration if state is not None else 0, level=bar_level) if prog else None
 
     def on_iteration(st):
-        nonlocal t_last
+        nonlocal t_last, logged
         if rd is not None:
             rd.save(st)
+        if tb is not None:
+            for rec in st.history[logged:]:
+                tb.iteration(rec)
+            logged = len(st.history)
         if user_callback is not None:
             user_callback(st)
-        if progress:
+        if bar is not None:
             now = time.perf_counter()
-            progress(_progress_line(method, seed, total, st, now - t_last, now - t_start))
+            rec = st.history[-1]
+            shown = {"mu": float(rec.mu)} if method == "ilqg" else {"KL": float(rec.kl)}
+            bar.advance(_progress_line(method, seed, total, st, now - t_last, now - t_start),
+                        cost=float(np.mean(rec.cost)), **shown, **headline_metric(rec.metrics))
             t_last = now
 
-    if method == "ilqg":
-        return ilqg_mod.run_ilqg(task, cfg.ilqg, state=state, on_iteration=on_iteration)
-    return algorithms.run_algorithm(task, method, cfg, seed=seed, state=state, on_iteration=on_iteration)
+    try:
+        if method == "ilqg":
+            return ilqg_mod.run_ilqg(task, cfg.ilqg, state=state, on_iteration=on_iteration)
+        return algorithms.run_algorithm(task, method, cfg, seed=seed, state=state, on_iteration=on_iteration)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def headline_metric(metrics: dict) -> dict:
+    """The task's first metric other than the cost (e.g. ``min_distance``, ``min_hinge``,
+    ``return``) as ``{name: value}``, or ``{}``: what progress bars show next to the cost."""
+    for k, v in metrics.items():
+        if k != "cost":
+            return {k: float(v)}
+    return {}

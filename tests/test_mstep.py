@@ -35,8 +35,8 @@ from soc_opt.mstep import (
     surrogate_from_moments,
     surrogate_grad_hess,
 )
-from soc_opt.mstep.cvx import _CACHE
-from soc_opt.mstep.exact_em import _sigma_exact
+from soc_opt.mstep.cvx import CACHE
+from soc_opt.mstep.exact_em import sigma_exact
 
 SETTINGS = settings(max_examples=25, deadline=None, derandomize=True)
 LOG2PI = np.log(2 * np.pi)
@@ -394,7 +394,7 @@ def test_cvxpy_entropy_floor_uses_no_exponential_cones():
     model, sm, y, mom, rng = instance(16, 3, 2, T=2)
     C = MStepConstraints(entropy_floor=[-0.4, 0.7])
     res = maximize_moments(model, mom, C, method="cvxpy", return_result=True)
-    prob = _CACHE[("factored", 3, 2, (False, True, False), False, 0)]
+    prob = CACHE[("factored", 3, 2, (False, True, False), False, 0)]
     assert prob.problem.is_dpp()
     data = prob.problem.get_problem_data(cp.CLARABEL)[0]
     assert data["dims"].exp == 0 and len(data["dims"].psd) > 0
@@ -478,13 +478,13 @@ def test_cvxpy_problem_is_built_once_and_dpp():
     model, sm, y, mom, rng = instance(12, 2, 2, T=3)
     C = MStepConstraints(cov_floor=0.2, offset_bound=0.1)
     maximize_moments(model, mom, C, method="cvxpy")
-    keys = set(_CACHE)
-    built = {k: id(v.problem) for k, v in _CACHE.items()}
+    keys = set(CACHE)
+    built = {k: id(v.problem) for k, v in CACHE.items()}
     model2, sm2, y2, mom2, _ = instance(13, 2, 2, T=5)
     maximize_moments(model2, mom2, C, method="cvxpy")
-    assert set(_CACHE) == keys
-    assert all(id(_CACHE[k].problem) == built[k] for k in keys)
-    assert all(v.problem.is_dpp() for v in _CACHE.values())
+    assert set(CACHE) == keys
+    assert all(id(CACHE[k].problem) == built[k] for k in keys)
+    assert all(v.problem.is_dpp() for v in CACHE.values())
 
 
 # --------------------------------------------------------------------------- KKT (no closed form)
@@ -801,7 +801,7 @@ def test_exact_em_floor_clipping_is_the_constrained_gaussian_mle():
         W = random_spd(rng, m, 0.01)
         Smin = random_spd(rng, m, 0.05)
         rc = MStepConstraints(cov_floor=Smin).resolve(m)
-        X = _sigma_exact(W[None], rc, "closed_form", "CLARABEL", MStepConfig(), ["t"])[0]
+        X = sigma_exact(W[None], rc, "closed_form", "CLARABEL", MStepConfig(), ["t"])[0]
 
         def f(X):
             return -np.linalg.slogdet(X)[1] - np.trace(np.linalg.solve(X, W))

@@ -1,7 +1,7 @@
 """The feasible set of the M-step and its closed-form covariance rules (SPEC §5).
 
 :class:`MStepConstraints` is the user-facing set; :meth:`MStepConstraints.resolve` turns it into
-per-step arrays (:class:`_Resolved`) for an action dimension ``m`` and ``T`` steps.
+per-step arrays (:class:`Resolved`) for an action dimension ``m`` and ``T`` steps.
 
 Covariance optimum of the surrogate
 -----------------------------------
@@ -100,7 +100,7 @@ def _matrices(name: str, value, m: int, T: int) -> np.ndarray | None:
 
 
 @dataclass(frozen=True)
-class _Resolved:
+class Resolved:
     """Constraint set resolved for an action dimension ``m`` and ``T`` steps (numpy arrays, per step)."""
 
     m: int
@@ -128,7 +128,7 @@ class _Resolved:
                 out.append(name)
         return out
 
-    def time_invariant(self) -> "_Resolved":
+    def time_invariant(self) -> "Resolved":
         """The covariance constraints on one ``Sigma`` shared by all steps (``T = 1``).
 
         ``log det Sigma >= c_k`` for all ``k`` is ``log det Sigma >= max_k c_k``; per-step floors
@@ -233,7 +233,7 @@ class MStepConstraints(Config):
                 T = a.shape[0] if a.ndim == 3 else (b.shape[0] if b.ndim == 3 else 1)
                 self.resolve(m, T)
 
-    def resolve(self, m: int, T: int = 1) -> _Resolved:
+    def resolve(self, m: int, T: int = 1) -> Resolved:
         """Per-step arrays for action dimension ``m`` and ``T`` steps; checks shapes and feasibility."""
         Smin = _matrices("cov_floor", self.cov_floor, m, T)
         Smax = _matrices("cov_ceiling", self.cov_ceiling, m, T)
@@ -271,13 +271,13 @@ class MStepConstraints(Config):
                     f"infeasible constraint set: entropy_floor c={c[k]:g} exceeds log det(cov_ceiling)={ld[k]:g}, "
                     f"the largest log det allowed by the ceiling{f' (step {k})' if T > 1 else ''}"
                 )
-        return _Resolved(m, T, Smin, Smax, c, b, self.trust_region, self.allow_singular)
+        return Resolved(m, T, Smin, Smax, c, b, self.trust_region, self.allow_singular)
 
 
 # --------------------------------------------------------------------------- Sigma (surrogate)
 
 
-def _require_pd_covariance(rc: _Resolved) -> None:
+def require_pd_covariance(rc: Resolved) -> None:
     """The surrogate's Sigma optimum must be PD unless the user allowed a singular one."""
     if rc.allow_singular:
         return
@@ -297,7 +297,7 @@ def _require_pd_covariance(rc: _Resolved) -> None:
         )
 
 
-def _feasible_sigma(X: np.ndarray, rc: _Resolved, k: int, cfg: MStepConfig, skip: str) -> bool:
+def feasible_sigma(X: np.ndarray, rc: Resolved, k: int, cfg: MStepConfig, skip: str) -> bool:
     """Is ``X`` feasible for step ``k``'s covariance constraints other than ``skip``?"""
     scale = max(1.0, float(np.abs(X).max()))
     if skip != "cov_floor" and rc.Smin is not None:
@@ -329,7 +329,7 @@ def _entropy_sigma(H: np.ndarray, c: float, label: str) -> np.ndarray:
     return math.exp(log_alpha) * la.inv_from_chol(Lh)
 
 
-def _sigma_closed(Hs: np.ndarray, rc: _Resolved, cfg: MStepConfig, labels: list[str]) -> np.ndarray:
+def sigma_closed(Hs: np.ndarray, rc: Resolved, cfg: MStepConfig, labels: list[str]) -> np.ndarray:
     """Closed-form Sigma maximiser of ``-tr(H Sigma)/2`` over the covariance constraints (batched;
     ``rc`` resolved for ``N`` steps)."""
     N, m = Hs.shape[0], rc.m
@@ -344,7 +344,7 @@ def _sigma_closed(Hs: np.ndarray, rc: _Resolved, cfg: MStepConfig, labels: list[
         if rc.c is not None:
             cands.append(("entropy_floor", _entropy_sigma(Hs[i], float(rc.c[i]), labels[i])))
         for name, X in cands:
-            if _feasible_sigma(X, rc, i, cfg, skip=name):
+            if feasible_sigma(X, rc, i, cfg, skip=name):
                 out[i] = X
                 break
         else:
@@ -356,15 +356,15 @@ def _sigma_closed(Hs: np.ndarray, rc: _Resolved, cfg: MStepConfig, labels: list[
     return out
 
 
-def _pd_guaranteed(rc: _Resolved) -> bool:
+def pd_guaranteed(rc: Resolved) -> bool:
     """An entropy floor or a PD covariance floor makes the surrogate's Sigma optimum PD."""
     return rc.c is not None or (rc.Smin is not None and np.linalg.eigvalsh(rc.Smin)[:, 0].min() > 0)
 
 
-def _clean_sigma(X: np.ndarray, rc: _Resolved) -> np.ndarray:
+def clean_sigma(X: np.ndarray, rc: Resolved) -> np.ndarray:
     """Symmetrise a solver's Sigma; project onto the PSD cone when a singular optimum is allowed."""
     X = symmetrize(np.asarray(X, dtype=float))
-    if not _pd_guaranteed(rc):
+    if not pd_guaranteed(rc):
         w, V = np.linalg.eigh(X)
         X = symmetrize((V * np.clip(w, 0.0, None)) @ V.T)
     return X

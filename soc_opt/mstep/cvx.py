@@ -72,9 +72,9 @@ import numpy as np
 from .. import linalg as la
 from ..models import symmetrize
 from .config import MStepConfig
-from .constraints import _clean_sigma, _Resolved
+from .constraints import clean_sigma, Resolved
 from .errors import SolverError
-from .objectives import _MIN_NORM_HINT, _ti_degenerate, _ti_normal_equations
+from .objectives import MIN_NORM_HINT, ti_degenerate, ti_normal_equations
 
 __all__: list[str] = []  # internal: used by soc_opt.mstep.maximize and soc_opt.mstep.exact_em
 
@@ -89,7 +89,7 @@ class _CvxProblem:
     y: cp.Variable | None = None  # spectral form: coordinates of vec(F - F0) in the eigenbasis
 
 
-_CACHE: dict[tuple, _CvxProblem] = {}
+CACHE: dict[tuple, _CvxProblem] = {}
 
 # Clarabel settings for problems with an entropy floor (module docstring, "Entropy floor"; why:
 # docs/choices.md).  The duality-gap tolerances are ``clarabel_tol * _ENTROPY_GAP_FACTOR`` but not
@@ -216,10 +216,10 @@ def _build_problem(key: tuple) -> _CvxProblem:
     return _CvxProblem(prob, F, Sigma, p, cons, y)
 
 
-def _get_problem(key: tuple) -> _CvxProblem:
-    prob = _CACHE.get(key)
+def get_problem(key: tuple) -> _CvxProblem:
+    prob = CACHE.get(key)
     if prob is None:
-        prob = _CACHE[key] = _build_problem(key)
+        prob = CACHE[key] = _build_problem(key)
     return prob
 
 
@@ -245,7 +245,7 @@ def _solver_options(solver: str, cfg: MStepConfig, entropy: bool = False, trust:
     return [dict(eps_abs=cfg.scs_eps, eps_rel=cfg.scs_eps, max_iters=cfg.scs_max_iters)]
 
 
-def _solve(prob: _CvxProblem, solver: str, cfg: MStepConfig, where: str, step: int | None) -> str:
+def solve_cvx(prob: _CvxProblem, solver: str, cfg: MStepConfig, where: str, step: int | None) -> str:
     ok = {cp.OPTIMAL} | ({cp.OPTIMAL_INACCURATE} if cfg.accept_inaccurate else set())
     attempts = _solver_options(solver, cfg, entropy="t_ent" in prob.params, trust="delta" in prob.params)
     for i, opts in enumerate(attempts):
@@ -284,7 +284,7 @@ def _duals(prob: _CvxProblem) -> dict:
     return out
 
 
-def _set_sigma_params(prob: _CvxProblem, H: np.ndarray, rc: _Resolved, j: int) -> None:
+def _set_sigma_params(prob: _CvxProblem, H: np.ndarray, rc: Resolved, j: int) -> None:
     prob.params["H"].value = symmetrize(H)
     if rc.Smin is not None:
         prob.params["Smin"].value = rc.Smin[j]
@@ -297,12 +297,12 @@ def _set_sigma_params(prob: _CvxProblem, H: np.ndarray, rc: _Resolved, j: int) -
         prob.params["t_ent"].value = math.exp((float(rc.c[j]) + float(la.logdet_chol(Lh))) / m)
 
 
-def _vec_batch(X: np.ndarray) -> np.ndarray:
+def vec_batch(X: np.ndarray) -> np.ndarray:
     """Column-major ``vec`` over the last two axes (batched)."""
     return la.T(X).reshape(X.shape[:-2] + (-1,))
 
 
-def _kron_eig(H: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def kron_eig(H: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``S kron H = U Diag(lam) U^T`` (batched; ``U`` orthogonal) from the factors' eigenpairs.
 
     ``S kron H`` is the Hessian of ``1/2 tr(H F S F^T)`` in column-major ``vec F``; with
@@ -318,7 +318,7 @@ def _kron_eig(H: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lam, U
 
 
-def _spectral_data(lam: np.ndarray, U: np.ndarray, r: np.ndarray, f0: np.ndarray):
+def spectral_data(lam: np.ndarray, U: np.ndarray, r: np.ndarray, f0: np.ndarray):
     """Data of the spectral form of ``-1/2 f^T Q f + r^T f`` around ``f0`` (batched).
 
     With ``Q = U Diag(lam) U^T`` and ``f = f0 + U y`` the quadratic is ``q0 - 1/2 sum_i lam_i y_i^2 + g^T y``,
@@ -332,7 +332,7 @@ def _spectral_data(lam: np.ndarray, U: np.ndarray, r: np.ndarray, f0: np.ndarray
     return lam, g, q0
 
 
-def _set_spectral_params(prob: _CvxProblem, rc: _Resolved, n: int, lam: np.ndarray, g: np.ndarray,
+def set_spectral_params(prob: _CvxProblem, rc: Resolved, n: int, lam: np.ndarray, g: np.ndarray,
                          U: np.ndarray, f0: np.ndarray, centres: np.ndarray | None) -> None:
     """One solve of the spectral form: ``centres`` are the vec'd trust-region centres (one per
     trust constraint of the problem) or None."""
@@ -351,7 +351,7 @@ def _set_spectral_params(prob: _CvxProblem, rc: _Resolved, n: int, lam: np.ndarr
             a.value = la.T(U) @ (c - f0)
 
 
-def _spectral_F(prob: _CvxProblem, U: np.ndarray, f0: np.ndarray, m: int, n1: int) -> np.ndarray:
+def spectral_F(prob: _CvxProblem, U: np.ndarray, f0: np.ndarray, m: int, n1: int) -> np.ndarray:
     """``F = unvec(f0 + U y)`` from the spectral form's solution."""
     return la.unvec(f0 + U @ np.asarray(prob.y.value, dtype=float), m, n1)
 
@@ -364,19 +364,19 @@ def _factored_data(H: np.ndarray, S: np.ndarray, R: np.ndarray):
     return la.T(Lh), Ls, C
 
 
-def _cvxpy_tv(model, st, rc, cfg, solver, Fprev):
+def cvxpy_tv(model, st, rc, cfg, solver, Fprev):
     T, n, m = model.T, model.n, model.m
     n1 = n + 1
     spectral = rc.f_constrained
     if spectral:  # offset bound / trust region: the spectral form (module docstring)
         key = ("spectral", n, m, rc.sigma_key, rc.b is not None, 1 if rc.delta is not None else 0)
-        lam, U = _kron_eig(st.H, st.S)
-        f0 = _vec_batch(Fprev) if rc.delta is not None else np.zeros((T, m * n1))
-        lam, g, q0 = _spectral_data(lam, U, _vec_batch(st.R), f0)
+        lam, U = kron_eig(st.H, st.S)
+        f0 = vec_batch(Fprev) if rc.delta is not None else np.zeros((T, m * n1))
+        lam, g, q0 = spectral_data(lam, U, vec_batch(st.R), f0)
     else:
         key = ("factored", n, m, rc.sigma_key, False, 0)
         LhT, Ls, C = _factored_data(st.H, st.S, st.R)
-    prob = _get_problem(key)
+    prob = get_problem(key)
     F = np.empty((T, m, n1))
     Sigma = np.empty((T, m, m))
     value = np.empty(T)
@@ -386,57 +386,57 @@ def _cvxpy_tv(model, st, rc, cfg, solver, Fprev):
     for j in range(T - 1, -1, -1):  # the Proposition's backward sweep
         t0 = time.perf_counter()
         if spectral:
-            _set_spectral_params(prob, rc, n, lam[j], g[j], U[j], f0[j],
+            set_spectral_params(prob, rc, n, lam[j], g[j], U[j], f0[j],
                                  None if rc.delta is None else f0[j : j + 1])
         else:
             prob.params["LhT"].value = LhT[j]
             prob.params["Ls"].value = Ls[j]
             prob.params["C"].value = C[j]
         _set_sigma_params(prob, st.H[j], rc, j)
-        status.append(_solve(prob, solver, cfg, f"M-step (cvxpy, time step k={j})", j))
+        status.append(solve_cvx(prob, solver, cfg, f"M-step (cvxpy, time step k={j})", j))
         times[j] = time.perf_counter() - t0
         if spectral:
-            F[j] = _spectral_F(prob, U[j], f0[j], m, n1)
+            F[j] = spectral_F(prob, U[j], f0[j], m, n1)
             value[j] = st.const[j] + q0[j] + float(prob.problem.value)
         else:
             F[j] = prob.F.value
             value[j] = st.const[j] + 0.5 * float(np.sum(C[j] ** 2)) + float(prob.problem.value)
-        Sigma[j] = _clean_sigma(prob.Sigma.value, rc)
+        Sigma[j] = clean_sigma(prob.Sigma.value, rc)
         duals[j] = _duals(prob)
     return F, Sigma, value, tuple(status), tuple(duals), times
 
 
-def _cvxpy_ti(model, st, rc, cfg, solver, Fprev, hint=_MIN_NORM_HINT):
+def cvxpy_ti(model, st, rc, cfg, solver, Fprev, hint=MIN_NORM_HINT):
     n, m, T = model.n, model.m, model.T
     n1 = n + 1
-    Q, r = _ti_normal_equations(st)
-    _ti_degenerate(model, st, cfg, Q, min_norm=False, hint=hint)
+    Q, r = ti_normal_equations(st)
+    ti_degenerate(model, st, cfg, Q, min_norm=False, hint=hint)
     spectral = rc.f_constrained
     if spectral:  # offset bound / trust regions: the spectral form (module docstring)
         key = ("spectral", n, m, rc.sigma_key, rc.b is not None, T if rc.delta is not None else 0)
         with la.single_thread_blas_cached():
             lam, U = np.linalg.eigh(Q)
-        centres = _vec_batch(Fprev) if rc.delta is not None else None
+        centres = vec_batch(Fprev) if rc.delta is not None else None
         f0 = centres.mean(0) if centres is not None else np.zeros(m * n1)
-        lam, g, q0 = _spectral_data(lam, U, r, f0)
+        lam, g, q0 = spectral_data(lam, U, r, f0)
     else:
         key = ("kron", n, m, rc.sigma_key, False, 0)
         Lq = la.chol(Q, "sum_k Stilde_k kron H_k")
         c = la.tri_solve(Lq, r)
-    prob = _get_problem(key)
+    prob = get_problem(key)
     t0 = time.perf_counter()
     if spectral:
-        _set_spectral_params(prob, rc, n, lam, g, U, f0, centres)
+        set_spectral_params(prob, rc, n, lam, g, U, f0, centres)
     else:
         prob.params["LqT"].value = Lq.T
         prob.params["c"].value = c
     _set_sigma_params(prob, st.H.sum(0), rc.time_invariant(), 0)
-    status = _solve(prob, solver, cfg, "time-invariant M-step (cvxpy)", None)
+    status = solve_cvx(prob, solver, cfg, "time-invariant M-step (cvxpy)", None)
     times = np.array([time.perf_counter() - t0])
     if spectral:
-        F = _spectral_F(prob, U, f0, m, n1)
+        F = spectral_F(prob, U, f0, m, n1)
         value = float(st.const.sum()) + float(q0) + float(prob.problem.value)
     else:
         F = np.asarray(prob.F.value)
         value = float(st.const.sum()) + 0.5 * float(c @ c) + float(prob.problem.value)
-    return (F, _clean_sigma(prob.Sigma.value, rc), np.array([value]), (status,), (_duals(prob),), times)
+    return (F, clean_sigma(prob.Sigma.value, rc), np.array([value]), (status,), (_duals(prob),), times)

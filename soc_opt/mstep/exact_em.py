@@ -28,10 +28,10 @@ from .. import linalg as la
 from ..estep import Moments
 from ..models import AugmentedModel, LinearGaussianPolicy, symmetrize
 from .config import MStepConfig
-from .constraints import _feasible_sigma, _Resolved
-from .cvx import _get_problem, _kron_eig, _set_spectral_params, _solve, _spectral_data, _spectral_F, _vec_batch
+from .constraints import feasible_sigma, Resolved
+from .cvx import get_problem, kron_eig, set_spectral_params, solve_cvx, spectral_data, spectral_F, vec_batch
 from .errors import ClosedFormUnavailableError, NonUniqueMaximizerError
-from .objectives import _Atil, _min_eig_rel, _policy_F, exact_objective_from_moments
+from .objectives import atil, min_eig_rel, policy_F, exact_objective_from_moments
 
 __all__: list[str] = []  # internal: used by soc_opt.mstep.maximize
 
@@ -39,7 +39,7 @@ __all__: list[str] = []  # internal: used by soc_opt.mstep.maximize
 def _action_posterior(model: AugmentedModel, mom: Moments, F: np.ndarray, Sigma: np.ndarray):
     """``E[a stilde^T]`` (T, m, n+1) and ``E[a a^T]`` (T, m, m) under the action posterior."""
     B = model.Bs
-    Mt = _Atil(model) + B @ F
+    Mt = atil(model) + B @ F
     S = symmetrize(model.So + B @ Sigma @ la.T(B))
     L = la.chol(S, "closed-loop covariance S")
     G = la.T(la.cho_solve(L, B @ Sigma))  # Sigma B^T S^{-1}
@@ -61,7 +61,7 @@ def _clip_whitened(W: np.ndarray, S0: np.ndarray, lower: bool) -> np.ndarray:
     return symmetrize(L @ Y @ la.T(L))
 
 
-def _sigma_exact(W: np.ndarray, rc: _Resolved, method: str, solver: str, cfg: MStepConfig, labels: list[str]):
+def sigma_exact(W: np.ndarray, rc: Resolved, method: str, solver: str, cfg: MStepConfig, labels: list[str]):
     """Inner M-step for Sigma: maximise ``-1/2 (log|Sigma| + tr(Sigma^{-1} W))`` over the covariance set
     (batched; ``rc`` resolved for as many steps as ``W`` has)."""
     floor, entropy, ceiling = rc.sigma_key
@@ -80,11 +80,11 @@ def _sigma_exact(W: np.ndarray, rc: _Resolved, method: str, solver: str, cfg: MS
     out = np.empty_like(W)
     for i in range(W.shape[0]):
         X = _clip_whitened(W[i], rc.Smin[i], lower=True)
-        if _feasible_sigma(X, rc, i, cfg, skip="cov_floor"):
+        if feasible_sigma(X, rc, i, cfg, skip="cov_floor"):
             out[i] = X
             continue
         X = _clip_whitened(W[i], rc.Smax[i], lower=False)
-        if _feasible_sigma(X, rc, i, cfg, skip="cov_ceiling"):
+        if feasible_sigma(X, rc, i, cfg, skip="cov_ceiling"):
             out[i] = X
             continue
         if method != "cvxpy":
@@ -92,11 +92,11 @@ def _sigma_exact(W: np.ndarray, rc: _Resolved, method: str, solver: str, cfg: MS
                 f"{labels[i]}: cov_floor and cov_ceiling are active together in the exact-EM covariance "
                 f"step, which has no closed form; use method='cvxpy'"
             )
-        prob = _get_problem(("prec", 0, m, None, False, 0))
+        prob = get_problem(("prec", 0, m, None, False, 0))
         prob.params["W"].value = W[i]
         prob.params["Pmax"].value = la.inv_from_chol(np.linalg.cholesky(rc.Smin[i]))
         prob.params["Pmin"].value = la.inv_from_chol(np.linalg.cholesky(rc.Smax[i]))
-        _solve(prob, solver, cfg, f"{labels[i]} (exact-EM covariance step)", None)
+        solve_cvx(prob, solver, cfg, f"{labels[i]} (exact-EM covariance step)", None)
         out[i] = la.inv_from_chol(la.chol(symmetrize(prob.Sigma.value), "precision P"))
     return out
 
@@ -105,7 +105,7 @@ def _f_step_exact(model, Eas, S, Sigma, rc, method, solver, cfg, Fprev, min_norm
     """Inner M-step for F: unconstrained ``E[a stilde^T] Stilde^{-1}``; with offset/trust constraints a
     CVXPY step weighted by ``Sigma^{-1}`` (Sigma held fixed: ECM).  Batched over the leading axis."""
     n, m = model.n, model.m
-    p_min, p_rel = _min_eig_rel(S)
+    p_min, p_rel = min_eig_rel(S)
     if np.any(p_rel <= cfg.eig_tol):
         if not min_norm:
             i = int(np.flatnonzero(p_rel <= cfg.eig_tol)[-1])
@@ -125,28 +125,28 @@ def _f_step_exact(model, Eas, S, Sigma, rc, method, solver, cfg, Fprev, min_norm
     N = F.shape[0]
     n1 = n + 1
     n_trust = 0 if rc.delta is None else (1 if N == model.T else model.T)
-    prob = _get_problem(("spectral", n, m, None, rc.b is not None, n_trust))
+    prob = get_problem(("spectral", n, m, None, rc.b is not None, n_trust))
     la.chol(S, "Stilde")  # the constrained step needs Stilde > 0
     H = la.inv_from_chol(la.chol(Sigma, "Sigma"))  # Sigma^{-1}
     # E[log N(a; F stilde, Sigma)] = const - 1/2 tr(H F S F^T) + tr(F^T H E[a stilde^T])
-    lam, U = _kron_eig(H, S)
+    lam, U = kron_eig(H, S)
     if rc.delta is not None:
-        Fp = _vec_batch(Fprev)
+        Fp = vec_batch(Fprev)
         centres = [Fp[i : i + 1] if n_trust == 1 else Fp for i in range(N)]
         f0 = np.stack([c.mean(0) for c in centres])
     else:
         centres = [None] * N
         f0 = np.zeros((N, m * n1))
-    lam, g, _ = _spectral_data(lam, U, _vec_batch(H @ Eas), f0)
+    lam, g, _ = spectral_data(lam, U, vec_batch(H @ Eas), f0)
     out = np.empty_like(F)
     for i in range(N - 1, -1, -1):
-        _set_spectral_params(prob, rc, n, lam[i], g[i], U[i], f0[i], centres[i])
-        _solve(prob, solver, cfg, f"{labels[i]} (exact-EM mean step)", None)
-        out[i] = _spectral_F(prob, U[i], f0[i], m, n1)
+        set_spectral_params(prob, rc, n, lam[i], g[i], U[i], f0[i], centres[i])
+        solve_cvx(prob, solver, cfg, f"{labels[i]} (exact-EM mean step)", None)
+        out[i] = spectral_F(prob, U[i], f0[i], m, n1)
     return out
 
 
-def _exact_em(model, mom, rc, cfg, method, solver, variant, previous, min_norm):
+def run_exact_em(model, mom, rc, cfg, method, solver, variant, previous, min_norm):
     T, n = model.T, model.n
     if previous is None:
         raise ValueError("objective='exact' needs previous= (the current policy): the exact-EM M-step "
@@ -159,9 +159,9 @@ def _exact_em(model, mom, rc, cfg, method, solver, variant, previous, min_norm):
     for name, S0 in (("cov_floor", rc.Smin), ("cov_ceiling", rc.Smax)):
         if S0 is not None and np.linalg.eigvalsh(S0)[:, 0].min() <= 0:
             raise ValueError(f"objective='exact' needs a positive definite {name}")
-    F = _policy_F(previous).copy()
+    F = policy_F(previous).copy()
     Sigma = np.array(previous.cov)
-    Fprev = _policy_F(previous)
+    Fprev = policy_F(previous)
     ti = variant == "time_invariant"
     if ti:  # start from the time average of the previous policy
         F = np.broadcast_to(F.mean(0), F.shape).copy()
@@ -188,10 +188,10 @@ def _exact_em(model, mom, rc, cfg, method, solver, variant, previous, min_norm):
         X = Fn @ la.T(Eas)
         W = symmetrize(Eaa - X - la.T(X) + Fn @ Sss @ la.T(Fn))
         if ti:
-            Sn = _sigma_exact(W.mean(0)[None], rc.time_invariant(), method, solver, cfg, labels)
+            Sn = sigma_exact(W.mean(0)[None], rc.time_invariant(), method, solver, cfg, labels)
             Sn = np.broadcast_to(Sn, Sigma.shape)
         else:
-            Sn = _sigma_exact(W, rc, method, solver, cfg, labels)
+            Sn = sigma_exact(W, rc, method, solver, cfg, labels)
         F, Sigma = np.array(Fn), np.array(symmetrize(Sn))
         hist.append(exact_objective_from_moments(model, mom, policy_of(F, Sigma)))
         a, b = hist[-2], hist[-1]

@@ -23,21 +23,21 @@ from .. import linalg as la
 from ..estep import Moments, moments
 from ..models import AugmentedModel, LinearGaussianPolicy, Smoothed
 from .config import MStepConfig
-from .constraints import MStepConstraints, _pd_guaranteed, _require_pd_covariance, _sigma_closed
-from .cvx import _cvxpy_ti, _cvxpy_tv
+from .constraints import MStepConstraints, pd_guaranteed, require_pd_covariance, sigma_closed
+from .cvx import cvxpy_ti, cvxpy_tv
 from .errors import ClosedFormUnavailableError
-from .exact_em import _exact_em
+from .exact_em import run_exact_em
 from .objectives import (
-    _CVXPY_HINT,
-    _MIN_NORM_HINT,
-    _check_moments,
-    _check_policy,
-    _degeneracy,
-    _policy_F,
-    _raise_if_degenerate,
-    _stats,
-    _ti_degenerate,
-    _ti_normal_equations,
+    CVXPY_HINT,
+    MIN_NORM_HINT,
+    check_moments,
+    check_policy,
+    degeneracy,
+    policy_F,
+    raise_if_degenerate,
+    moment_stats,
+    ti_degenerate,
+    ti_normal_equations,
     surrogate_from_moments,
 )
 
@@ -150,28 +150,28 @@ def maximize_moments(
         constraints = MStepConstraints()
     if not isinstance(constraints, MStepConstraints):
         raise TypeError(f"constraints must be MStepConstraints, got {type(constraints).__name__}")
-    _check_moments(model, mom)
+    check_moments(model, mom)
     if previous is not None:
-        _check_policy(model, previous, "previous")
+        check_policy(model, previous, "previous")
     T, n, m = model.T, model.n, model.m
     rc = constraints.resolve(m, T)
     if rc.delta is not None and previous is None:
         raise ValueError("trust_region needs previous= (the policy whose [K k] is the trust-region centre)")
 
     if objective == "exact":
-        policy, hist, it, conv = _exact_em(model, mom, rc, cfg, method, solver, variant, previous, min_norm)
+        policy, hist, it, conv = run_exact_em(model, mom, rc, cfg, method, solver, variant, previous, min_norm)
         if not return_result:
             return policy
         return MStepResult(policy, hist[-1], history=hist, iterations=it, converged=conv)
 
-    _require_pd_covariance(rc)
+    require_pd_covariance(rc)
     if method == "closed_form" and rc.f_constrained:
         raise ClosedFormUnavailableError(
             f"the constraint set {rc.names()} has no closed-form maximiser (offset_bound and trust_region are "
             f"CVXPY only); use method='cvxpy'"
         )
-    st = _stats(model, mom)
-    Fprev = None if previous is None else _policy_F(previous)
+    st = moment_stats(model, mom)
+    Fprev = None if previous is None else policy_F(previous)
     extra: dict = {}
     if method == "closed_form":
         if variant == "time_varying":
@@ -179,19 +179,19 @@ def maximize_moments(
         else:
             F, Sigma = _closed_form_ti(model, st, rc, cfg, min_norm)
     else:
-        hint = _CVXPY_HINT if min_norm else _MIN_NORM_HINT + " (closed form only)"
+        hint = CVXPY_HINT if min_norm else MIN_NORM_HINT + " (closed form only)"
         if variant == "time_varying":
-            _raise_if_degenerate(model, st, cfg, hint=hint)
-            F, Sigma, val, status, duals, times = _cvxpy_tv(model, st, rc, cfg, solver, Fprev)
+            raise_if_degenerate(model, st, cfg, hint=hint)
+            F, Sigma, val, status, duals, times = cvxpy_tv(model, st, rc, cfg, solver, Fprev)
         else:
-            F, Sigma, val, status, duals, times = _cvxpy_ti(model, st, rc, cfg, solver, Fprev, hint=hint)
+            F, Sigma, val, status, duals, times = cvxpy_ti(model, st, rc, cfg, solver, Fprev, hint=hint)
         extra = dict(solver_value=val, status=status, duals=duals, solve_time=times)
     if variant == "time_invariant":
         F = np.broadcast_to(F, (T, m, n + 1))
         Sigma = np.broadcast_to(Sigma, (T, m, m))
-    # without a PD guarantee _require_pd_covariance only let us through with allow_singular=True
+    # without a PD guarantee require_pd_covariance only let us through with allow_singular=True
     policy = LinearGaussianPolicy(np.array(F[..., :n]), np.array(F[..., n]), np.array(Sigma),
-                                  allow_singular=not _pd_guaranteed(rc))
+                                  allow_singular=not pd_guaranteed(rc))
     if not return_result:
         return policy
     return MStepResult(policy, surrogate_from_moments(model, mom, policy), **extra)
@@ -202,10 +202,10 @@ def maximize_moments(
 
 def _closed_form_tv(model, st, rc, cfg, min_norm):
     T = model.T
-    h_bad, p_bad, _, _ = _degeneracy(model, st, cfg)
+    h_bad, p_bad, _, _ = degeneracy(model, st, cfg)
     degenerate = bool(np.any(h_bad | p_bad))
     if degenerate and not min_norm:
-        _raise_if_degenerate(model, st, cfg)
+        raise_if_degenerate(model, st, cfg)
     if degenerate:
         Hp = np.linalg.pinv(st.H, rcond=cfg.eig_tol, hermitian=True)
         Sp = np.linalg.pinv(st.S, rcond=cfg.eig_tol, hermitian=True)
@@ -213,17 +213,17 @@ def _closed_form_tv(model, st, rc, cfg, min_norm):
     else:
         Lh, Ls = la.chol(st.H, "H"), la.chol(st.S, "Stilde")
         F = la.right_cho_solve(la.cho_solve(Lh, st.R), Ls)
-    Sigma = _sigma_closed(st.H, rc, cfg, [f"time step k={k}" for k in range(T)])
+    Sigma = sigma_closed(st.H, rc, cfg, [f"time step k={k}" for k in range(T)])
     return F, Sigma
 
 
 def _closed_form_ti(model, st, rc, cfg, min_norm):
     m, n1 = model.m, model.n + 1
-    Q, r = _ti_normal_equations(st)
-    if _ti_degenerate(model, st, cfg, Q, min_norm):
+    Q, r = ti_normal_equations(st)
+    if ti_degenerate(model, st, cfg, Q, min_norm):
         vF = np.linalg.pinv(Q, rcond=cfg.eig_tol, hermitian=True) @ r
     else:
         vF = la.cho_solve(la.chol(Q, "sum_k Stilde_k kron H_k"), r[:, None])[:, 0]
     F = la.unvec(vF, m, n1)
-    Sigma = _sigma_closed(st.H.sum(0)[None], rc.time_invariant(), cfg, ["time-invariant M-step"])[0]
+    Sigma = sigma_closed(st.H.sum(0)[None], rc.time_invariant(), cfg, ["time-invariant M-step"])[0]
     return F, Sigma

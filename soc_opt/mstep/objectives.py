@@ -82,7 +82,7 @@ class GradHess(NamedTuple):
     grad_sigma: np.ndarray
 
 
-def _min_eig_rel(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def min_eig_rel(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Smallest eigenvalue and smallest/largest ratio (batched, symmetric)."""
     ev = np.linalg.eigvalsh(A)
     big = np.maximum(np.abs(ev).max(-1), np.finfo(float).tiny)
@@ -92,11 +92,11 @@ def _min_eig_rel(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------- inputs
 
 
-def _policy_F(policy: LinearGaussianPolicy) -> np.ndarray:
+def policy_F(policy: LinearGaussianPolicy) -> np.ndarray:
     return np.concatenate([policy.K, policy.k[..., None]], axis=-1)
 
 
-def _check_moments(model: AugmentedModel, mom: Moments) -> None:
+def check_moments(model: AugmentedModel, mom: Moments) -> None:
     if not isinstance(model, AugmentedModel):
         raise TypeError(f"model must be an AugmentedModel, got {type(model).__name__}")
     T, n1 = model.T, model.n + 1
@@ -110,7 +110,7 @@ def _check_moments(model: AugmentedModel, mom: Moments) -> None:
             raise ValueError(f"moments {name} contains NaN or inf")
 
 
-def _check_policy(model: AugmentedModel, policy: LinearGaussianPolicy, name: str = "policy") -> None:
+def check_policy(model: AugmentedModel, policy: LinearGaussianPolicy, name: str = "policy") -> None:
     if not isinstance(policy, LinearGaussianPolicy):
         raise TypeError(f"{name} must be a LinearGaussianPolicy, got {type(policy).__name__}")
     want = (model.T, model.m, model.n)
@@ -118,7 +118,7 @@ def _check_policy(model: AugmentedModel, policy: LinearGaussianPolicy, name: str
         raise ShapeError(f"{name} K must have shape (T, m, n) = {want} to match the model, got {policy.K.shape}")
 
 
-def _Atil(model: AugmentedModel) -> np.ndarray:
+def atil(model: AugmentedModel) -> np.ndarray:
     """(T, n+1, n+1) ``[A_s co]`` so that ``A_s s + co = Atil stilde``."""
     return np.concatenate([model.As, model.co[..., None]], axis=-1)
 
@@ -139,8 +139,8 @@ class _Stats:
     const: np.ndarray  # (T,)
 
 
-def _stats(model: AugmentedModel, mom: Moments) -> _Stats:
-    B, Atil = model.Bs, _Atil(model)
+def moment_stats(model: AugmentedModel, mom: Moments) -> _Stats:
+    B, Atil = model.Bs, atil(model)
     Lo = la.chol(model.So, "augmented So")
     SoiB = la.cho_solve(Lo, B)
     H = symmetrize(la.T(B) @ SoiB)
@@ -162,10 +162,10 @@ def surrogate_from_moments(model: AugmentedModel, mom: Moments, policy: LinearGa
     ``include_constant=True`` the term ``-(n+1)/2 log(2 pi)`` is added, making it the expected
     complete-data log density, a lower bound of :func:`exact_objective_from_moments` (Jensen).
     """
-    _check_moments(model, mom)
-    _check_policy(model, policy)
+    check_moments(model, mom)
+    check_policy(model, policy)
     B = model.Bs
-    Mt = _Atil(model) + B @ _policy_F(policy)
+    Mt = atil(model) + B @ policy_F(policy)
     E = _residual_second_moment(mom, Mt) + B @ policy.cov @ la.T(B)
     Lo = la.chol(model.So, "augmented So")
     val = -0.5 * la.tr(la.cho_solve(Lo, E)) - 0.5 * la.logdet_chol(Lo)
@@ -187,10 +187,10 @@ def exact_objective_from_moments(model: AugmentedModel, mom: Moments, policy: Li
     Jensen lower bound: ``Lbar_k - (n+1)/2 log(2 pi) <= exact_k``, with equality iff the action
     posterior equals its prior (e.g. ``B Sigma B^T = 0``).
     """
-    _check_moments(model, mom)
-    _check_policy(model, policy)
+    check_moments(model, mom)
+    check_policy(model, policy)
     B = model.Bs
-    Mt = _Atil(model) + B @ _policy_F(policy)
+    Mt = atil(model) + B @ policy_F(policy)
     E = _residual_second_moment(mom, Mt)
     S = symmetrize(model.So + B @ policy.cov @ la.T(B))
     L = la.chol(S, "closed-loop covariance S")
@@ -209,23 +209,23 @@ def surrogate_grad_hess(model: AugmentedModel, mom: Moments, k: int, policy: Lin
     The Hessian ``-(Stilde_k kron H_k)`` is negative definite iff ``B_k`` has full column rank and
     ``P_k > 0`` (SPEC §9 claim 1).
     """
-    _check_moments(model, mom)
-    _check_policy(model, policy)
+    check_moments(model, mom)
+    check_policy(model, policy)
     if not 0 <= k < model.T:
         raise IndexError(f"time step k={k} out of range 0..{model.T - 1}")
-    st = _stats(model, mom)
+    st = moment_stats(model, mom)
     H, R, S = st.H[k], st.R[k], st.S[k]
-    F = _policy_F(policy)[k]
+    F = policy_F(policy)[k]
     return GradHess(la.vec(R - H @ F @ S), -np.kron(S, H), -0.5 * H)
 
 
 # --------------------------------------------------------------------------- uniqueness
 
 
-def _degeneracy(model: AugmentedModel, st: _Stats, cfg: MStepConfig):
+def degeneracy(model: AugmentedModel, st: _Stats, cfg: MStepConfig):
     """Per-step flags: H singular, P singular; plus the numbers for the message."""
     n = model.n
-    h_min, h_rel = _min_eig_rel(st.H)
+    h_min, h_rel = min_eig_rel(st.H)
     S = st.S
     P = symmetrize(S[:, :n, :n] - S[:, :n, n:] @ S[:, n:, :n] / S[:, n:, n:])
     s_scale = np.maximum(np.abs(np.linalg.eigvalsh(S)).max(-1), np.finfo(float).tiny)
@@ -235,12 +235,12 @@ def _degeneracy(model: AugmentedModel, st: _Stats, cfg: MStepConfig):
     return h_bad, p_bad, h_min, p_min
 
 
-_MIN_NORM_HINT = " Pass min_norm=True for the minimum-norm maximiser."
-_CVXPY_HINT = " The minimum-norm maximiser (min_norm=True) needs method='closed_form'."
+MIN_NORM_HINT = " Pass min_norm=True for the minimum-norm maximiser."
+CVXPY_HINT = " The minimum-norm maximiser (min_norm=True) needs method='closed_form'."
 
 
 def _nonunique_message(model: AugmentedModel, k: int, h_bad: bool, p_bad: bool, h_min: float, p_min: float,
-                       others: list[int], hint: str = _MIN_NORM_HINT) -> str:
+                       others: list[int], hint: str = MIN_NORM_HINT) -> str:
     m = model.m
     parts = []
     if h_bad:
@@ -257,8 +257,8 @@ def _nonunique_message(model: AugmentedModel, k: int, h_bad: bool, p_bad: bool, 
     return msg + "." + hint
 
 
-def _raise_if_degenerate(model, st, cfg, hint=_MIN_NORM_HINT):
-    h_bad, p_bad, h_min, p_min = _degeneracy(model, st, cfg)
+def raise_if_degenerate(model, st, cfg, hint=MIN_NORM_HINT):
+    h_bad, p_bad, h_min, p_min = degeneracy(model, st, cfg)
     bad = np.flatnonzero(h_bad | p_bad)
     if bad.size:
         k = int(bad[-1])  # the backward sweep meets the last one first
@@ -268,7 +268,7 @@ def _raise_if_degenerate(model, st, cfg, hint=_MIN_NORM_HINT):
         )
 
 
-def _ti_normal_equations(st: _Stats):
+def ti_normal_equations(st: _Stats):
     Q = np.einsum("kab,kij->aibj", st.S, st.H)  # sum_k S_k kron H_k, indices (a,i),(b,j)
     n1, m = st.S.shape[1], st.H.shape[1]
     Q = symmetrize(Q.reshape(n1 * m, n1 * m))
@@ -276,11 +276,11 @@ def _ti_normal_equations(st: _Stats):
     return Q, r
 
 
-def _ti_degenerate(model, st, cfg, Q, min_norm, hint=_MIN_NORM_HINT):
+def ti_degenerate(model, st, cfg, Q, min_norm, hint=MIN_NORM_HINT):
     ev = np.linalg.eigvalsh(Q)
     bad = ev[0] <= cfg.eig_tol * max(abs(ev[-1]), np.finfo(float).tiny)
     if bad and not min_norm:
-        h_bad, p_bad, h_min, p_min = _degeneracy(model, st, cfg)
+        h_bad, p_bad, h_min, p_min = degeneracy(model, st, cfg)
         steps = np.flatnonzero(h_bad | p_bad)
         detail = ""
         if steps.size:

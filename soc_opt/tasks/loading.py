@@ -12,7 +12,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from ..config import ConfigError, read_toml
-from .config import TaskConfig
+from .config import GYM_PREFIX, TaskConfig
 from .linear import LinearTask
 from .mujoco import MujocoTask, _mujoco
 
@@ -92,6 +92,19 @@ def build_task(config: TaskConfig | dict, base_dir: str | Path | None = None, *,
     """
     if isinstance(config, dict):
         config = TaskConfig.from_dict(config)
+    if config.model and config.model.startswith(GYM_PREFIX):
+        from .gym import GymMujocoTask, make_gym_env
+
+        if config.kind != "mujoco":
+            raise ConfigError(f"{config.model}: kind must be 'mujoco' (the default) for a gym: model")
+        if xml is not None:
+            raise ConfigError(f"{config.model}: 'xml' cannot replace a Gymnasium environment's model")
+        env = make_gym_env(config.model[len(GYM_PREFIX):], config.gym.kwargs)
+        try:
+            return GymMujocoTask(config, env, condition=condition)
+        except Exception:
+            env.close()
+            raise
     if config.kind == "linear":
         task = LinearTask(config, condition=condition)
         task.provenance = {"name": config.name, "config": config.to_dict(), "model_files": {}}
@@ -124,16 +137,31 @@ def build_task(config: TaskConfig | dict, base_dir: str | Path | None = None, *,
 
 
 def load_task(name_or_path: str | Path, *, condition: int = 0, overrides: dict | None = None):
-    """Load a built-in task (``linear2d``, ``peg``, ``door``) or a task TOML file.
+    """Load a built-in task (``linear2d``, ``peg``, ``door``), a task TOML file, or ``gym:<EnvId>``.
 
+    ``gym:<EnvId>``: a Gymnasium MuJoCo environment with its reward as the cost and the
+    defaults of :func:`soc_opt.tasks.gym.load_gym_task` (a TOML with ``model = "gym:<EnvId>"``
+    sets more; docs/gym.md).
     ``overrides``: top-level keys replacing the file's values (e.g. ``{"T": 20, "rho2": 0.01}``).
     """
     name = str(name_or_path)
+    if name.startswith(GYM_PREFIX):
+        from .gym import load_gym_task
+
+        return load_gym_task({"model": name, **(overrides or {})}, condition=condition)
     path = _problems_dir() / BUILTIN_TASKS[name] if name in BUILTIN_TASKS else Path(name)
     if not path.is_file():
-        raise ConfigError(f"task {name!r}: not a built-in task ({', '.join(BUILTIN_TASKS)}) and no file {str(path)!r}")
+        raise ConfigError(f"task {name!r}: not a built-in task ({', '.join(BUILTIN_TASKS)}), no file {str(path)!r} "
+                          f"and not {GYM_PREFIX}<EnvId>")
     data = read_toml(path)
     data.update(overrides or {})
+    if str(data.get("model", "")).startswith(GYM_PREFIX):
+        from .gym import load_gym_task
+
+        try:
+            return load_gym_task(data, condition=condition)
+        except ConfigError as e:
+            raise ConfigError(f"{path}: {e}") from e
     try:
         config = TaskConfig.from_dict(data)
     except ConfigError as e:
