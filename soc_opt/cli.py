@@ -118,6 +118,8 @@ def _cmd_run(args) -> int:
 
     if args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
+    if args.restart and args.previous_checkpoint:
+        raise ConfigError("--restart and --previous-checkpoint exclude each other: choose one")
     task = load_task(args.task)
     out = Path(args.out or f"runs/{Path(args.task).stem}-{args.method}-seed{args.seed}")
     return RUNNERS[args.method](args, task, out)

@@ -188,3 +188,31 @@ def test_unexpected_errors_are_one_line_and_debug_shows_the_traceback(tmp_path, 
     assert "RuntimeError: deliberate failure" in line and "--debug" in line
     with pytest.raises(RuntimeError):
         main(["--debug"] + args)
+
+
+def test_a_second_run_on_a_directory_in_use_is_refused_naming_the_first(tmp_path, capsys):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "o"
+    args = ["run", "linear2d", "--method", "lqr-flm", "--iterations", "30", "--samples", "4", "--out", str(out)]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    first = subprocess.Popen([sys.executable, "-m", "soc_opt.cli"] + args + ["--progress", "lines"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        for line in first.stdout:  # wait until it is running
+            if line.startswith("[lqr-flm seed 0] iter"):
+                break
+        else:
+            raise AssertionError(first.stderr.read())
+        assert main(args) == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert f"in use by process {first.pid}" in line
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.communicate()

@@ -157,15 +157,13 @@ def _kill_at(iteration):
 
 
 def test_resume_refuses_an_edited_task_naming_the_changed_key(tmp_path):
-    from soc_opt.experiment import RunDirectoryError
-
     path = tmp_path / "task.toml"
     path.write_text(LINEAR2D_TOML)
     cfg = _cfg(iterations=3, i_switch=0)
     with pytest.raises(_Kill):
         run_experiment(load_task(path), "lqr-flm", cfg, 0, tmp_path / "r", task_name=str(path), on_iteration=_kill_at(1))
     path.write_text(LINEAR2D_TOML.replace("target = [20.0, 3.0, 0.0", "target = [10.0, 3.0, 0.0"))
-    with pytest.raises(RunDirectoryError, match=r"task\.cost\[0\]\.target: \[20\.0, 3\.0.*-> \[10\.0, 3\.0"):
+    with pytest.raises(ValueError, match=r"task\.cost\[0\]\.target: \[20\.0, 3\.0.*-> \[10\.0, 3\.0"):
         run_experiment(load_task(path), "lqr-flm", cfg, 0, tmp_path / "r", task_name=str(path))
     # comments and layout are not the experiment: an equivalent file resumes
     path.write_text("# same task, reformatted\n" + LINEAR2D_TOML)
@@ -174,8 +172,6 @@ def test_resume_refuses_an_edited_task_naming_the_changed_key(tmp_path):
 
 
 def test_a_damaged_checkpoint_offers_the_previous_one_and_restart(task, tmp_path):
-    from soc_opt.experiment import CheckpointError
-
     cfg = _cfg(iterations=3, i_switch=0)
     full = run_experiment(task, "lqr-flm", cfg, seed=2, out=tmp_path / "full")
     out = tmp_path / "r"
@@ -184,7 +180,7 @@ def test_a_damaged_checkpoint_offers_the_previous_one_and_restart(task, tmp_path
     ckpt = out / "checkpoint.pkl"
     for damage in (b"", ckpt.read_bytes()[:-100]):
         ckpt.write_bytes(damage)
-        with pytest.raises(CheckpointError, match=r"--previous-checkpoint.*1 iterations done.*--restart"):
+        with pytest.raises(ValueError, match=r"--previous-checkpoint.*1 iterations done.*--restart"):
             run_experiment(task, "lqr-flm", cfg, seed=2, out=out)
     resumed = run_experiment(task, "lqr-flm", cfg, seed=2, out=out, previous_checkpoint=True)
     np.testing.assert_array_equal(resumed.policy.K, full.policy.K)
@@ -239,18 +235,34 @@ def test_compare_report_with_one_seed_shows_n_instead_of_a_zero_spread(task, tmp
     assert "± 0" not in md and "(n = 1)" in md and "one seed" in md
 
 
-def test_action_figure_names_the_actuators(monkeypatch, tmp_path):
+TWO_LINK = """<mujoco><option timestep="0.01" gravity="0 0 0"/><worldbody>
+  <body name="l1"><joint name="j1" type="hinge" axis="0 0 1" damping="0.1"/>
+    <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.03" mass="1"/>
+    <body name="l2" pos="0.5 0 0"><joint name="j2" type="hinge" axis="0 0 1" damping="0.1"/>
+      <geom type="capsule" fromto="0 0 0 0.4 0 0" size="0.03" mass="0.5"/><site name="tip" pos="0.4 0 0"/></body>
+  </body></worldbody>
+  <actuator><motor name="shoulder_motor" joint="j1"/><motor name="elbow_motor" joint="j2"/></actuator></mujoco>"""
+
+
+def test_compare_action_figure_names_the_actuators(monkeypatch, tmp_path):
     import matplotlib.pyplot as plt
 
     from soc_opt import report
-    from soc_opt.compare import action_names
+    from soc_opt.compare import compare
+    from soc_opt.tasks import build_task
 
-    peg = load_task("peg", overrides={"T": 5})
-    assert action_names(peg) == peg.actuated and len(peg.actuated) == peg.m
+    arm = build_task({"name": "arm", "T": 5, "q0": [0.3, 0.5], "rho2": 0.01, "init_var": 0.1,
+                      "state": {"joints": ["j1", "j2"], "sites": ["tip"]},
+                      "cost": [{"type": "point", "sites": ["tip"], "target": [0.2, 0.6, 0.0]},
+                               {"type": "torque", "wu": 0.01}]}, xml=TWO_LINK)
     figs = []
+    real_close = plt.close
     monkeypatch.setattr(report.plt, "close", lambda fig: figs.append(fig))
-    acts = {"lqr-flm": np.zeros((2, 5, peg.m)), "dpsoc-em": np.ones((2, 5, peg.m))}
-    report.plot_actions(acts, tmp_path / "a.png", "actions", names=action_names(peg))
-    labels = [t.get_text() for t in figs[0].axes[0].get_xticklabels()]
-    plt.close(figs[0])
-    assert labels == list(peg.actuated)
+    compare(arm, _cfg(iterations=2, i_switch=1).replace(baseline=LQRFLMConfig(iterations=2, samples=3)),
+            seeds=[0], out=tmp_path / "cmp")
+    actions = [f for f in figs if "actions" in f.get_suptitle()]
+    assert len(actions) == 1
+    labels = [t.get_text() for t in actions[0].axes[0].get_xticklabels()]
+    for f in figs:
+        real_close(f)
+    assert labels == ["shoulder_motor", "elbow_motor"]
