@@ -25,7 +25,7 @@ import numpy as np
 
 from soc_opt import algorithms
 from soc_opt.algorithms import DPSOCConfig
-from soc_opt.compare import _evaluate, _spreads
+from soc_opt.compare import evaluate_policy, spreads
 from soc_opt.tasks import load_task
 
 
@@ -40,6 +40,11 @@ def main() -> None:
     cfg = DPSOCConfig.from_dict(summary["config"])
     task = load_task(args.task)
     idx = {s: i for i, s in enumerate(summary["seeds"])}
+    samples = cfg.evaluation.samples or cfg.baseline.samples
+
+    def evaluate(policy, seed):
+        return evaluate_policy(task, policy, samples, seed, workers=1, evaluation=cfg.evaluation)
+
     rows = {"lqr-flm": [], "dpsoc-em": [], "em-sigma-kept": [], "halve-sigma": []}
     for seed in args.seeds:
         for meth in ("lqr-flm", "dpsoc-em"):
@@ -47,10 +52,10 @@ def main() -> None:
         fork = pickle.loads((out / f"seed_{seed}" / "fork_state.pkl").read_bytes())
         kept = cfg.replace(em=cfg.em.replace(cov_floor_scale=1.0))
         st = algorithms.run_algorithm(task, "dpsoc-em", kept, seed=seed, state=fork)
-        rows["em-sigma-kept"].append(_spreads(task, _evaluate(task, st.policy, cfg.baseline.samples, seed, 1)))
+        rows["em-sigma-kept"].append(spreads(task, evaluate(st.policy, seed)))
         halved = dataclasses.replace(fork, policy=fork.policy.with_cov(0.5 * np.asarray(fork.policy.cov)))
         st = algorithms.run_algorithm(task, "lqr-flm", cfg, seed=seed, state=halved)
-        rows["halve-sigma"].append(_spreads(task, _evaluate(task, st.policy, cfg.baseline.samples, seed, 1)))
+        rows["halve-sigma"].append(spreads(task, evaluate(st.policy, seed)))
         print(f"seed {seed}: " + ", ".join(f"{m} cost {rows[m][-1]['cost']:.4g}" for m in rows), flush=True)
     (out / "ablation.json").write_text(json.dumps({"seeds": args.seeds, "rows": rows}, indent=1))
     lines = [f"# Ablation of the EM step on {args.task} (seeds {args.seeds})", "",

@@ -7,9 +7,9 @@ Run: .venv/bin/python examples/compare_solvers.py   (the same tables as `soc-opt
 
 from soc_opt.bench import lqg as bench_lqg
 from soc_opt.bench import mstep as bench_mstep
-from soc_opt.cli import _table
+from soc_opt.report import format_table
 
 print("M-step (n=6, m=2, T=5)")
-print(_table(bench_mstep.run(sizes=((6, 2),), T=5)))
+print(format_table(bench_mstep.run(sizes=((6, 2),), T=5)))
 print("\nKL step (n=4, m=2, T=20)")
-print(_table(bench_lqg.run(sizes=((4, 2, 20),))))
+print(format_table(bench_lqg.run(sizes=((4, 2, 20),))))

@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Literal
+from typing import TYPE_CHECKING, Callable, Literal, NamedTuple
 
 import numpy as np
 
@@ -32,13 +32,25 @@ from . import estep, fit, lqg, mstep
 from .config import Config
 from .models import LinearGaussianPolicy, Rollouts
 
+if TYPE_CHECKING:
+    from .tasks import Task
+
 __all__ = [
+    "PaperScale",
+    "PAPER",
+    "LoopKLStepConfig",
     "LQRFLMConfig",
     "EMConfig",
+    "EvalConfig",
     "DPSOCConfig",
     "ILQGConfig",
+    "with_paper_scale",
+    "BestPolicy",
+    "PreviousStep",
+    "EMDiagnostics",
     "RunState",
     "IterationRecord",
+    "METHODS",
     "initial_state",
     "lqr_flm_iteration",
     "em_update",
@@ -48,32 +60,60 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class LQRFLMConfig(Config):
-    """LQR-FLM baseline ("iLQG" in the paper), SPEC §7.
+class PaperScale(NamedTuple):
+    """The scale of the paper's experiments (SPEC §9.5), defined here once.
 
-    iterations:  number of sample -> fit -> LQG rounds (paper: 14).
-    samples:     rollouts per iteration ``M`` (paper: 20).
-    init_var:    initial policy covariance ``Sigma = init_var * I``.
-    kl_budget:   base KL budget per time step; the total budget is ``kl_budget * T * mult``.
-    kl_mode:     "total" (one budget ``nu = sum nu_k``, one multiplier: the GPS form) or
-                 "per_step" (``nu_k = kl_budget * mult`` with one multiplier per step).
-    adapt_step:  adapt ``mult`` from predicted vs actual improvement (GPS rule, see lqg.adapt_step).
-    workers:     parallel rollout workers (results do not depend on it).
-    fit:         dynamics-fitting configuration (SPEC §2).
-    kl:          KL-step solver configuration (SPEC §6); inside the loop the dual is solved to
-                 ``kl_rtol = 1e-6`` (a budget is a step size, not a quantity to hit to 1e-10).
+    iterations: baseline iterations per run (``LQRFLMConfig.iterations``).
+    samples:    rollouts per iteration ``M`` (``LQRFLMConfig.samples``).
+    i_switch:   EM phase after this many baseline iterations (``DPSOCConfig.i_switch``).
     """
 
     iterations: int = 14
     samples: int = 20
+    i_switch: int = 4
+
+
+PAPER = PaperScale()
+
+
+@dataclass(frozen=True)
+class LoopKLStepConfig(lqg.KLStepConfig):
+    """:class:`soc_opt.lqg.KLStepConfig` as used by the LQR-FLM loop: the same fields and defaults,
+    except that the dual is solved to ``kl_rtol = 1e-6`` (a budget is a step size, not a quantity to
+    hit to 1e-10); any ``[baseline.kl]`` table starts from these defaults.
+    """
+
+    kl_rtol: float = 1e-6
+
+
+@dataclass(frozen=True)
+class LQRFLMConfig(Config):
+    """LQR-FLM baseline ("iLQG" in the paper), SPEC §7.
+
+    iterations:  number of sample -> fit -> LQG rounds (default: the paper's, ``PAPER.iterations``).
+    samples:     rollouts per iteration ``M`` (default: the paper's, ``PAPER.samples``).
+    init_var:    initial policy covariance ``Sigma = init_var * I``.
+    kl_budget:   base KL budget per time step; the total budget is ``kl_budget * T * mult``.
+    kl_mode:     "total" (one budget ``nu = sum nu_k``, one multiplier: the GPS form) or
+                 "per_step" (``nu_k = kl_budget * mult`` with one multiplier per step).
+    kl_method:   KL-step solver, "closed_form" (LQR backward pass + dual) or "casadi" (IPOPT).
+    adapt_step:  adapt ``mult`` from predicted vs actual improvement (GPS rule, see lqg.adapt_step).
+    workers:     parallel rollout workers (results do not depend on it).
+    fit:         dynamics-fitting configuration (SPEC §2).
+    kl:          KL-step solver and step-adaptation configuration (SPEC §6), the loop's
+                 :class:`LoopKLStepConfig` (dual solved to ``kl_rtol = 1e-6``).
+    """
+
+    iterations: int = PAPER.iterations
+    samples: int = PAPER.samples
     init_var: float = 1.0
     kl_budget: float = 0.5
     kl_mode: Literal["total", "per_step"] = "total"
+    kl_method: Literal["closed_form", "casadi"] = "closed_form"
     adapt_step: bool = True
     workers: int = 1
     fit: fit.FitConfig = field(default_factory=fit.FitConfig)
-    kl: lqg.KLStepConfig = field(default_factory=lambda: lqg.KLStepConfig(kl_rtol=1e-6))
+    kl: LoopKLStepConfig = field(default_factory=LoopKLStepConfig)
 
     def __post_init__(self):
         if self.iterations < 1:
@@ -91,7 +131,7 @@ class EMConfig(Config):
     n_em:          EM recursions at the switch (each samples ``M`` rollouts of the current EM policy).
     y_mode:        cost observations ``Y``: "model" (the paper), "measured", "optimistic" (SPEC §3).
     y_samples:     number of ``Y`` sequences drawn in "model" mode (default: ``samples``).
-    method:        M-step solver, "closed_form" or "cvxpy".
+    method:        M-step solver, "closed_form" or "cvxpy" (``mstep.maximize(method=...)``).
     variant:       "time_varying" (the Proposition's DP sweep) or "time_invariant".
     objective:     "surrogate" (the paper's Lbar) or "exact" (exact EM).
     cov_floor_scale:  ``Sigma_k >= scale * Sigma_k^i`` (covariance floor relative to the
@@ -99,6 +139,8 @@ class EMConfig(Config):
     entropy_floor: use the entropy floor ``log det Sigma_k >= log det Sigma_k^i`` instead.
     trust_region:  optional Frobenius trust region on ``[K k]`` around the current policy (cvxpy only).
     min_norm:      minimum-norm M-step where the maximiser is not unique.
+    mstep:         the M-step's solver tolerances and limits (:class:`soc_opt.mstep.MStepConfig`,
+                   passed as ``mstep.maximize(config=...)``; its ``solver`` picks the CVXPY solver).
     """
 
     n_em: int = 1
@@ -111,6 +153,7 @@ class EMConfig(Config):
     entropy_floor: bool = False
     trust_region: float | None = None
     min_norm: bool = True
+    mstep: mstep.MStepConfig = field(default_factory=mstep.MStepConfig)
 
     def __post_init__(self):
         if self.n_em < 1:
@@ -120,23 +163,51 @@ class EMConfig(Config):
 
 
 @dataclass(frozen=True)
+class EvalConfig(Config):
+    """Evaluation of the final policies by ``soc-opt compare`` (SPEC §9.5).
+
+    samples:     fresh rollouts per final policy (default: ``baseline.samples``).
+    seed_offset: the evaluation generator is seeded with ``seed_offset + seed``: the same stream
+                 for both methods, distinct from the training stream of that seed.
+    """
+
+    samples: int | None = None
+    seed_offset: int = 10_000
+
+    def __post_init__(self):
+        if self.samples is not None and self.samples < 1:
+            raise ValueError(f"samples must be >= 1, got {self.samples}")
+
+
+@dataclass(frozen=True)
 class DPSOCConfig(Config):
     """DPSOC-EM (paper Algorithm 1): baseline until ``i_switch``, EM phase, baseline again.
 
-    i_switch: the EM phase runs after this many baseline iterations (paper: 4 of 14).
-    baseline: the LQR-FLM configuration (iterations = total baseline iterations).
-    em:       the EM phase configuration.
+    The run configuration: it holds every sub-configuration of a run (one TOML file).
+
+    i_switch:   the EM phase runs after this many baseline iterations (default: the paper's,
+                ``PAPER.i_switch``).
+    baseline:   the LQR-FLM configuration (iterations = total baseline iterations).
+    em:         the EM phase configuration.
+    evaluation: evaluation of the final policies (``soc-opt compare``).
     """
 
-    i_switch: int = 4
+    i_switch: int = PAPER.i_switch
     baseline: LQRFLMConfig = field(default_factory=LQRFLMConfig)
     em: EMConfig = field(default_factory=EMConfig)
+    evaluation: EvalConfig = field(default_factory=EvalConfig)
 
     def __post_init__(self):
         if not 0 <= self.i_switch < self.baseline.iterations:
             raise ValueError(
                 f"i_switch must be in [0, iterations={self.baseline.iterations}), got {self.i_switch}"
             )
+
+
+def with_paper_scale(cfg: DPSOCConfig) -> DPSOCConfig:
+    """``cfg`` at the paper's scale (:data:`PAPER`: iterations, samples, switch point)."""
+    base = cfg.baseline.replace(iterations=PAPER.iterations, samples=PAPER.samples)
+    return cfg.replace(baseline=base, i_switch=PAPER.i_switch)
 
 
 @dataclass(frozen=True)
@@ -147,6 +218,8 @@ class ILQGConfig(Config):
     mu_init:     initial Levenberg–Marquardt regulariser added to the action Hessian.
     mu_factor:   multiply/divide ``mu`` by this on rejection/acceptance.
     mu_max:      give up past this regulariser.
+    mu_restart:  after a failed backward pass ``mu`` becomes at least this (so that ``mu_init = 0``
+                 still grows).
     alphas:      backtracking line-search step sizes, tried in order.
     tol:         stop when the relative cost decrease is below ``tol``.
     policy_var:  covariance of the returned (initialiser) policy.
@@ -156,9 +229,52 @@ class ILQGConfig(Config):
     mu_init: float = 1e-6
     mu_factor: float = 10.0
     mu_max: float = 1e10
+    mu_restart: float = 1e-6
     alphas: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.03, 0.01)
     tol: float = 1e-4
     policy_var: float = 1.0
+
+
+class BestPolicy(NamedTuple):
+    """The best policy sampled so far in a run."""
+
+    mean_cost: float  # mean true-state total cost of its samples
+    policy: LinearGaussianPolicy
+    iteration: int  # the (0-based) iteration in which it was sampled
+
+
+class PreviousStep(NamedTuple):
+    """The previous KL step, for the step-size adaptation (SPEC §6)."""
+
+    model: lqg.LocalModel  # fitted dynamics, cost expansion and initial distribution
+    reference: LinearGaussianPolicy  # the KL reference of that step
+
+
+@dataclass(frozen=True)
+class EMDiagnostics:
+    """Diagnostics of one EM recursion (paper Algorithm 1; SPEC §4–§5).
+
+    recursion:     index of the recursion within the EM phase.
+    surrogate_old, surrogate_new: ``sum_k Lbar_k`` of the sampled and of the EM policy, both under
+                   the smoothed moments of the sampled policy (the M-step raises it).
+    loglik_old, loglik_new: mean over the ``Y`` sequences of ``log p(Y)`` under the sampled and
+                   the EM policy.
+    time_fit_augmented, time_estep, time_mstep: wall time of each phase (seconds).
+    """
+
+    recursion: int
+    surrogate_old: float
+    surrogate_new: float
+    loglik_old: float
+    loglik_new: float
+    time_fit_augmented: float
+    time_estep: float
+    time_mstep: float
+
+    def summary(self) -> dict:
+        """The metrics columns of the recursion (``em_recursion`` first, then the fields)."""
+        out = dataclasses.asdict(self)
+        return {"em_recursion": out.pop("recursion"), **out}
 
 
 @dataclass(frozen=True)
@@ -166,18 +282,20 @@ class IterationRecord:
     """Metrics of one iteration (one sampling round).
 
     phase: "baseline" or "em".  ``cost`` holds per-sample total costs on the true states.
+    em:    the EM recursion's diagnostics (``phase == "em"`` only).
     """
 
     iteration: int
-    phase: str
+    phase: Literal["baseline", "em"]
     cost: np.ndarray  # (M,) true-state total cost per sample
     cost_measured: np.ndarray  # (M,) measured-state total cost per sample (SPEC Y)
     kl: float
     nu: float
     mult: float
-    metrics: dict
-    timings: dict
-    extra: dict = field(default_factory=dict)
+    metrics: dict[str, float]
+    timings: dict[str, float]
+    extra: dict[str, float] = field(default_factory=dict)
+    em: EMDiagnostics | None = None
 
     def summary(self) -> dict:
         return {
@@ -192,6 +310,7 @@ class IterationRecord:
             **{f"metric_{k}": v for k, v in self.metrics.items()},
             **{f"time_{k}": v for k, v in self.timings.items()},
             **self.extra,
+            **(self.em.summary() if self.em is not None else {}),
         }
 
 
@@ -199,30 +318,31 @@ class IterationRecord:
 class RunState:
     """Everything needed to continue a run (checkpointed after each iteration).
 
-    iteration: number of finished baseline iterations.
-    policy:    the current policy ``p_i`` (sampled next).
-    mult:      KL budget multiplier (step-size adaptation).
-    prior:     mixture prior (fit.MixturePrior) or None.
-    rng_state: ``numpy`` bit-generator state (JSON-able dict).
-    history:   tuple of IterationRecord.
-    prev:      ``(LocalModel, reference policy)`` of the previous KL step, for the step adaptation.
-    best:      (mean cost, policy) of the best policy sampled so far.
-    em_done:   whether the DPSOC-EM phase has run.
+    iteration:     number of finished baseline iterations.
+    policy:        the current policy ``p_i`` (sampled next).
+    mult:          KL budget multiplier (step-size adaptation).
+    prior:         mixture prior of the dynamics fit, or None.
+    rng_state:     ``numpy`` bit-generator state (JSON-able dict).
+    history:       the IterationRecords so far.
+    prev:          the previous KL step, for the step adaptation.
+    best:          the best policy sampled so far.
+    em_done:       whether the DPSOC-EM phase has run.
+    last_rollouts: the rollouts of the last iteration.
     """
 
     iteration: int
     policy: LinearGaussianPolicy
     mult: float
-    prior: object
+    prior: fit.MixturePrior | None
     rng_state: dict
-    history: tuple = ()
-    prev: tuple | None = None
-    best: tuple | None = None
+    history: tuple[IterationRecord, ...] = ()
+    prev: PreviousStep | None = None
+    best: BestPolicy | None = None
     em_done: bool = False
     last_rollouts: Rollouts | None = None
 
 
-def initial_state(task, cfg: LQRFLMConfig, seed: int) -> RunState:
+def initial_state(task: Task, cfg: LQRFLMConfig, seed: int) -> RunState:
     rng = np.random.default_rng(seed)
     return RunState(
         iteration=0,
@@ -239,18 +359,30 @@ def _rng(state: RunState) -> np.random.Generator:
     return rng
 
 
-def _initial_distribution(task) -> tuple[np.ndarray, np.ndarray]:
+def _initial_distribution(task: Task) -> tuple[np.ndarray, np.ndarray]:
     """``s_0 ~ N(mu0, P0)`` from the task (measurement noise included; docs/choices.md)."""
     return np.asarray(task.mu0, float), np.asarray(task.P0, float)
 
 
+_BUDGETS: dict[str, Callable[[LQRFLMConfig, int, float], float | np.ndarray]] = {
+    "total": lambda cfg, T, mult: cfg.kl_budget * T * mult,
+    "per_step": lambda cfg, T, mult: np.full(T, cfg.kl_budget * mult),
+}
+
+
 def _budget(cfg: LQRFLMConfig, T: int, mult: float):
-    if cfg.kl_mode == "total":
-        return cfg.kl_budget * T * mult
-    return np.full(T, cfg.kl_budget * mult)
+    """The KL budget of one step: a total ``nu`` or per-step ``(T,)`` budgets (``cfg.kl_mode``)."""
+    return _BUDGETS[cfg.kl_mode](cfg, T, mult)
 
 
-def _record(iteration, phase, task, rollouts, *, kl=0.0, nu=0.0, mult=1.0, timings=None, extra=None):
+def _improved(best: BestPolicy | None, mean_cost: float, policy: LinearGaussianPolicy,
+              iteration: int) -> BestPolicy:
+    if best is None or mean_cost < best.mean_cost:
+        return BestPolicy(mean_cost, policy, iteration)
+    return best
+
+
+def _record(iteration, phase, task, rollouts, *, kl=0.0, nu=0.0, mult=1.0, timings=None, extra=None, em=None):
     return IterationRecord(
         iteration=iteration,
         phase=phase,
@@ -262,11 +394,12 @@ def _record(iteration, phase, task, rollouts, *, kl=0.0, nu=0.0, mult=1.0, timin
         metrics={k: float(v) for k, v in task.metrics(rollouts).items()},
         timings=timings or {},
         extra=extra or {},
+        em=em,
     )
 
 
-def lqr_flm_iteration(task, cfg: LQRFLMConfig, state: RunState, reference: LinearGaussianPolicy | None = None,
-                      phase: str = "baseline") -> RunState:
+def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
+                      reference: LinearGaussianPolicy | None = None, phase: str = "baseline") -> RunState:
     """One LQR-FLM iteration (module docstring, steps 1–5). Pure: returns a new state."""
     rng = _rng(state)
     timings = {}
@@ -287,14 +420,13 @@ def lqr_flm_iteration(task, cfg: LQRFLMConfig, state: RunState, reference: Linea
 
     mult = state.mult
     if cfg.adapt_step and state.prev is not None:
-        previous, old_policy = state.prev
-        predicted, actual = lqg.laplace_improvements(old_policy, state.policy, previous,
+        predicted, actual = lqg.laplace_improvements(state.prev.reference, state.policy, state.prev.model,
                                                      lqg.LocalModel(dyn, cost, mu0, P0))
         mult = lqg.adapt_step(mult, predicted, actual, cfg.kl)
 
     t0 = time.perf_counter()
     nu = _budget(cfg, task.T, mult)
-    res = lqg.kl_step(dyn, cost, ref, nu, mu0, P0, method="closed_form", config=cfg.kl)
+    res = lqg.kl_step(dyn, cost, ref, nu, mu0, P0, method=cfg.kl_method, config=cfg.kl)
     timings["lqg"] = time.perf_counter() - t0
 
     record = _record(
@@ -302,10 +434,6 @@ def lqr_flm_iteration(task, cfg: LQRFLMConfig, state: RunState, reference: Linea
         kl=float(np.sum(res.kl)), nu=float(np.sum(nu)), mult=mult, timings=timings,
         extra={"eta_mean": float(np.mean(res.eta)), "predicted_cost": float(res.expected_cost)},
     )
-    best = state.best
-    mean_cost = float(np.mean(record.cost))
-    if best is None or mean_cost < best[0]:
-        best = (mean_cost, state.policy, state.iteration)
     return dataclasses.replace(
         state,
         iteration=state.iteration + 1,
@@ -314,58 +442,63 @@ def lqr_flm_iteration(task, cfg: LQRFLMConfig, state: RunState, reference: Linea
         prior=prior,
         rng_state=rng.bit_generator.state,
         history=state.history + (record,),
-        prev=(lqg.LocalModel(dyn, cost, mu0, P0), ref),
-        best=best,
+        prev=PreviousStep(lqg.LocalModel(dyn, cost, mu0, P0), ref),
+        best=_improved(state.best, float(np.mean(record.cost)), state.policy, state.iteration),
         last_rollouts=rollouts,
     )
 
 
-def em_update(task, cfg: DPSOCConfig, policy: LinearGaussianPolicy, rollouts: Rollouts, prior,
-              rng: np.random.Generator) -> tuple[LinearGaussianPolicy, dict]:
-    """One EM recursion (paper Algorithm 1): fit augmented model, generate ``Y``, E-step, DP M-step.
-
-    ``rollouts`` are samples of ``policy``.  Returns the EM policy and diagnostics
-    (surrogate and ``log p(Y)`` before/after).
-    """
-    em = cfg.em
-    timings = {}
-    t0 = time.perf_counter()
-    model = fit.fit_augmented(rollouts, cfg.baseline.fit, prior)
-    timings["fit_augmented"] = time.perf_counter() - t0
-    mu0, P0 = _initial_distribution(task)
-    Y = fit.cost_observations(em.y_mode, rollouts, model, policy, mu0, P0, rng, n_samples=em.y_samples)
-
-    t0 = time.perf_counter()
-    sm = estep.smooth(model, policy, Y, mu0, P0)
-    timings["estep"] = time.perf_counter() - t0
-
+def _mstep_constraints(em: EMConfig, policy: LinearGaussianPolicy) -> mstep.MStepConstraints:
+    """The M-step's feasible set relative to the current policy (SPEC §5)."""
     if em.entropy_floor:
         cons = mstep.MStepConstraints(entropy_floor=np.linalg.slogdet(policy.cov)[1].tolist())
     else:
         cons = mstep.MStepConstraints(cov_floor=(em.cov_floor_scale * np.asarray(policy.cov)).tolist())
     if em.trust_region is not None:
         cons = dataclasses.replace(cons, trust_region=em.trust_region)
+    return cons
+
+
+def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy, rollouts: Rollouts,
+              prior: fit.MixturePrior | None, rng: np.random.Generator,
+              recursion: int = 0) -> tuple[LinearGaussianPolicy, EMDiagnostics]:
+    """One EM recursion (paper Algorithm 1): fit augmented model, generate ``Y``, E-step, DP M-step.
+
+    ``rollouts`` are samples of ``policy``.  Returns the EM policy and the recursion's
+    :class:`EMDiagnostics` (surrogate and ``log p(Y)`` before/after, timings).
+    """
+    em = cfg.em
+    t0 = time.perf_counter()
+    model = fit.fit_augmented(rollouts, cfg.baseline.fit, prior)
+    t_fit = time.perf_counter() - t0
+    mu0, P0 = _initial_distribution(task)
+    Y = fit.cost_observations(em.y_mode, rollouts, model, policy, mu0, P0, rng, n_samples=em.y_samples)
+
+    t0 = time.perf_counter()
+    sm = estep.smooth(model, policy, Y, mu0, P0)
+    t_estep = time.perf_counter() - t0
+
+    cons = _mstep_constraints(em, policy)
     t0 = time.perf_counter()
     new = mstep.maximize(
         model, sm, Y, constraints=cons, method=em.method, variant=em.variant,
-        objective=em.objective, previous=policy, min_norm=em.min_norm,
+        objective=em.objective, previous=policy, min_norm=em.min_norm, config=em.mstep,
     )
-    timings["mstep"] = time.perf_counter() - t0
-    sur_old = float(np.sum(mstep.surrogate(model, sm, Y, policy)))
-    sur_new = float(np.sum(mstep.surrogate(model, sm, Y, new)))
-    ll_old = float(np.mean(sm.loglik))
-    ll_new = float(np.mean(estep.smooth(model, new, Y, mu0, P0).loglik))
-    diag = {
-        "surrogate_old": sur_old,
-        "surrogate_new": sur_new,
-        "loglik_old": ll_old,
-        "loglik_new": ll_new,
-        **{f"time_{k}": v for k, v in timings.items()},
-    }
+    t_mstep = time.perf_counter() - t0
+    diag = EMDiagnostics(
+        recursion=recursion,
+        surrogate_old=float(np.sum(mstep.surrogate(model, sm, Y, policy))),
+        surrogate_new=float(np.sum(mstep.surrogate(model, sm, Y, new))),
+        loglik_old=float(np.mean(sm.loglik)),
+        loglik_new=float(np.mean(estep.smooth(model, new, Y, mu0, P0).loglik)),
+        time_fit_augmented=t_fit,
+        time_estep=t_estep,
+        time_mstep=t_mstep,
+    )
     return new, diag
 
 
-def dpsoc_iteration(task, cfg: DPSOCConfig, state: RunState) -> RunState:
+def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
     """One DPSOC-EM outer iteration: the EM phase when ``iteration == i_switch``, then LQR-FLM."""
     if state.iteration == cfg.i_switch and not state.em_done:
         rng = _rng(state)
@@ -379,13 +512,10 @@ def dpsoc_iteration(task, cfg: DPSOCConfig, state: RunState) -> RunState:
             t_roll = time.perf_counter() - t0
             if cfg.baseline.fit.prior == "mixture":
                 prior = fit.update_prior(prior, rollouts, cfg.baseline.fit, rng)
-            new, diag = em_update(task, cfg, policy, rollouts, prior, rng)
-            rec = _record(state.iteration, "em", task, rollouts, timings={"rollouts": t_roll},
-                          extra={"em_recursion": r, **diag})
+            new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r)
+            rec = _record(state.iteration, "em", task, rollouts, timings={"rollouts": t_roll}, em=diag)
             history = history + (rec,)
-            mean_cost = float(np.mean(rec.cost))
-            if best is None or mean_cost < best[0]:
-                best = (mean_cost, policy, state.iteration)
+            best = _improved(best, float(np.mean(rec.cost)), policy, state.iteration)
             policy = new
         state = dataclasses.replace(
             state, policy=policy, prior=prior, rng_state=rng.bit_generator.state,
@@ -396,8 +526,19 @@ def dpsoc_iteration(task, cfg: DPSOCConfig, state: RunState) -> RunState:
     return lqr_flm_iteration(task, cfg.baseline, state)
 
 
+def _lqr_flm_step(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
+    return lqr_flm_iteration(task, cfg.baseline, state)
+
+
+#: One outer iteration of each sample-based method: ``step(task, cfg, state) -> state``.
+METHODS: dict[str, Callable[[Task, DPSOCConfig, RunState], RunState]] = {
+    "lqr-flm": _lqr_flm_step,
+    "dpsoc-em": dpsoc_iteration,
+}
+
+
 def run_algorithm(
-    task,
+    task: Task,
     method: Literal["lqr-flm", "dpsoc-em"],
     cfg: DPSOCConfig,
     seed: int = 0,
@@ -409,21 +550,19 @@ def run_algorithm(
     ``on_iteration`` is called with the new state after every finished iteration
     (checkpointing, progress lines).  The final state's ``best`` is the best policy sampled.
     """
+    step = METHODS.get(method)
+    if step is None:
+        raise ValueError(f"unknown method {method!r}; use one of {', '.join(map(repr, METHODS))}")
     if state is None:
         state = initial_state(task, cfg.baseline, seed)
     while state.iteration < cfg.baseline.iterations:
-        if method == "dpsoc-em":
-            state = dpsoc_iteration(task, cfg, state)
-        elif method == "lqr-flm":
-            state = lqr_flm_iteration(task, cfg.baseline, state)
-        else:
-            raise ValueError(f"unknown method {method!r}; use 'lqr-flm' or 'dpsoc-em'")
+        state = step(task, cfg, state)
         if on_iteration is not None:
             on_iteration(state)
     return state
 
 
-def ilqg(task, x0: np.ndarray | None = None, u_init: np.ndarray | None = None, cfg: ILQGConfig = ILQGConfig(),
+def ilqg(task: Task, x0: np.ndarray | None = None, u_init: np.ndarray | None = None, cfg: ILQGConfig = ILQGConfig(),
          on_iteration: Callable[[int, float, float], None] | None = None):
     """Model-based iLQG on a known MuJoCo model (SPEC §7).
 
@@ -455,9 +594,9 @@ def ilqg(task, x0: np.ndarray | None = None, u_init: np.ndarray | None = None, c
             C[:, n:, n:] += mu * np.eye(m)
             reg = type(cost)(C, cost.c, cost.n, cost.c0)
             try:
-                pol = lqg.lqr(dyn, reg, x[0], np.eye(n) * 1e-9)
+                pol = lqg.lqr(dyn, reg, x[0], np.eye(n) * 1e-9)  # (mu0, P0) do not enter the gains
             except ValueError:
-                mu = max(mu * cfg.mu_factor, 1e-6)
+                mu = max(mu * cfg.mu_factor, cfg.mu_restart)
                 continue
             Knew = np.asarray(pol.K)
             d = np.einsum("tij,tj->ti", Knew, x[:-1]) + pol.k - u  # change of the mean action at x_bar

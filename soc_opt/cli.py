@@ -9,9 +9,11 @@ Subcommands::
     soc-opt bench [--json] [--only NAMES]
     soc-opt tasks
     soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--dry-run]
+    soc-opt config-doc [--out FILE]
 
 ``TASK`` is a built-in name (``linear2d``, ``peg``, ``door``) or the path of a task TOML file.
-Configurations are validated before any simulation starts.
+Configurations are validated before any simulation starts; they are built by
+:func:`soc_opt.experiment.load_run_config` (the same loader is public for scripts).
 """
 
 from __future__ import annotations
@@ -24,67 +26,24 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "load_config"]
-
-PROBLEMS = Path(__file__).resolve().parent.parent / "problems"
-PAPER = {"iterations": 14, "samples": 20, "i_switch": 4}
+__all__ = ["main", "build_parser"]
 
 
 def _print(line: str) -> None:
     print(line, flush=True)
 
 
-def load_config(task_name: str, config_file: str | None, paper: bool, overrides: dict | None = None,
-                method: str = "dpsoc-em"):
-    """The DPSOC-EM/LQR-FLM configuration: task default file, then ``--config``, then flags.
+def _table(rows: list[dict]) -> str:
+    from .report import format_table
 
-    For ``method = "lqr-flm"`` the switch point is unused; it is clamped into the run so that a
-    short baseline run is not rejected for it.
-    """
-    from .algorithms import DPSOCConfig
-    from .config import ConfigError
-
-    if config_file is not None:
-        cfg = DPSOCConfig.from_toml(config_file)
-    else:
-        default = PROBLEMS / "experiments" / f"{Path(task_name).stem}.toml"
-        cfg = DPSOCConfig.from_toml(default) if default.is_file() else DPSOCConfig()
-    base_changes = {}
-    top_changes = {}
-    if paper:
-        base_changes.update(iterations=PAPER["iterations"], samples=PAPER["samples"])
-        top_changes["i_switch"] = PAPER["i_switch"]
-    for key, value in (overrides or {}).items():
-        if value is None:
-            continue
-        if key == "i_switch":
-            top_changes[key] = value
-        else:
-            base_changes[key] = value
-    try:
-        base = cfg.baseline.replace(**base_changes) if base_changes else cfg.baseline
-        if method == "lqr-flm":
-            top_changes["i_switch"] = min(top_changes.get("i_switch", cfg.i_switch), base.iterations - 1)
-        return cfg.replace(baseline=base, **top_changes)
-    except (TypeError, ValueError) as e:
-        raise ConfigError(str(e)) from e
+    return format_table(rows)
 
 
-def _table(rows: list[dict], columns: list[str] | None = None) -> str:
-    if not rows:
-        return "(no rows)"
-    columns = columns or list(dict.fromkeys(k for r in rows for k in r))
+def _progress(args):
+    """Progress of ``run``/``compare``: a bar on a terminal, plain lines otherwise (``--progress``)."""
+    from .progress import Progress
 
-    def fmt(v):
-        if isinstance(v, float):
-            return f"{v:.3g}" if (abs(v) >= 1e-3 or v == 0) else f"{v:.2e}"
-        return str(v)
-
-    cells = [[fmt(r.get(c, "")) for c in columns] for r in rows]
-    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(columns, widths)), "  ".join("-" * w for w in widths)]
-    lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths)) for row in cells]
-    return "\n".join(lines)
+    return Progress(getattr(args, "progress", "auto"), print_line=_print)
 
 
 def _cmd_tasks(args) -> int:
@@ -96,28 +55,30 @@ def _cmd_tasks(args) -> int:
     return 0
 
 
-def _cmd_run(args) -> int:
-    from .experiment import run_experiment
-    from .tasks import load_task
+def _run_ilqg(args, task, out: Path) -> int:
+    from .algorithms import ILQGConfig, ilqg
 
-    task = load_task(args.task)
-    out = Path(args.out or f"runs/{Path(args.task).stem}-{args.method}-seed{args.seed}")
-    if args.method == "ilqg":
-        from .algorithms import ILQGConfig, ilqg
+    cfg = ILQGConfig.from_toml(args.config) if args.config else ILQGConfig()
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with _progress(args).bar(cfg.iterations, "ilqg") as bar:
+        policy, costs = ilqg(task, cfg=cfg, on_iteration=lambda it, J, mu: bar.advance(
+            f"[ilqg] iter {it + 1:3d} cost {J:.6g} mu {mu:.1e} ({time.perf_counter() - t0:.1f}s)", cost=J, mu=mu))
+    np.savez_compressed(out / "policy.npz", **policy.to_dict())
+    (out / "costs.json").write_text(json.dumps(costs))
+    _print(f"iLQG: cost {costs[0]:.6g} -> {costs[-1]:.6g} in {len(costs) - 1} accepted iterations; wrote {out}")
+    return 0
 
-        cfg = ILQGConfig.from_toml(args.config) if args.config else ILQGConfig()
-        out.mkdir(parents=True, exist_ok=True)
-        t0 = time.perf_counter()
-        policy, costs = ilqg(task, cfg=cfg, on_iteration=lambda it, J, mu: _print(
-            f"[ilqg] iter {it + 1:3d} cost {J:.6g} mu {mu:.1e} ({time.perf_counter() - t0:.1f}s)"))
-        np.savez_compressed(out / "policy.npz", **policy.to_dict())
-        (out / "costs.json").write_text(json.dumps(costs))
-        _print(f"iLQG: cost {costs[0]:.6g} -> {costs[-1]:.6g} in {len(costs) - 1} accepted iterations; wrote {out}")
-        return 0
-    cfg = load_config(args.task, args.config, args.paper,
-                      {"iterations": args.iterations, "samples": args.samples, "workers": args.workers},
-                      method=args.method)
-    state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_print)
+
+def _run_sampled(args, task, out: Path) -> int:
+    """LQR-FLM or DPSOC-EM (``soc_opt.algorithms.METHODS``) in a resumable run directory."""
+    from .experiment import load_run_config, run_experiment
+
+    cfg = load_run_config(args.task, args.config, paper=args.paper,
+                          overrides={"iterations": args.iterations, "samples": args.samples,
+                                     "workers": args.workers},
+                          method=args.method)
+    state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_progress(args))
     _write_run_figures(task, state, out)
     if state.last_rollouts is not None:
         from .tasks import render_filmstrip
@@ -126,8 +87,20 @@ def _cmd_run(args) -> int:
         _print(f"filmstrip of the last iteration's first sample: {res.path} ({res.backend}"
                + (f"; {res.message}" if res.message else "") + ")")
     best = state.best
-    _print(f"done: best mean cost {best[0]:.6g} (iteration {best[2] + 1}); run directory {out}")
+    _print(f"done: best mean cost {best.mean_cost:.6g} (iteration {best.iteration + 1}); run directory {out}")
     return 0
+
+
+#: ``soc-opt run --method``: one runner per method.
+RUNNERS = {"dpsoc-em": _run_sampled, "lqr-flm": _run_sampled, "ilqg": _run_ilqg}
+
+
+def _cmd_run(args) -> int:
+    from .tasks import load_task
+
+    task = load_task(args.task)
+    out = Path(args.out or f"runs/{Path(args.task).stem}-{args.method}-seed{args.seed}")
+    return RUNNERS[args.method](args, task, out)
 
 
 def _write_run_figures(task, state, out: Path) -> None:
@@ -146,18 +119,19 @@ def _write_run_figures(task, state, out: Path) -> None:
 
 def _cmd_compare(args) -> int:
     from .compare import compare
+    from .experiment import load_run_config
     from .tasks import load_task
 
     task = load_task(args.task)
-    cfg = load_config(args.task, args.config, args.paper,
-                      {"iterations": args.iterations, "samples": args.samples, "workers": args.workers,
-                       "i_switch": args.i_switch})
+    cfg = load_run_config(args.task, args.config, paper=args.paper,
+                          overrides={"iterations": args.iterations, "samples": args.samples,
+                                     "workers": args.workers, "i_switch": args.i_switch})
     out = Path(args.out or f"runs/compare-{Path(args.task).stem}")
     seeds = list(range(args.seed, args.seed + args.seeds))
     _print(f"comparing LQR-FLM and DPSOC-EM on {args.task}: seeds {seeds}, {cfg.baseline.iterations} iterations, "
            f"{cfg.baseline.samples} samples, EM switch after iteration {cfg.i_switch}; output {out}")
     t0 = time.perf_counter()
-    summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_print)
+    summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_progress(args))
     _print("")
     _print(_table([{k: r[k] for k in ("claim", "baseline_mean", "dpsoc_mean", "seeds_lower", "held")}
                    for r in summary["claims"]]))
@@ -226,6 +200,17 @@ def _cmd_sweep(args) -> int:
     _print(f"{c['done']} done, {c['failed']} failed; report: {res['report']}  (trial states: {out / 'status.json'})")
     return 1 if c["failed"] else 0
 
+def _cmd_config_doc(args) -> int:
+    from .config_doc import render
+
+    text = render()
+    if args.out:
+        Path(args.out).write_text(text)
+        _print(f"wrote {args.out}")
+    else:
+        print(text, end="")
+    return 0
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="soc-opt", description="EM-based stochastic optimal control (DPSOC-EM).")
@@ -235,15 +220,17 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("task", help="built-in task (linear2d, peg, door) or a task TOML file")
         sp.add_argument("--config", help="algorithm configuration TOML (see docs/configuration.md)")
         sp.add_argument("--paper", action="store_true",
-                        help="paper-scale settings: 14 iterations, 20 samples, EM switch at 4")
+                        help="the paper's scale: its iterations, samples and EM switch (soc_opt.algorithms.PAPER)")
         sp.add_argument("--iterations", type=int, help="override baseline.iterations")
         sp.add_argument("--samples", type=int, help="override baseline.samples")
         sp.add_argument("--workers", type=int, help="parallel rollout workers")
         sp.add_argument("--out", help="run directory (resumes if it holds a checkpoint)")
+        sp.add_argument("--progress", choices=["auto", "bar", "lines"], default="auto",
+                        help="progress bar (auto: on a terminal) or plain lines (default: auto)")
 
     r = sub.add_parser("run", help="run one method on a task, writing a resumable run directory")
     common_algo(r)
-    r.add_argument("--method", choices=["dpsoc-em", "lqr-flm", "ilqg"], default="dpsoc-em")
+    r.add_argument("--method", choices=list(RUNNERS), default="dpsoc-em")
     r.add_argument("--seed", type=int, default=0)
     r.set_defaults(func=_cmd_run)
 
@@ -282,6 +269,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="re-executions of a trial whose worker process died (resumes from its checkpoint)")
     w.add_argument("--dry-run", dest="dry_run", action="store_true", help="validate and list the trials only")
     w.set_defaults(func=_cmd_sweep)
+
+    d = sub.add_parser("config-doc", help="write the configuration reference (docs/configuration.md)")
+    d.add_argument("--out", help="write to this file instead of standard output")
+    d.set_defaults(func=_cmd_config_doc)
     return p
 
 

@@ -3,8 +3,8 @@
 For each seed the baseline runs first; DPSOC-EM starts from a copy of the baseline's state at
 ``i_switch`` (same policy, prior and RNG state), so both methods share their first
 ``i_switch`` iterations exactly and differ only from the EM phase on.  Each method's final
-policy is then evaluated on ``eval_samples`` fresh rollouts drawn with the same evaluation seed
-for both methods.  Everything is written under ``out/``; a rerun with the same ``out`` resumes.
+policy is then evaluated on ``evaluation.samples`` fresh rollouts drawn with the same evaluation
+seed for both methods (:func:`evaluate_policy`, :class:`~soc_opt.algorithms.EvalConfig`).  Everything is written under ``out/``; a rerun with the same ``out`` resumes.
 """
 
 from __future__ import annotations
@@ -12,16 +12,21 @@ from __future__ import annotations
 import json
 import pickle
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from . import report
 from . import algorithms
-from .algorithms import DPSOCConfig, RunState
+from .algorithms import DPSOCConfig, EvalConfig, RunState
 from .experiment import fork_state, run_experiment
+from .models import LinearGaussianPolicy, Rollouts
+from .progress import Progress, as_progress
 
-__all__ = ["compare"]
+if TYPE_CHECKING:
+    from .tasks import Task
+
+__all__ = ["compare", "evaluate_policy", "spreads", "point_names", "point_targets"]
 
 METHODS = ("lqr-flm", "dpsoc-em")
 
@@ -48,12 +53,23 @@ def point_targets(task) -> np.ndarray | None:
     return None
 
 
-def _evaluate(task, policy, samples: int, seed: int, workers: int):
-    rng = np.random.default_rng(10_000 + seed)
+def evaluate_policy(task: Task, policy: LinearGaussianPolicy, samples: int, seed: int, workers: int = 1,
+                    evaluation: EvalConfig = EvalConfig()) -> Rollouts:
+    """``samples`` fresh rollouts of ``policy`` from the evaluation stream of ``seed``.
+
+    The generator is seeded with ``evaluation.seed_offset + seed``, so that every method is
+    evaluated on the same noise, distinct from its training samples (SPEC §9.5).
+    """
+    rng = np.random.default_rng(evaluation.seed_offset + seed)
     return task.rollouts(policy, samples, rng, workers=workers)
 
 
-def _spreads(task, ro) -> dict:
+def spreads(task: Task, ro: Rollouts) -> dict[str, float]:
+    """Final-policy statistics of the claims table (:func:`soc_opt.report.claims_table`).
+
+    ``cost``: mean true-state total cost; ``state_spread``: mean over time and points of the std
+    over samples of the end-effector points; ``action_spread``: the same for the actions.
+    """
     pts = np.asarray(task.ee_points(ro.x))  # (S, T+1, P, 3)
     return {
         "cost": float(np.mean(task.true_cost(ro).sum(-1))),
@@ -63,55 +79,78 @@ def _spreads(task, ro) -> dict:
 
 
 def compare(
-    task,
+    task: Task,
     cfg: DPSOCConfig,
     seeds: list[int],
     out: str | Path,
     *,
     task_name: str | None = None,
     eval_samples: int | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | Callable[[str], None] | None = None,
 ) -> dict:
-    """Run both methods on ``seeds``, write figures and ``report.md`` under ``out``; return a summary."""
+    """Run both methods on ``seeds``, write figures and ``report.md`` under ``out``; return a summary.
+
+    ``eval_samples`` (optional) overrides ``cfg.evaluation.samples`` for the final evaluation.
+    ``progress``: a :class:`soc_opt.progress.Progress` (a bar over the seeds above each run's
+    bar over its iterations, or plain lines), a callable printing lines, or ``None``.
+    """
+    progress = as_progress(progress)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    eval_samples = eval_samples or cfg.baseline.samples
+    eval_samples = eval_samples or cfg.evaluation.samples or cfg.baseline.samples
     workers = cfg.baseline.workers
     per_seed = {m: {"cost": [], "state_spread": [], "action_spread": []} for m in METHODS}
     histories = {m: [] for m in METHODS}
     eval_ro = {m: [] for m in METHODS}
-    for seed in seeds:
-        sdir = out / f"seed_{seed}"
-        sdir.mkdir(exist_ok=True)
-        fork_path = sdir / "fork_state.pkl"
-
-        def keep_fork(st: RunState, _p=fork_path):
-            if st.iteration == cfg.i_switch and not _p.exists():
-                _p.write_bytes(pickle.dumps(st))
-
-        # Baseline, with a copy of its state kept at i_switch for DPSOC-EM to start from.
-        base = run_experiment(task, "lqr-flm", cfg, seed, sdir / "lqr-flm", task_name=task_name,
-                              progress=progress, on_iteration=keep_fork)
-        if not fork_path.exists():
-            # i_switch == 0, or a baseline resumed past i_switch without its fork: replay the
-            # deterministic baseline prefix in memory.
-            st = algorithms.initial_state(task, cfg.baseline, seed)
-            while st.iteration < cfg.i_switch:
-                st = algorithms.lqr_flm_iteration(task, cfg.baseline, st)
-            fork_path.write_bytes(pickle.dumps(st))
-        fork = pickle.loads(fork_path.read_bytes())
-        em = run_experiment(
-            task, "dpsoc-em", cfg, seed, sdir / "dpsoc-em", task_name=task_name, progress=progress,
-            start_state=fork_state(fork),
-        )
-        for meth, st in (("lqr-flm", base), ("dpsoc-em", em)):
-            ro = _evaluate(task, st.policy, eval_samples, seed, workers)
-            eval_ro[meth].append(ro)
-            for k, v in _spreads(task, ro).items():
-                per_seed[meth][k].append(v)
-            histories[meth].append(st.history)
-            np.savez_compressed(sdir / meth / "final_eval.npz", **ro.to_dict())
+    seeds_bar = progress.bar(len(seeds), "seeds") if progress else None
+    try:
+        for seed in seeds:
+            _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progress,
+                          per_seed, histories, eval_ro)
+            if seeds_bar is not None:
+                final = {m: float(np.mean(per_seed[m]["cost"][-1])) for m in METHODS}
+                seeds_bar.advance(f"seed {seed}: final cost LQR-FLM {final['lqr-flm']:.4g}, "
+                                  f"DPSOC-EM {final['dpsoc-em']:.4g}",
+                                  **{f"cost {m}": v for m, v in final.items()})
+    finally:
+        if seeds_bar is not None:
+            seeds_bar.close()
     return _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, task_name or task.name)
+
+
+def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progress, per_seed, histories, eval_ro):
+    """Both methods on one seed (see :func:`compare`); appends to the per-method accumulators."""
+    level = 1 if progress is not None and progress.mode == "bar" else 0
+    sdir = out / f"seed_{seed}"
+    sdir.mkdir(exist_ok=True)
+    fork_path = sdir / "fork_state.pkl"
+
+    def keep_fork(st: RunState, _p=fork_path):
+        if st.iteration == cfg.i_switch and not _p.exists():
+            _p.write_bytes(pickle.dumps(st))
+
+    # Baseline, with a copy of its state kept at i_switch for DPSOC-EM to start from.
+    base = run_experiment(task, "lqr-flm", cfg, seed, sdir / "lqr-flm", task_name=task_name,
+                          progress=progress, on_iteration=keep_fork, bar_level=level)
+    if not fork_path.exists():
+        # i_switch == 0, or a baseline resumed past i_switch without its fork: replay the
+        # deterministic baseline prefix in memory.
+        st = algorithms.initial_state(task, cfg.baseline, seed)
+        while st.iteration < cfg.i_switch:
+            st = algorithms.lqr_flm_iteration(task, cfg.baseline, st)
+        fork_path.write_bytes(pickle.dumps(st))
+    fork = pickle.loads(fork_path.read_bytes())
+    em = run_experiment(
+        task, "dpsoc-em", cfg, seed, sdir / "dpsoc-em", task_name=task_name, progress=progress,
+        start_state=fork_state(fork), bar_level=level,
+    )
+    for meth, st in (("lqr-flm", base), ("dpsoc-em", em)):
+        ro = evaluate_policy(task, st.policy, eval_samples, seed, workers, cfg.evaluation)
+        eval_ro[meth].append(ro)
+        for k, v in spreads(task, ro).items():
+            per_seed[meth][k].append(v)
+        histories[meth].append(st.history)
+        np.savez_compressed(sdir / meth / "final_eval.npz", **ro.to_dict())
 
 
 def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> dict:
@@ -159,10 +198,10 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> 
     em_rows = []
     for seed, hist in zip(seeds, histories["dpsoc-em"]):
         for r in hist:
-            if r.phase == "em":
-                e = r.extra
-                em_rows.append([seed, e["em_recursion"], f"{np.mean(r.cost):.4g}", f"{e['surrogate_old']:.5g}",
-                                f"{e['surrogate_new']:.5g}", f"{e['loglik_old']:.5g}", f"{e['loglik_new']:.5g}"])
+            if r.em is not None:
+                e = r.em
+                em_rows.append([seed, e.recursion, f"{np.mean(r.cost):.4g}", f"{e.surrogate_old:.5g}",
+                                f"{e.surrogate_new:.5g}", f"{e.loglik_old:.5g}", f"{e.loglik_new:.5g}"])
     extra_tables["EM phase diagnostics"] = (
         ["seed", "recursion", "cost of sampled policy", "surrogate before", "surrogate after",
          "log p(Y) before", "log p(Y) after"], em_rows)

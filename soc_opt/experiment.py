@@ -9,6 +9,9 @@ A run directory holds
 - ``checkpoint.pkl``: the full :class:`~soc_opt.algorithms.RunState` after the last finished
   iteration.  Starting again with the same directory resumes from it; because the RNG state
   is part of the checkpoint, the resumed run ends with the same results as an uninterrupted one.
+
+:func:`load_run_config` builds the run configuration the way ``soc-opt run|compare`` does (the
+task's default file, a TOML file, the paper scale, single-key overrides).
 """
 
 from __future__ import annotations
@@ -21,16 +24,54 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from . import algorithms
 from .algorithms import DPSOCConfig, RunState
+from .config import ConfigError
+from .progress import Progress, as_progress
 
-__all__ = ["RunDirectory", "run_experiment", "fork_state"]
+if TYPE_CHECKING:
+    from .tasks import Task
+
+__all__ = ["EXPERIMENTS", "load_run_config", "RunDirectory", "run_experiment", "fork_state", "headline_metric"]
 
 CHECKPOINT = "checkpoint.pkl"
+#: Default run configurations of the built-in tasks: ``EXPERIMENTS / "<task>.toml"``.
+EXPERIMENTS = Path(__file__).resolve().parent.parent / "problems" / "experiments"
+#: Keys of ``load_run_config(overrides=...)`` that set a top-level field; the others set ``baseline``'s.
+_TOP_LEVEL = {"i_switch"}
+
+
+def load_run_config(task_name: str, config_file: str | Path | None = None, *, paper: bool = False,
+                    overrides: dict | None = None, method: str = "dpsoc-em") -> DPSOCConfig:
+    """The run configuration of ``task_name``: default file, then ``config_file``, then the rest.
+
+    Precedence: ``config_file`` if given, else the task's default ``EXPERIMENTS/<stem>.toml`` (if
+    any), else the defaults; then the paper scale (``paper``: :data:`soc_opt.algorithms.PAPER`);
+    then ``overrides`` (``i_switch`` or any ``baseline`` field; ``None`` values are skipped).
+    For ``method = "lqr-flm"`` the switch point is unused; it is clamped into the run so that a
+    short baseline run is not rejected for it.  Invalid values raise :class:`ConfigError`.
+    """
+    if config_file is not None:
+        cfg = DPSOCConfig.from_toml(config_file)
+    else:
+        default = EXPERIMENTS / f"{Path(task_name).stem}.toml"
+        cfg = DPSOCConfig.from_toml(default) if default.is_file() else DPSOCConfig()
+    set_values = {k: v for k, v in (overrides or {}).items() if v is not None}
+    try:
+        if paper:
+            cfg = algorithms.with_paper_scale(cfg)
+        base_changes = {k: v for k, v in set_values.items() if k not in _TOP_LEVEL}
+        top_changes = {k: v for k, v in set_values.items() if k in _TOP_LEVEL}
+        base = cfg.baseline.replace(**base_changes) if base_changes else cfg.baseline
+        if method == "lqr-flm":
+            top_changes["i_switch"] = min(top_changes.get("i_switch", cfg.i_switch), base.iterations - 1)
+        return cfg.replace(baseline=base, **top_changes)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(str(e)) from e
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -113,8 +154,8 @@ class RunDirectory:
             **{f"cost_{i:03d}": np.asarray(c, float) for i, c in enumerate(costs)},
         )
         if state.best is not None:
-            np.savez_compressed(self.path / "best_policy.npz", **state.best[1].to_dict(),
-                                mean_cost=state.best[0], iteration=state.best[2])
+            np.savez_compressed(self.path / "best_policy.npz", **state.best.policy.to_dict(),
+                                mean_cost=state.best.mean_cost, iteration=state.best.iteration)
         _atomic_write_bytes(self.path / CHECKPOINT, pickle.dumps(state))
 
 
@@ -124,18 +165,25 @@ def fork_state(state: RunState) -> RunState:
 
 
 def run_experiment(
-    task,
+    task: Task,
     method: str,
     cfg: DPSOCConfig,
     seed: int,
     out: str | Path | None,
     *,
     task_name: str | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | Callable[[str], None] | None = None,
     start_state: RunState | None = None,
     on_iteration: Callable[[RunState], None] | None = None,
+    bar_level: int = 0,
 ) -> RunState:
-    """Run one method on one task and seed, writing every iteration to ``out`` (resumable)."""
+    """Run one method on one task and seed, writing every iteration to ``out`` (resumable).
+
+    ``progress``: a :class:`soc_opt.progress.Progress` (a bar over the iterations, showing the
+    mean cost, the KL and the task's headline metric, or plain lines), a callable printing
+    one line per iteration, or ``None`` (silent).  ``bar_level``: nesting of the bar (compare).
+    """
+    prog = as_progress(progress)
     rd = RunDirectory(out) if out is not None else None
     state = start_state
     if rd is not None:
@@ -143,11 +191,13 @@ def run_experiment(
         saved = rd.load_checkpoint()
         if saved is not None:
             state = saved
-            if progress:
-                progress(f"resuming {method} from iteration {state.iteration} in {rd.path}")
+            if prog:
+                prog.message(f"resuming {method} from iteration {state.iteration} in {rd.path}")
     if state is None:
         state = algorithms.initial_state(task, cfg.baseline, seed)
     t_last = [time.perf_counter()]
+    bar = prog.bar(cfg.baseline.iterations, f"{method} seed {seed}", initial=state.iteration,
+                   level=bar_level) if prog else None
 
     user_callback = on_iteration
 
@@ -156,21 +206,35 @@ def run_experiment(
             rd.save(st)
         if user_callback is not None:
             user_callback(st)
-        if progress:
+        if bar is not None:
             rec = st.history[-1]
             dt = time.perf_counter() - t_last[0]
             t_last[0] = time.perf_counter()
             metrics = " ".join(f"{k}={v:.4g}" for k, v in rec.metrics.items())
-            em = [r for r in st.history if r.phase == "em" and r.iteration == rec.iteration]
+            em = [r for r in st.history if r.em is not None and r.iteration == rec.iteration]
             em_txt = ""
             if em:
-                e = em[-1].extra
-                em_txt = (f" | EM: cost {np.mean(em[-1].cost):.4g}, surrogate {e['surrogate_old']:.4g}->{e['surrogate_new']:.4g},"
-                          f" logp(Y) {e['loglik_old']:.4g}->{e['loglik_new']:.4g}")
-            progress(
+                e = em[-1].em
+                em_txt = (f" | EM: cost {np.mean(em[-1].cost):.4g}, surrogate {e.surrogate_old:.4g}->{e.surrogate_new:.4g},"
+                          f" logp(Y) {e.loglik_old:.4g}->{e.loglik_new:.4g}")
+            line = (
                 f"[{method} seed {seed}] iter {rec.iteration + 1:2d}/{cfg.baseline.iterations}"
                 f" cost {np.mean(rec.cost):10.4g} ± {np.std(rec.cost):.3g}  KL {rec.kl:.3g}/{rec.nu:.3g}"
                 f"  {metrics}  {dt:.1f}s{em_txt}"
             )
+            bar.advance(line, cost=float(np.mean(rec.cost)), KL=float(rec.kl), **headline_metric(rec.metrics))
 
-    return algorithms.run_algorithm(task, method, cfg, seed=seed, state=state, on_iteration=on_iteration)
+    try:
+        return algorithms.run_algorithm(task, method, cfg, seed=seed, state=state, on_iteration=on_iteration)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def headline_metric(metrics: dict) -> dict:
+    """The task's first metric other than the cost (e.g. ``min_distance``, ``min_hinge``,
+    ``return``) as ``{name: value}``, or ``{}``: what progress bars show next to the cost."""
+    for k, v in metrics.items():
+        if k != "cost":
+            return {k: float(v)}
+    return {}

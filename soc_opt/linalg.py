@@ -24,6 +24,7 @@ __all__ = [
     "vec",
     "unvec",
     "single_thread_blas",
+    "single_thread_blas_cached",
     "as_generator",
     "symmetrize",
 ]
@@ -114,6 +115,23 @@ def single_thread_blas():
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(limits=1, user_api="blas")
+
+
+_THREADPOOLS = None  # threadpoolctl.ThreadpoolController, created on first use (it scans the loaded libraries)
+
+
+def single_thread_blas_cached():
+    """:func:`single_thread_blas` with one ``threadpoolctl.ThreadpoolController`` created on first
+    use and reused: creating it scans the loaded libraries, a cost that matters around a few small
+    decompositions per call (the M-step's spectral form, where threaded LAPACK ``syevd`` on a loaded
+    machine took 0.5 to ~100 ms for a few 27 x 27 matrices).  BLAS libraries loaded after the first
+    call are not limited."""
+    global _THREADPOOLS
+    if _THREADPOOLS is None:
+        from threadpoolctl import ThreadpoolController
+
+        _THREADPOOLS = ThreadpoolController()
+    return _THREADPOOLS.limit(limits=1, user_api="blas")
 
 
 def as_generator(rng, seed: int | None = None) -> np.random.Generator:

@@ -9,6 +9,8 @@ and writes.  Figures (PNG):
   policies, dashed baseline vs solid DPSOC-EM;
 - ``actions.png``: box plots of the actions per joint over samples and time, final policies;
 - ``min_hinge.png`` (door): the minimum hinge angle per iteration.
+
+:func:`format_table` formats rows of dicts as a plain-text table (the CLI's tables).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-__all__ = ["plot_costs", "plot_ee", "plot_actions", "plot_metric", "claims_table", "write_markdown"]
+__all__ = ["plot_costs", "plot_ee", "plot_actions", "plot_metric", "claims_table", "write_markdown", "format_table"]
 
 COLORS = {"lqr-flm": "tab:blue", "dpsoc-em": "tab:red"}
 LABELS = {"lqr-flm": "LQR-FLM (baseline)", "dpsoc-em": "DPSOC-EM"}
@@ -205,3 +207,25 @@ def write_markdown(path: Path, *, title: str, setup: dict, claims: list[dict], f
         lines += ["## Notes", ""] + [f"- {n}" for n in notes]
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def _cell(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.3g}" if (abs(v) >= 1e-3 or v == 0) else f"{v:.2e}"
+    return str(v)
+
+
+def format_table(rows: list[dict], columns: list[str] | None = None) -> str:
+    """A left-aligned plain-text table of ``rows`` (one dict per row).
+
+    ``columns`` defaults to every key in order of first appearance; a missing key is an empty
+    cell.  Floats are shown with 3 significant digits (scientific below 1e-3).
+    """
+    if not rows:
+        return "(no rows)"
+    columns = columns or list(dict.fromkeys(k for r in rows for k in r))
+    cells = [[_cell(r.get(c, "")) for c in columns] for r in rows]
+    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(columns, widths)), "  ".join("-" * w for w in widths)]
+    lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths)) for row in cells]
+    return "\n".join(lines)

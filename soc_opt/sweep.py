@@ -287,7 +287,7 @@ def _seeds(v) -> tuple[int, ...]:
 
 def _resolve_task(ref: str, base_dir: Path, i: int) -> tuple[str, str, Path]:
     """``(task reference passed to workers, label, task TOML path)``."""
-    from .tasks import BUILTIN_TASKS, _problems_dir
+    from .tasks.loading import BUILTIN_TASKS, _problems_dir
 
     if ref in BUILTIN_TASKS:
         return ref, ref, _problems_dir() / BUILTIN_TASKS[ref]
@@ -369,9 +369,9 @@ def _lookup(table: dict, path: tuple[str, ...]):
 
 
 def _config(task_ref, cfg_file, paper, common, setting, method) -> DPSOCConfig:
-    from .cli import load_config
+    from .experiment import load_run_config as load_config
 
-    base = load_config(task_ref, cfg_file, paper, method="dpsoc-em").to_dict()
+    base = load_config(task_ref, cfg_file, paper=paper, method="dpsoc-em").to_dict()
     d = _merge(_merge(base, common), setting)
     if method == "lqr-flm":  # the switch point is unused by the baseline (as in `soc-opt run`)
         it = _lookup(d, ("baseline", "iterations"))
@@ -453,7 +453,7 @@ def check_finite(state: RunState) -> None:
 
 
 def _result(spec: TrialSpec, task, state: RunState, trial_dir: Path) -> dict:
-    from .compare import _evaluate, _spreads
+    from .compare import evaluate_policy as _evaluate, spreads as _spreads
 
     ro = _evaluate(task, state.policy, spec.eval_samples, spec.seed, spec.config.baseline.workers)
     np.savez_compressed(trial_dir / "final_eval.npz", **ro.to_dict())

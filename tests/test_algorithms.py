@@ -38,7 +38,8 @@ def test_lqr_flm_lowers_the_cost_on_linear2d():
     state = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=1)
     costs = [np.mean(r.cost) for r in state.history]
     assert costs[-1] < costs[0]
-    assert state.best[0] == min(costs)
+    assert state.best.mean_cost == min(costs)
+    assert state.best.iteration == int(np.argmin(costs))
 
 
 @pytest.mark.parametrize("y_mode", ["model", "measured", "optimistic"])
@@ -52,7 +53,9 @@ def test_dpsoc_em_runs_its_em_phase_at_the_switch(y_mode):
     em = [r for r in state.history if r.phase == "em"]
     # each EM recursion maximises the surrogate for its own smoothed moments
     for r in em:
-        assert r.extra["surrogate_new"] >= r.extra["surrogate_old"] - 1e-9 * abs(r.extra["surrogate_old"])
+        assert r.em.surrogate_new >= r.em.surrogate_old - 1e-9 * abs(r.em.surrogate_old)
+    assert [r.em.recursion for r in em] == [0, 1]
+    assert all(r.em is None for r in state.history if r.phase == "baseline")
     assert state.em_done
 
 
@@ -68,7 +71,7 @@ def test_em_update_respects_the_covariance_floor_and_raises_the_surrogate():
     new, diag = em_update(task, cfg, policy, ro, prior, rng)
     gap = np.linalg.eigvalsh(np.asarray(new.cov) - 0.5 * np.asarray(policy.cov))
     assert gap.min() >= -1e-9
-    assert diag["surrogate_new"] >= diag["surrogate_old"]
+    assert diag.surrogate_new >= diag.surrogate_old
 
 
 def test_dpsoc_em_and_lqr_flm_share_the_iterations_before_the_switch():
@@ -99,3 +102,69 @@ def test_unknown_method_is_rejected():
 def test_config_rejects_switch_outside_the_run():
     with pytest.raises(ValueError, match="i_switch"):
         DPSOCConfig(i_switch=14, baseline=LQRFLMConfig(iterations=14))
+
+
+def test_em_records_keep_the_metrics_columns_in_their_order():
+    """metrics.csv columns of an EM record: recursion index, diagnostics, then the phase timings."""
+    task = load_task("linear2d", overrides={"T": 10})
+    cfg = DPSOCConfig(i_switch=0, baseline=LQRFLMConfig(iterations=1, samples=4, init_var=10.0))
+    state = run_algorithm(task, "dpsoc-em", cfg, seed=0)
+    em = next(r for r in state.history if r.phase == "em")
+    keys = list(em.summary())
+    assert keys[keys.index("time_rollouts") + 1:] == [
+        "em_recursion", "surrogate_old", "surrogate_new", "loglik_old", "loglik_new",
+        "time_fit_augmented", "time_estep", "time_mstep"]
+    assert em.summary()["surrogate_new"] == em.em.surrogate_new
+
+
+def test_em_update_passes_its_mstep_config_to_the_m_step(monkeypatch):
+    from soc_opt import mstep
+    from soc_opt.algorithms import em_update
+
+    task = load_task("linear2d", overrides={"T": 10})
+    mcfg = mstep.MStepConfig(eig_tol=1e-11, feas_tol=1e-8)
+    cfg = DPSOCConfig(i_switch=0, baseline=LQRFLMConfig(iterations=1, samples=6), em=EMConfig(mstep=mcfg))
+    seen = []
+    original = mstep.maximize
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("config"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(mstep, "maximize", spy)
+    rng = np.random.default_rng(0)
+    policy = task.initial_policy(2.0)
+    em_update(task, cfg, policy, task.rollouts(policy, 6, rng), None, rng)
+    assert seen == [mcfg]
+
+
+def test_loop_kl_tolerance_comes_from_the_config_with_the_loop_default():
+    """A partial [baseline.kl] table keeps the loop's tolerance (1e-6), not the library's (1e-10)."""
+    cfg = DPSOCConfig.from_dict({"baseline": {"kl": {"min_mult": 0.2}}})
+    assert cfg.baseline.kl.kl_rtol == LQRFLMConfig().kl.kl_rtol == 1e-6
+    assert lqg.KLStepConfig().kl_rtol == 1e-10
+    assert isinstance(cfg.baseline.kl, lqg.KLStepConfig)
+    assert DPSOCConfig.from_dict({"baseline": {"kl": {"kl_rtol": 1e-8}}}).baseline.kl.kl_rtol == 1e-8
+
+
+def test_paper_scale_is_the_default_scale():
+    from soc_opt.algorithms import PAPER, with_paper_scale
+
+    cfg = DPSOCConfig()
+    assert (cfg.baseline.iterations, cfg.baseline.samples, cfg.i_switch) == tuple(PAPER) == (14, 20, 4)
+    small = DPSOCConfig(i_switch=1, baseline=LQRFLMConfig(iterations=3, samples=5))
+    assert with_paper_scale(small) == DPSOCConfig()
+
+
+def test_every_run_config_knob_round_trips_through_toml_tables():
+    """The run configuration holds every sub-config: to_dict -> from_dict is the identity."""
+    from soc_opt import mstep
+
+    cfg = DPSOCConfig(
+        i_switch=1,
+        baseline=LQRFLMConfig(iterations=3, kl_method="casadi", kl=LQRFLMConfig().kl.replace(eta_init=2.0)),
+        em=EMConfig(mstep=mstep.MStepConfig(solver="SCS", exact_max_iter=7)),
+    )
+    back = DPSOCConfig.from_dict(cfg.to_dict())
+    assert back == cfg
+    assert back.em.mstep.solver == "SCS" and back.evaluation.seed_offset == 10_000

@@ -15,13 +15,13 @@ from soc_opt.costs import (
     ramp,
 )
 from soc_opt.models import QuadraticCost, ShapeError
+from soc_opt.testing import random_trajectory
 
 N, M_, T = 7, 3, 6
 
 
 def _traj(seed=0):
-    rng = np.random.default_rng(seed)
-    return rng.normal(size=(T + 1, N)), rng.normal(size=(T, M_))
+    return random_trajectory(np.random.default_rng(seed), N, M_, T)
 
 
 def _terms(r="constant"):

@@ -24,39 +24,12 @@ from soc_opt.models import (
     NotPositiveDefiniteError,
     ShapeError,
 )
+from soc_opt.testing import random_estep_instance
 
 TOL = 1e-8
 
 
 # --------------------------------------------------------------------------- instances
-
-
-def random_spd(rng, d, scale=1.0, floor=0.1):
-    R = rng.normal(size=(d, d)) * scale / np.sqrt(d)
-    return R @ R.T + floor * np.eye(d)
-
-
-def random_instance(rng, n, m, T, *, cross=True, rho=0.85, policy_var=0.3):
-    """A random stable augmented model and policy with full ``So`` and nonzero biases."""
-    A = rng.normal(size=(T, n, n))
-    A *= rho / np.linalg.norm(A, 2, axis=(1, 2))[:, None, None]
-    B = 0.5 * rng.normal(size=(T, n, m)) / np.sqrt(n)
-    Ay = rng.normal(size=(T, 1, n)) / np.sqrt(n)
-    By = rng.normal(size=(T, 1, m)) / np.sqrt(m)
-    Ao = np.concatenate([np.concatenate([A, B], axis=2), np.concatenate([Ay, By], axis=2)], axis=1)
-    co = rng.normal(size=(T, n + 1))
-    So = np.stack([random_spd(rng, n + 1, scale=0.7) for _ in range(T)])
-    if not cross:
-        So[:, :n, n] = 0.0
-        So[:, n, :n] = 0.0
-    model = AugmentedModel(Ao, co, So, n)
-    K = 0.3 * rng.normal(size=(T, m, n)) / np.sqrt(n)
-    k = rng.normal(size=(T, m))
-    cov = np.stack([random_spd(rng, m, scale=np.sqrt(policy_var), floor=0.05) for _ in range(T)])
-    policy = LinearGaussianPolicy(K, k, cov)
-    mu0 = rng.normal(size=n)
-    P0 = random_spd(rng, n, floor=0.2)
-    return model, policy, mu0, P0
 
 
 def sample_y(rng, model, policy, mu0, P0, M):
@@ -162,9 +135,8 @@ def check_against_oracle(model, policy, mu0, P0, y):
 # --------------------------------------------------------------------------- closed loop
 
 
-def test_closed_loop_matches_per_step_marginalisation():
-    rng = np.random.default_rng(0)
-    model, policy, _, _ = random_instance(rng, 4, 2, 5)
+def test_closed_loop_matches_per_step_marginalisation(rng):
+    model, policy, _, _ = random_estep_instance(rng, 4, 2, 5)
     Mk, mk, Sk = closed_loop(model, policy)
     assert Mk.shape == (5, 5, 4) and mk.shape == (5, 5) and Sk.shape == (5, 5, 5)
     n = model.n
@@ -180,7 +152,7 @@ def test_closed_loop_matches_per_step_marginalisation():
 
 def test_closed_loop_pd_for_singular_policy_covariance():
     rng = np.random.default_rng(1)
-    model, policy, mu0, P0 = random_instance(rng, 3, 2, 4)
+    model, policy, mu0, P0 = random_estep_instance(rng, 3, 2, 4)
     det = LinearGaussianPolicy(policy.K, policy.k, np.zeros_like(policy.cov), allow_singular=True)
     _, _, Sk = closed_loop(model, det)
     assert np.all(np.linalg.eigvalsh(Sk)[:, 0] > 0)
@@ -194,7 +166,7 @@ def test_closed_loop_pd_for_singular_policy_covariance():
 @pytest.mark.parametrize("seed,n,m,T,M", [(0, 3, 2, 5, 0), (1, 6, 3, 8, 0), (2, 2, 1, 1, 0), (3, 5, 2, 7, 3)])
 def test_smoother_matches_bruteforce_conditioning(seed, n, m, T, M):
     rng = np.random.default_rng(seed)
-    model, policy, mu0, P0 = random_instance(rng, n, m, T)
+    model, policy, mu0, P0 = random_estep_instance(rng, n, m, T)
     Y = sample_y(rng, model, policy, mu0, P0, max(M, 1))
     check_against_oracle(model, policy, mu0, P0, Y if M else Y[0])
 
@@ -210,7 +182,7 @@ def test_smoother_matches_bruteforce_conditioning(seed, n, m, T, M):
 )
 def test_smoother_matches_bruteforce_conditioning_random(seed, n, m, T, M, cross):
     rng = np.random.default_rng(seed)
-    model, policy, mu0, P0 = random_instance(rng, n, m, T, cross=cross)
+    model, policy, mu0, P0 = random_estep_instance(rng, n, m, T, cross=cross)
     Y = sample_y(rng, model, policy, mu0, P0, max(M, 1))
     check_against_oracle(model, policy, mu0, P0, Y if M else Y[0])
 
@@ -218,7 +190,7 @@ def test_smoother_matches_bruteforce_conditioning_random(seed, n, m, T, M, cross
 def test_smoother_matches_oracle_for_arbitrary_observations():
     """Observations far from the model's predictions (e.g. the optimistic y = 1 mode)."""
     rng = np.random.default_rng(4)
-    model, policy, mu0, P0 = random_instance(rng, 4, 2, 6)
+    model, policy, mu0, P0 = random_estep_instance(rng, 4, 2, 6)
     check_against_oracle(model, policy, mu0, P0, np.ones(6))
     check_against_oracle(model, policy, mu0, P0, 5.0 * rng.normal(size=(2, 6)))
 
@@ -226,7 +198,7 @@ def test_smoother_matches_oracle_for_arbitrary_observations():
 def test_action_noise_alone_correlates_state_and_observation_noise():
     """``So`` block-diagonal, but shared action noise (B Sigma By^T) still couples s_{k+1} and y_k."""
     rng = np.random.default_rng(5)
-    model, policy, mu0, P0 = random_instance(rng, 4, 3, 6, cross=False, policy_var=2.0)
+    model, policy, mu0, P0 = random_estep_instance(rng, 4, 3, 6, cross=False, policy_var=2.0)
     _, _, Sk = closed_loop(model, policy)
     assert np.abs(Sk[:, :4, 4]).max() > 0.1
     check_against_oracle(model, policy, mu0, P0, sample_y(rng, model, policy, mu0, P0, 2))
@@ -236,7 +208,7 @@ def test_state_observation_cross_block_matters():
     """Zeroing the s-y block of S_k (what an implementation ignoring it computes) changes the answer."""
     rng = np.random.default_rng(6)
     n, m, T = 4, 2, 6
-    model, policy, mu0, P0 = random_instance(rng, n, m, T, policy_var=1.0)
+    model, policy, mu0, P0 = random_estep_instance(rng, n, m, T, policy_var=1.0)
     y = sample_y(rng, model, policy, mu0, P0, 1)[0]
     truth = oracle_smoothed(model, policy, mu0, P0, y)
 
@@ -264,7 +236,7 @@ def test_state_observation_cross_block_matters():
 
 def test_filter_matches_conditioning_on_past_observations():
     rng = np.random.default_rng(7)
-    model, policy, mu0, P0 = random_instance(rng, 3, 2, 5)
+    model, policy, mu0, P0 = random_estep_instance(rng, 3, 2, 5)
     n, T = 3, 5
     Y = sample_y(rng, model, policy, mu0, P0, 2)
     f = kalman_filter(model, policy, Y, mu0, P0)
@@ -284,7 +256,7 @@ def test_filter_matches_conditioning_on_past_observations():
 
 def test_log_likelihood_equals_smoother_loglik():
     rng = np.random.default_rng(8)
-    model, policy, mu0, P0 = random_instance(rng, 3, 2, 6)
+    model, policy, mu0, P0 = random_estep_instance(rng, 3, 2, 6)
     Y = sample_y(rng, model, policy, mu0, P0, 3)
     ll = log_likelihood(model, policy, Y, mu0, P0)
     assert ll.shape == (3,)
@@ -299,7 +271,7 @@ def test_log_likelihood_equals_smoother_loglik():
 
 def test_batched_equals_looped_single_sequences():
     rng = np.random.default_rng(9)
-    model, policy, mu0, P0 = random_instance(rng, 5, 2, 12)
+    model, policy, mu0, P0 = random_estep_instance(rng, 5, 2, 12)
     Y = sample_y(rng, model, policy, mu0, P0, 4)
     b = smooth(model, policy, Y, mu0, P0)
     assert b.batched
@@ -320,7 +292,7 @@ def test_batched_equals_looped_single_sequences():
 def test_long_horizon_covariances_stay_positive_definite():
     rng = np.random.default_rng(10)
     n, m, T, M = 26, 7, 1000, 3
-    model, policy, mu0, P0 = random_instance(rng, n, m, T)
+    model, policy, mu0, P0 = random_estep_instance(rng, n, m, T)
     Y = sample_y(rng, model, policy, mu0, P0, M)
     sm = smooth(model, policy, Y, mu0, P0)
     f = kalman_filter(model, policy, Y, mu0, P0)
@@ -345,7 +317,7 @@ def test_long_horizon_covariances_stay_positive_definite():
 def test_moments_match_bruteforce_moments():
     rng = np.random.default_rng(11)
     n, m, T, M = 3, 2, 4, 3
-    model, policy, mu0, P0 = random_instance(rng, n, m, T)
+    model, policy, mu0, P0 = random_estep_instance(rng, n, m, T)
     Y = sample_y(rng, model, policy, mu0, P0, M)
     mom = moments(smooth(model, policy, Y, mu0, P0), Y)
     assert mom.count == M and mom.T == T and mom.n == n
@@ -376,7 +348,7 @@ def test_moments_match_bruteforce_moments():
 
 def test_moments_single_sequence_equals_batch_of_one():
     rng = np.random.default_rng(12)
-    model, policy, mu0, P0 = random_instance(rng, 2, 1, 3)
+    model, policy, mu0, P0 = random_estep_instance(rng, 2, 1, 3)
     Y = sample_y(rng, model, policy, mu0, P0, 1)
     a = moments(smooth(model, policy, Y[0], mu0, P0), Y[0])
     b = moments(smooth(model, policy, Y, mu0, P0), Y)
@@ -390,7 +362,7 @@ def test_moments_single_sequence_equals_batch_of_one():
 @pytest.fixture(scope="module")
 def small():
     rng = np.random.default_rng(13)
-    model, policy, mu0, P0 = random_instance(rng, 3, 2, 5)
+    model, policy, mu0, P0 = random_estep_instance(rng, 3, 2, 5)
     return model, policy, np.zeros(5), mu0, P0
 
 

@@ -15,3 +15,16 @@ def test_example_runs(name, capsys):
     assert out.strip()
     if name == "custom_mstep_constraint.py":
         assert "status optimal" in out
+
+
+@pytest.mark.parametrize("path", sorted(EXAMPLES.glob("*.py")), ids=lambda p: p.name)
+def test_examples_import_only_public_names(path):
+    """Examples are user code: they use the public API, no ``_private`` names of soc_opt modules."""
+    import ast
+
+    tree = ast.parse(path.read_text())
+    private = [f"{node.module}.{a.name}" for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
+               and (node.module or "").startswith("soc_opt") for a in node.names if a.name.startswith("_")]
+    private += [ast.unparse(node) for node in ast.walk(tree) if isinstance(node, ast.Attribute)
+                and node.attr.startswith("_") and not node.attr.startswith("__")]
+    assert private == []

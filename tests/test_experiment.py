@@ -99,3 +99,26 @@ def test_door_report_plots_the_minimum_hinge_angle_per_iteration(tmp_path):
     compare(door, cfg, seeds=[0], out=tmp_path / "door")
     assert (tmp_path / "door" / "min_hinge.png").stat().st_size > 1000
     assert "Minimum hinge angle per iteration" in (tmp_path / "door" / "report.md").read_text()
+
+
+def test_evaluation_uses_the_configured_seed_stream(task):
+    from soc_opt.algorithms import EvalConfig
+    from soc_opt.compare import evaluate_policy
+
+    policy = task.initial_policy(1.0)
+    a = evaluate_policy(task, policy, 3, seed=2)
+    b = evaluate_policy(task, policy, 3, seed=2, evaluation=EvalConfig(seed_offset=10_000))
+    ref = task.rollouts(policy, 3, np.random.default_rng(10_002))
+    np.testing.assert_array_equal(a.x, ref.x)
+    np.testing.assert_array_equal(a.x, b.x)
+    c = evaluate_policy(task, policy, 3, seed=2, evaluation=EvalConfig(seed_offset=7))
+    np.testing.assert_array_equal(c.x, task.rollouts(policy, 3, np.random.default_rng(9)).x)
+
+
+def test_best_policy_file_holds_the_best_sampled_policy(task, tmp_path):
+    state = run_experiment(task, "lqr-flm", _cfg(iterations=3, i_switch=0), seed=1, out=tmp_path / "r")
+    costs = [float(np.mean(r.cost)) for r in state.history]
+    best = np.load(tmp_path / "r" / "best_policy.npz")
+    assert float(best["mean_cost"]) == min(costs) == state.best.mean_cost
+    assert int(best["iteration"]) == int(np.argmin(costs)) == state.best.iteration
+    np.testing.assert_array_equal(best["K"], state.best.policy.K)

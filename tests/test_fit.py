@@ -20,7 +20,6 @@ from soc_opt.bench.fit import (
     convergence_table,
     few_sample_table,
     format_table,
-    ltv_system,
     pendulum_table,
     simulate_linear,
     summarize,
@@ -37,6 +36,7 @@ from soc_opt.fit import (
     update_prior,
 )
 from soc_opt.models import AugmentedModel, LinearGaussianPolicy, Rollouts, ShapeError
+from soc_opt.testing import random_ltv_system
 
 N, MU, T = 6, 2, 50
 ERRS = ("err_A", "err_B", "err_c", "err_W")
@@ -49,7 +49,7 @@ def _subset(ro: Rollouts, idx) -> Rollouts:
 
 @pytest.fixture(scope="module")
 def system():
-    return ltv_system(N, MU, T, np.random.default_rng(7))
+    return random_ltv_system(np.random.default_rng(7), N, MU, T)
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_least_squares_error_matches_ols_standard_error():
     ratios = {k: [] for k in ERRS}
     for seed in range(3):
         rng = np.random.default_rng(seed)
-        sysm = ltv_system(N, MU, T, rng)
+        sysm = random_ltv_system(rng, N, MU, T)
         ro = simulate_linear(sysm, 80, rng)
         dyn = fit_dynamics(ro, FitConfig(prior="none"))
         expect = _ols_expected_sq_errors(ro, sysm)

@@ -410,7 +410,9 @@ def test_structured_nlp_derivatives_match_casadi_ad(nu):
     own CasADi objective/constraints; at the closed-form optimum the cross-step Hessian blocks vanish."""
     import casadi as ca
 
-    from soc_opt.lqg import _casadi_kinds, _Problem, _StructuredNLP
+    from soc_opt.lqg.casadi_nlp import _casadi_kinds
+    from soc_opt.lqg.problem import _Problem
+    from soc_opt.lqg.structured_nlp import _StructuredNLP
 
     rng = np.random.default_rng(29)
     T = 6

@@ -8,10 +8,10 @@ from soc_opt.models import (
     LinearGaussianDynamics,
     LinearGaussianPolicy,
     NotPositiveDefiniteError,
-    QuadraticCost,
     Rollouts,
     ShapeError,
 )
+from soc_opt.testing import random_quadratic_cost, random_trajectory
 
 
 def _policy(T=3, n=4, m=2, var=0.5):
@@ -51,8 +51,7 @@ def test_policy_rejects_nan_naming_the_array():
         LinearGaussianPolicy(K, np.zeros((3, 2)), np.broadcast_to(np.eye(2), (3, 2, 2)))
 
 
-def test_sampled_actions_have_the_policy_mean_and_covariance():
-    rng = np.random.default_rng(0)
+def test_sampled_actions_have_the_policy_mean_and_covariance(rng):
     T, n, m = 2, 3, 2
     cov = np.array([[[2.0, 0.5], [0.5, 1.0]]] * T)
     p = LinearGaussianPolicy(rng.standard_normal((T, m, n)), rng.standard_normal((T, m)), cov)
@@ -91,12 +90,9 @@ def test_augmented_model_rejects_wrong_row_count():
 def test_quadratic_cost_evaluates_the_stage_formula():
     rng = np.random.default_rng(1)
     T, n, m = 3, 2, 1
-    L = rng.standard_normal((T, n + m, n + m))
-    C = L @ np.swapaxes(L, 1, 2)
-    c = rng.standard_normal((T, n + m))
-    cost = QuadraticCost(C, c, n, c0=np.arange(T, dtype=float))
-    s = rng.standard_normal((T + 1, n))
-    a = rng.standard_normal((T, m))
+    cost = random_quadratic_cost(rng, n, m, T, normalize=False, floor=0.0, c0=np.arange(T, dtype=float))
+    C, c = cost.C, cost.c
+    s, a = random_trajectory(rng, n, m, T)
     z = np.concatenate([s[:T], a], axis=1)
     expected = [0.5 * z[t] @ C[t] @ z[t] + z[t] @ c[t] + t for t in range(T)]
     assert np.allclose(cost(s, a), expected)

@@ -16,7 +16,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.stats import multivariate_normal
 
-from soc_opt import mstep
+from soc_opt import errors as soc_errors
 from soc_opt.config import ConfigError
 from soc_opt.estep import moments
 from soc_opt.models import AugmentedModel, LinearGaussianPolicy, ShapeError, Smoothed
@@ -35,6 +35,8 @@ from soc_opt.mstep import (
     surrogate_from_moments,
     surrogate_grad_hess,
 )
+from soc_opt.mstep.cvx import CACHE
+from soc_opt.mstep.exact_em import sigma_exact
 
 SETTINGS = settings(max_examples=25, deadline=None, derandomize=True)
 LOG2PI = np.log(2 * np.pi)
@@ -392,7 +394,7 @@ def test_cvxpy_entropy_floor_uses_no_exponential_cones():
     model, sm, y, mom, rng = instance(16, 3, 2, T=2)
     C = MStepConstraints(entropy_floor=[-0.4, 0.7])
     res = maximize_moments(model, mom, C, method="cvxpy", return_result=True)
-    prob = mstep._CACHE[("factored", 3, 2, (False, True, False), False, 0)]
+    prob = CACHE[("factored", 3, 2, (False, True, False), False, 0)]
     assert prob.problem.is_dpp()
     data = prob.problem.get_problem_data(cp.CLARABEL)[0]
     assert data["dims"].exp == 0 and len(data["dims"].psd) > 0
@@ -476,13 +478,13 @@ def test_cvxpy_problem_is_built_once_and_dpp():
     model, sm, y, mom, rng = instance(12, 2, 2, T=3)
     C = MStepConstraints(cov_floor=0.2, offset_bound=0.1)
     maximize_moments(model, mom, C, method="cvxpy")
-    keys = set(mstep._CACHE)
-    built = {k: id(v.problem) for k, v in mstep._CACHE.items()}
+    keys = set(CACHE)
+    built = {k: id(v.problem) for k, v in CACHE.items()}
     model2, sm2, y2, mom2, _ = instance(13, 2, 2, T=5)
     maximize_moments(model2, mom2, C, method="cvxpy")
-    assert set(mstep._CACHE) == keys
-    assert all(id(mstep._CACHE[k].problem) == built[k] for k in keys)
-    assert all(v.problem.is_dpp() for v in mstep._CACHE.values())
+    assert set(CACHE) == keys
+    assert all(id(CACHE[k].problem) == built[k] for k in keys)
+    assert all(v.problem.is_dpp() for v in CACHE.values())
 
 
 # --------------------------------------------------------------------------- KKT (no closed form)
@@ -799,7 +801,7 @@ def test_exact_em_floor_clipping_is_the_constrained_gaussian_mle():
         W = random_spd(rng, m, 0.01)
         Smin = random_spd(rng, m, 0.05)
         rc = MStepConstraints(cov_floor=Smin).resolve(m)
-        X = mstep._sigma_exact(W[None], rc, "closed_form", "CLARABEL", MStepConfig(), ["t"])[0]
+        X = sigma_exact(W[None], rc, "closed_form", "CLARABEL", MStepConfig(), ["t"])[0]
 
         def f(X):
             return -np.linalg.slogdet(X)[1] - np.trace(np.linalg.solve(X, W))
@@ -953,6 +955,8 @@ def test_solver_failure_raises_solver_error():
         maximize(model, sm, y, MStepConstraints(entropy_floor=0.0, offset_bound=0.01), method="cvxpy",
                  solver="SCS", config=cfg)
     assert e.value.status is not None and e.value.step == 1  # the backward sweep starts at T-1
+    # one base class for every solver path: soc_opt.errors.SolverError catches it too
+    assert isinstance(e.value, soc_errors.SolverError) and isinstance(e.value, RuntimeError)
 
 
 def test_constraints_and_config_load_from_toml(tmp_path):

@@ -24,7 +24,8 @@ from soc_opt.experiment import run_experiment
 from soc_opt.linalg import single_thread_blas
 from soc_opt.sweep import TrialDiverged, check_finite, load_sweep, sweep_from_dict
 from soc_opt.sweep_runner import ProgressBoard, run_sweep
-from soc_opt.tasks import BUILTIN_TASKS, _problems_dir, load_task
+from soc_opt.tasks import BUILTIN_TASKS, load_task
+from soc_opt.tasks.loading import _problems_dir
 
 SMALL = {
     "name": "small",

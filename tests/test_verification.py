@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from scipy import integrate
 
+from soc_opt import testing as G
 from soc_opt import verification as V
 from soc_opt.estep import moments, smooth
 
@@ -112,10 +113,10 @@ def test_gaussian_kl_matches_quadrature_2d():
 
 def test_surrogate_hessian_is_minus_kron_and_singular_for_rank_deficient_B():
     rng = np.random.default_rng(3)
-    model = V.random_augmented_model(rng, 2, 2, 3, b_rank=1)
-    policy = V.random_policy(rng, 3, 2, 2)
-    mu0, P0 = V.random_initial_state(rng, 2)
-    _, y = V.sample_model_trajectory(rng, model, policy, mu0, P0)
+    model = G.random_augmented_model(rng, 2, 2, 3, b_rank=1)
+    policy = G.random_policy(rng, 3, 2, 2)
+    mu0, P0 = G.random_initial_state(rng, 2)
+    _, y = G.sample_model_trajectory(rng, model, policy, mu0, P0)
     mom = moments(smooth(model, policy, y, mu0, P0), y)
     H = V.surrogate_hessian(model, mom.Sss[0], 0)
     assert H.shape == (6, 6)
@@ -127,7 +128,7 @@ def test_surrogate_hessian_is_minus_kron_and_singular_for_rank_deficient_B():
 def test_expected_stage_costs_matches_monte_carlo():
     rng = np.random.default_rng(5)
     T, n, m = 3, 2, 1
-    policy = V.random_policy(rng, T, n, m)
+    policy = G.random_policy(rng, T, n, m)
     mean = rng.standard_normal((T + 1, n))
     cov = np.stack([np.eye(n) * 0.3 + 0.05 for _ in range(T + 1)])
     from soc_opt.models import Smoothed

@@ -21,9 +21,9 @@ import numpy as np
 
 from ..fit import FitConfig, fit_augmented, fit_dynamics, prediction_error, update_prior
 from ..models import Rollouts
+from ..testing import random_ltv_system
 
 __all__ = [
-    "ltv_system",
     "simulate_linear",
     "simulate_pendulum",
     "dynamics_errors",
@@ -37,32 +37,6 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------- systems
-
-
-def ltv_system(n: int, m: int, T: int, rng: np.random.Generator, variation: float = 0.1) -> dict:
-    """A random stable time-varying linear-Gaussian system ``x' = A_k x + B_k a + c_k + w``, ``w ~ N(0, W_k)``.
-
-    ``A_k`` is a rotation scaled to spectral radius 0.9 plus a smooth
-    (sinusoidal in ``k``) perturbation of relative size ``variation``; ``B_k``,
-    ``c_k`` and ``W_k`` vary smoothly too (``variation = 0`` gives a
-    time-invariant system).  Returns ``dict(A, B, c, W)``, time-major.
-    """
-    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
-    A0 = 0.9 * Q
-    E = rng.standard_normal((n, n)) / np.sqrt(n)
-    B0 = rng.standard_normal((n, m)) / np.sqrt(m)
-    F = rng.standard_normal((n, m)) / np.sqrt(m)
-    c0 = 0.3 * rng.standard_normal(n)
-    c1 = 0.3 * rng.standard_normal(n)
-    G = rng.standard_normal((n, n)) / np.sqrt(n)
-    W0 = 0.02 * (G @ G.T) + 0.01 * np.eye(n)
-    ph = 2 * np.pi * np.arange(T) / max(T, 1)
-    sk, ck = np.sin(ph), np.cos(ph)
-    A = A0[None] + variation * sk[:, None, None] * E[None]
-    B = B0[None] + variation * ck[:, None, None] * F[None]
-    c = c0[None] + (variation / 0.1 if variation else 0.0) * sk[:, None] * c1[None]
-    W = W0[None] * (1.0 + 5 * variation * sk[:, None, None] ** 2)
-    return {"A": A, "B": B, "c": c, "W": W}
 
 
 def _rollouts(x: np.ndarray, a: np.ndarray, rng: np.random.Generator, rho2: float, target: np.ndarray) -> Rollouts:
@@ -163,7 +137,7 @@ def convergence_table(
 ) -> list[dict]:
     """Errors of the fitted ``A, B, c, W`` vs the true time-varying system as ``M`` grows.
 
-    Per seed a system (``ltv_system``, variation 0.1) and ``max(Ms)`` rollouts
+    Per seed a system (``soc_opt.testing.random_ltv_system``, variation 0.1) and ``max(Ms)`` rollouts
     (no measurement noise, so that regression of ``s'`` on ``(s, a)`` is
     consistent) are drawn; each ``M`` uses the first ``M`` rollouts.  With
     ``"mixture"`` the prior is fitted on those same ``M`` rollouts.  One row per
@@ -172,7 +146,7 @@ def convergence_table(
     rows = []
     for seed in seeds:
         rng = np.random.default_rng(seed)
-        system = ltv_system(n, m, T, rng)
+        system = random_ltv_system(rng, n, m, T)
         data = simulate_linear(system, max(Ms), rng)
         for M in Ms:
             ro = Rollouts(*(np.array(getattr(data, f)[:M]) for f in ("x", "s", "a", "cost", "y")))
@@ -226,7 +200,7 @@ def few_sample_table(
     rows = []
     for seed in seeds:
         rng = np.random.default_rng(1000 + seed)
-        system = ltv_system(n, m, T, rng, variation=variation)
+        system = random_ltv_system(rng, n, m, T, variation=variation)
         truth = LinearGaussianDynamics(system["A"], system["B"], system["c"], system["W"])
         test = simulate_linear(system, M_test, rng, rho2=rho2)
         for M in Ms:
@@ -317,7 +291,7 @@ def run(
     convergence, few-sample and pendulum tables follow as rows.
     """
     rng = np.random.default_rng(seed)
-    system = ltv_system(n, m, T, rng)
+    system = random_ltv_system(rng, n, m, T)
     train = simulate_linear(system, M, rng, rho2=0.01)
     test = simulate_linear(system, 20, rng, rho2=0.01)
     cfg = FitConfig(seed=seed)

@@ -1,0 +1,101 @@
+"""Moments of a linear-Gaussian closed loop in closed form: forward pass, expected cost and
+the expected KL against a reference policy (SPEC §6)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..linalg import logdet_pd
+from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, symmetrize
+from .problem import Marginals, _check_dims, _check_init, _ref_inverse, _reference_chol
+
+
+def _forward_arrays(dynamics: LinearGaussianDynamics, K, k, S, mu0, P0) -> Marginals:
+    T, n = dynamics.T, dynamics.n
+    A, B = dynamics.A, dynamics.B
+    Acl = A + B @ K  # (T, n, n) closed-loop state matrices
+    AclT = np.swapaxes(Acl, 1, 2)
+    bias = (B @ k[:, :, None])[:, :, 0] + dynamics.c
+    N = (B @ S) @ np.swapaxes(B, 1, 2) + dynamics.cov  # B Sigma B^T + W
+    mean = np.empty((T + 1, n))
+    cov = np.empty((T + 1, n, n))
+    mean[0] = mu0
+    cov[0] = P0
+    mu = mu0
+    tmp = np.empty((n, n))
+    for t in range(T):
+        Ac = Acl[t]
+        mu = Ac @ mu + bias[t]
+        mean[t + 1] = mu
+        np.matmul(Ac, cov[t], out=tmp)
+        Pn = cov[t + 1]
+        np.matmul(tmp, AclT[t], out=Pn)
+        Pn += N[t]
+        Pn += Pn.T
+        Pn *= 0.5
+    sa_cov = cov[:T] @ np.swapaxes(K, 1, 2)  # Cov(s, a) = P K^T, (T, n, m)
+    a_mean = (K @ mean[:T, :, None])[:, :, 0] + k
+    a_cov = symmetrize(K @ sa_cov + S)
+    return Marginals(mean, cov, a_mean, a_cov, sa_cov)
+
+
+def forward(dynamics: LinearGaussianDynamics, policy: LinearGaussianPolicy, mu0, P0) -> Marginals:
+    """State-action marginals of ``policy`` on ``dynamics`` from ``s_0 ~ N(mu0, P0)``.
+
+    ``E[s_{k+1}] = (A + B K) E[s_k] + B k + c``,
+    ``Cov(s_{k+1}) = (A + B K) P_k (A + B K)^T + B Sigma B^T + W``; action moments
+    ``E[a] = K E[s] + k``, ``Cov(a) = K P K^T + Sigma``, ``Cov(s, a) = P K^T``.
+    """
+    T, n, m = _check_dims(dynamics, policy=policy)
+    mu0, P0 = _check_init(mu0, P0, n)
+    return _forward_arrays(dynamics, policy.K, policy.k, policy.cov, mu0, P0)
+
+
+def _expected_cost_marg(cost: QuadraticCost, marg: Marginals) -> np.ndarray:
+    n, T = cost.n, cost.T
+    zbar = np.concatenate([marg.mean[:T], marg.a_mean], axis=1)
+    C = cost.C
+    # tr(C Cov(z)) with Cov(z) = [[P, Psa], [Psa^T, Pa]] (C symmetric)
+    tr = (
+        np.einsum("tij,tij->t", C[:, :n, :n], marg.cov[:T])
+        + 2.0 * np.einsum("tij,tij->t", C[:, :n, n:], marg.sa_cov)
+        + np.einsum("tij,tij->t", C[:, n:, n:], marg.a_cov)
+    )
+    quad = np.einsum("ti,ti->t", (C @ zbar[:, :, None])[:, :, 0], zbar)
+    return 0.5 * tr + 0.5 * quad + np.einsum("ti,ti->t", zbar, cost.c) + cost.c0
+
+
+def expected_cost(dynamics, cost, policy, mu0, P0) -> np.ndarray:
+    """(T,) closed-form ``E[l_k(s_k, a_k)] = 1/2 tr(C_k Cov(z_k)) + l_k(E[z_k])``."""
+    _check_dims(dynamics, cost=cost, policy=policy)
+    return _expected_cost_marg(cost, forward(dynamics, policy, mu0, P0))
+
+
+def _kl_batched(K, k, S, logdetS, Kh, kh, Shinv, logdetSh, mean, cov) -> np.ndarray:
+    """(T,) ``E_{s~N(mean, cov)} KL(N(K s + k, S) || N(Kh s + kh, Sh))``.
+
+    ``KL = 1/2 [tr(Sh^-1 S) - m + log|Sh| - log|S| + (dK mu + dk)^T Sh^-1 (dK mu + dk)
+    + tr(dK^T Sh^-1 dK P)]`` with ``dK = K - Kh``, ``dk = k - kh``.
+    """
+    T, m, _ = K.shape
+    dK = K - Kh
+    dm = (dK @ mean[:T, :, None])[:, :, 0] + (k - kh)
+    tr1 = np.einsum("tij,tij->t", Shinv, S)
+    RdK = Shinv @ dK
+    quad = np.einsum("tij,tij->t", RdK @ cov[:T], dK) + np.einsum("ti,ti->t", (Shinv @ dm[:, :, None])[:, :, 0], dm)
+    return 0.5 * (tr1 - m + logdetSh - logdetS + quad)
+
+
+def kl_divergence(dynamics, policy, reference, mu0, P0) -> np.ndarray:
+    """(T,) ``KL_k = E_{p(s_k)} KL(p(.|s_k) || phat(.|s_k))`` in closed form.
+
+    ``p(s_k)`` is the state marginal of ``policy`` (it enters through the gain difference
+    ``K - Kh``); ``inf`` where the policy covariance is singular.
+    """
+    _check_dims(dynamics, policy=policy, reference=reference)
+    Lh = _reference_chol(reference)
+    Shinv, logdetSh = _ref_inverse(Lh)
+    marg = forward(dynamics, policy, mu0, P0)
+    logdetS = logdet_pd(policy.cov)
+    return _kl_batched(policy.K, policy.k, policy.cov, logdetS, reference.K, reference.k, Shinv, logdetSh,
+                       marg.mean, marg.cov)

@@ -1,0 +1,312 @@
+"""Shared types, input validation and the per-step problem arrays of the KL-constrained LQG
+step (SPEC §6; the problem is stated in :mod:`soc_opt.lqg`).
+
+The bottom of the package: imports nothing from its siblings.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal, NamedTuple
+
+import numpy as np
+from scipy.linalg import lapack
+
+from .. import errors
+from ..config import Config
+from ..linalg import logdet_chol
+from ..models import (
+    LinearGaussianDynamics,
+    LinearGaussianPolicy,
+    NotPositiveDefiniteError,
+    QuadraticCost,
+    ShapeError,
+    check_array,
+    check_covariances,
+    symmetrize,
+)
+
+
+class SolverError(errors.SolverError):
+    """A numerical solver of the KL step (IPOPT, the dual solvers) failed; the message carries
+    its status.  A :class:`soc_opt.errors.SolverError`: ``.status`` is IPOPT's return status
+    (IPOPT failures), ``.step`` the step of an unreachable per-step budget (vector dual)."""
+
+
+class Marginals(NamedTuple):
+    """State-action marginals of a linear-Gaussian closed loop.
+
+    Fields:
+        mean:    (T+1, n)    ``E[s_k]``
+        cov:     (T+1, n, n) ``Cov(s_k)``
+        a_mean:  (T, m)      ``E[a_k]``
+        a_cov:   (T, m, m)   ``Cov(a_k)``
+        sa_cov:  (T, n, m)   ``Cov(s_k, a_k)``
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    a_mean: np.ndarray
+    a_cov: np.ndarray
+    sa_cov: np.ndarray
+
+
+@dataclass(frozen=True)
+class KLStepConfig(Config):
+    """Hyperparameters of :func:`kl_step` and :func:`adapt_step` (SPEC §6).
+
+    Dual solver (closed form):
+        kl_rtol, kl_atol: stop when ``|KL - nu| <= kl_rtol * nu + kl_atol`` for every active
+                        budget (1e-10, 1e-13 per step: the roundoff floor of the KL formula).
+        eta_init:       first multiplier when no warm start ``eta0`` is given (1.0).
+        eta_min:        lower bound on a finite-budget multiplier; a budget with
+                        ``KL(eta_min) < nu`` is reported slack with ``eta = eta_min`` (1e-12).
+        eta_max:        upper bound; reaching it is an error (1e16).
+        max_backward:   budget of backward passes for one dual solve (500).
+        max_log_step:   cap on one step of either dual solver in ``log eta`` (``log 1e3``).
+    Quu repair (see :mod:`soc_opt.lqg.backward`):
+        repair_factor:  multiplicative raise of ``eta`` (10.0).
+        repair_margin:  relative margin above the exact PD threshold (0.1).
+    CasADi / IPOPT:
+        ipopt_tol:      IPOPT ``tol`` (1e-12); ``ipopt_acceptable_tol`` (1e-9).
+        ipopt_max_iter: IPOPT ``max_iter`` (3000).
+        chol_floor:     lower bound on the diagonal of the NLP's Cholesky factors ``L_k`` (1e-9;
+                        structured formulation: on the diagonal of ``Gam_k = Lh_k^-1 L_k``).
+        ipopt_options:  extra options passed as ``ipopt.<key>`` (override the above).
+        casadi_nlp:     NLP formulation: ``"symbolic"`` (single shooting in ``(K, k, L)``, dense
+                        exact Hessian built symbolically by CasADi: the reference solver for small
+                        problems, tested up to ``n=6, m=3, T=20``), ``"structured"`` (single
+                        shooting in rescaled ``(K, k, L)``, analytic adjoint gradient and
+                        Jacobian, per-step block-diagonal Hessian that is exact at the solution:
+                        seconds at ``n=26, m=7, T=100``, tested up to there) or ``"auto"``
+                        (default): ``"symbolic"`` up to ``casadi_auto_max_vars`` NLP variables,
+                        ``"structured"`` above.  Both agree with the closed form to about 1e-10.
+        casadi_auto_max_vars: the ``"auto"`` threshold (600: just above the largest tested
+                        symbolic size, 540 variables at ``n=6, m=3, T=20``, where the symbolic
+                        Hessian already takes tens of seconds to build; its cost grows about
+                        cubically with the size).
+    Step-size adaptation (:func:`adapt_step`, GPS rule):
+        min_mult, max_mult: clip of the budget multiplier ``predicted / (2 (predicted - actual))``
+                        (0.1, 5.0).
+        min_gap:        floor of the denominator ``predicted - actual`` (1e-4, cost units).
+        nu_min, nu_max: clip of the new budget (1e-4, 1e4).
+    """
+
+    kl_rtol: float = 1e-10
+    kl_atol: float = 1e-13
+    eta_init: float = 1.0
+    eta_min: float = 1e-12
+    eta_max: float = 1e16
+    max_backward: int = 500
+    max_log_step: float = math.log(1e3)
+    repair_factor: float = 10.0
+    repair_margin: float = 0.1
+    ipopt_tol: float = 1e-12
+    ipopt_acceptable_tol: float = 1e-9
+    ipopt_max_iter: int = 3000
+    chol_floor: float = 1e-9
+    ipopt_options: dict[str, Any] = field(default_factory=dict)
+    casadi_nlp: Literal["auto", "symbolic", "structured"] = "auto"
+    casadi_auto_max_vars: int = 600
+    min_mult: float = 0.1
+    max_mult: float = 5.0
+    min_gap: float = 1e-4
+    nu_min: float = 1e-4
+    nu_max: float = 1e4
+
+    def __post_init__(self):
+        pos = ("kl_rtol", "kl_atol", "eta_init", "eta_min", "eta_max", "max_log_step", "ipopt_tol",
+               "ipopt_acceptable_tol", "chol_floor", "min_mult", "max_mult", "min_gap", "nu_min", "nu_max")
+        for name in pos:
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"KLStepConfig.{name} must be a positive finite number, got {v!r}")
+        if self.eta_min >= self.eta_max:
+            raise ValueError("KLStepConfig.eta_min must be below eta_max")
+        if self.repair_factor <= 1.0 or self.repair_margin < 0.0:
+            raise ValueError("KLStepConfig.repair_factor must be > 1 and repair_margin >= 0")
+        if self.min_mult > self.max_mult or self.nu_min > self.nu_max:
+            raise ValueError("KLStepConfig: min_mult <= max_mult and nu_min <= nu_max required")
+        if self.max_backward < 1 or self.ipopt_max_iter < 1:
+            raise ValueError("KLStepConfig.max_backward and ipopt_max_iter must be >= 1")
+        if self.casadi_nlp not in ("auto", "symbolic", "structured"):
+            raise ValueError("KLStepConfig.casadi_nlp must be 'auto', 'symbolic' or 'structured', "
+                             f"got {self.casadi_nlp!r}")
+        mv = self.casadi_auto_max_vars
+        if isinstance(mv, bool) or not isinstance(mv, int) or mv < 0:
+            raise ValueError(f"KLStepConfig.casadi_auto_max_vars must be an integer >= 0, got {mv!r}")
+
+
+class KLStepResult(NamedTuple):
+    """Result of :func:`kl_step`.
+
+    Fields:
+        policy:        the optimal :class:`LinearGaussianPolicy` (``allow_singular`` where
+                       ``eta_k = 0``).
+        eta:           (T,) multipliers; for a scalar budget all entries are the one ``eta``.
+        kl:            (T,) ``KL_k`` of ``policy`` against the reference.
+        expected_cost: ``sum_k E[l_k]`` of ``policy`` (float).
+        n_backward:    backward passes used (closed form; CasADi: 0).
+        scalar_eta:    True when ``nu`` was a scalar (one total budget, one multiplier).
+        nu:            the budget(s) as given: float or (T,).
+        dual_value:    ``g(eta) = sum E[l] + sum eta (KL - nu)`` (closed form) or the NLP
+                       objective (CasADi).
+        method:        ``"closed_form"`` or ``"casadi"``.
+        n_iter:        dual iterations (closed form) or IPOPT iterations.
+        status:        solver status string.
+        marginals:     :class:`Marginals` of the optimal policy.
+        lam_g:         CasADi only: IPOPT multipliers of the KL constraints (one per constrained
+                       step, or one for the total budget).
+        solver_stats:  CasADi only: ``{"n_vars", "formulation", "build_s", "solve_s"}`` (NLP size,
+                       ``"symbolic"`` or ``"structured"`` (``"none"`` if nothing was solved),
+                       seconds to build the NLP (symbolic: with its exact Hessian), seconds in
+                       IPOPT).
+    """
+
+    policy: LinearGaussianPolicy
+    eta: np.ndarray
+    kl: np.ndarray
+    expected_cost: float
+    n_backward: int
+    scalar_eta: bool
+    nu: Any
+    dual_value: float
+    method: str
+    n_iter: int
+    status: str
+    marginals: Marginals
+    lam_g: np.ndarray | None = None
+    solver_stats: dict | None = None
+
+
+# --------------------------------------------------------------------------------------------
+# validation
+# --------------------------------------------------------------------------------------------
+
+
+def _check_dims(dynamics, *, cost=None, policy=None, reference=None) -> tuple[int, int, int]:
+    if not isinstance(dynamics, LinearGaussianDynamics):
+        raise TypeError(f"dynamics must be a LinearGaussianDynamics, got {type(dynamics).__name__}")
+    T, n, m = dynamics.T, dynamics.n, dynamics.m
+    if cost is not None:
+        if not isinstance(cost, QuadraticCost):
+            raise TypeError(f"cost must be a QuadraticCost, got {type(cost).__name__}")
+        if (cost.T, cost.n, cost.m) != (T, n, m):
+            raise ShapeError(
+                f"cost has (T, n, m) = {(cost.T, cost.n, cost.m)} but dynamics has {(T, n, m)}"
+            )
+    for name, pol in (("policy", policy), ("reference", reference)):
+        if pol is None:
+            continue
+        if not isinstance(pol, LinearGaussianPolicy):
+            raise TypeError(f"{name} must be a LinearGaussianPolicy, got {type(pol).__name__}")
+        if (pol.T, pol.n, pol.m) != (T, n, m):
+            raise ShapeError(f"{name} has (T, n, m) = {(pol.T, pol.n, pol.m)} but dynamics has {(T, n, m)}")
+    return T, n, m
+
+
+def _check_init(mu0, P0, n: int) -> tuple[np.ndarray, np.ndarray]:
+    mu0 = check_array("mu0", mu0, (n,))
+    P0 = check_array("P0", P0, (n, n))
+    P0 = check_covariances("P0", P0, psd_only=True)
+    return mu0, P0
+
+
+def _reference_chol(reference: LinearGaussianPolicy) -> np.ndarray:
+    """Lower Cholesky factors of the reference covariances; clear error if not PD."""
+    out = np.empty_like(reference.cov)
+    for t in range(reference.T):
+        L, info = lapack.dpotrf(reference.cov[t], lower=1, clean=1)
+        if info != 0:
+            ev = float(np.linalg.eigvalsh(reference.cov[t])[0])
+            raise NotPositiveDefiniteError(
+                f"reference cov[{t}] is not positive definite (smallest eigenvalue {ev:.3e}); "
+                "the KL step needs a reference policy with Sigma > 0"
+            )
+        out[t] = L
+    return out
+
+
+def _check_nu(nu, T: int) -> tuple[np.ndarray, bool]:
+    """Return ``(nu as (T,) or (1,), scalar?)``; errors name the step."""
+    a = np.asarray(nu, dtype=float)
+    if a.ndim == 0:
+        scalar = True
+        a = a.reshape(1)
+    elif a.shape == (T,):
+        scalar = False
+    else:
+        raise ShapeError(f"nu must be a scalar (total budget) or have shape ({T},), got {a.shape}")
+    if np.any(np.isnan(a)):
+        raise ValueError(f"nu contains NaN (at step {int(np.argwhere(np.isnan(a))[0, 0])})")
+    if np.any(a < 0):
+        t = int(np.argwhere(a < 0)[0, 0])
+        where = "the total budget" if scalar else f"step {t}"
+        raise ValueError(f"infeasible budget: nu is negative ({a[t]!r}) for {where}; KL >= 0 always")
+    return a, scalar
+
+
+def _ref_inverse(Lh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Sh^-1, log|Sh|)`` from the Cholesky factors (LAPACK ``potri``), symmetrised."""
+    T = Lh.shape[0]
+    Shinv = np.empty_like(Lh)
+    for t in range(T):
+        X = lapack.dpotri(Lh[t], lower=1)[0]
+        Shinv[t] = np.tril(X) + np.tril(X, -1).T
+    return Shinv, logdet_chol(Lh)
+
+
+# --------------------------------------------------------------------------------------------
+# per-step arrays (homogeneous coordinates x = (s, 1), z = (s, 1, a))
+# --------------------------------------------------------------------------------------------
+
+
+class _Problem:
+    """Per-step arrays of one problem, precomputed once (vectorised over T).
+
+    In homogeneous coordinates ``z~ = (s, 1, a)`` the stage cost is ``1/2 z~^T Ct z~``, the mean
+    dynamics ``(s', 1) = F z~`` and ``-log phat(a|s) = 1/2 z~^T H z~ + const``.
+    """
+
+    def __init__(self, dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference, mu0, P0):
+        T, n, m = dynamics.T, dynamics.n, dynamics.m
+        self.T, self.n, self.m = T, n, m
+        self.dynamics, self.cost = dynamics, cost
+        self.mu0, self.P0 = mu0, P0
+        d = n + 1 + m
+        F = np.zeros((T, n + 1, d))
+        F[:, :n, :n] = dynamics.A
+        F[:, :n, n] = dynamics.c
+        F[:, :n, n + 1 :] = dynamics.B
+        F[:, n, n] = 1.0
+        self.F = F
+        self.Ft = np.ascontiguousarray(np.swapaxes(F, 1, 2))
+        Ct = np.zeros((T, d, d))
+        C, c = cost.C, cost.c
+        Ct[:, :n, :n] = C[:, :n, :n]
+        Ct[:, :n, n + 1 :] = C[:, :n, n:]
+        Ct[:, n + 1 :, :n] = C[:, n:, :n]
+        Ct[:, n + 1 :, n + 1 :] = C[:, n:, n:]
+        Ct[:, :n, n] = c[:, :n]
+        Ct[:, n, :n] = c[:, :n]
+        Ct[:, n + 1 :, n] = c[:, n:]
+        Ct[:, n, n + 1 :] = c[:, n:]
+        Ct[:, n, n] = 2.0 * cost.c0
+        self.Ct = Ct
+        self.H = None
+        if reference is not None:
+            self.reference = reference
+            self.Lh = _reference_chol(reference)
+            self.Kh, self.kh, self.Sh = reference.K, reference.k, reference.cov
+            self.Shinv, self.logdetSh = _ref_inverse(self.Lh)
+            G = np.concatenate(
+                [-reference.K, -reference.k[:, :, None], np.broadcast_to(np.eye(m), (T, m, m))], axis=2
+            )
+            self.H = symmetrize(np.swapaxes(G, 1, 2) @ self.Shinv @ G)
+            self.Kth = np.concatenate([reference.K, reference.k[:, :, None]], axis=2)  # (T, m, n+1)
+            self.KthR = np.swapaxes(self.Kth, 1, 2) @ self.Shinv  # (T, n+1, m)
+
+
+def _policy_from(K, k, S, eta) -> LinearGaussianPolicy:
+    return LinearGaussianPolicy(K, k, S, allow_singular=bool(np.any(eta == 0)))

@@ -1,0 +1,85 @@
+"""The KL-constrained LQG step (SPEC §6): the entry :func:`kl_step` and its closed-form path.
+
+``method="closed_form"`` solves the dual over the multipliers (:mod:`.dual`) with one backward
+pass per trial multiplier (:mod:`.backward`); ``method="casadi"`` solves the primal NLP with
+IPOPT (:mod:`.casadi_nlp`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+
+from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost
+from .casadi_nlp import _kl_step_casadi
+from .dual import _dual_value, _solve_scalar, _solve_vector
+from .problem import KLStepConfig, KLStepResult, _check_dims, _check_init, _check_nu, _policy_from, _Problem
+
+
+def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: LinearGaussianPolicy, nu, mu0, P0,
+            method: Literal["closed_form", "casadi"] = "closed_form", config: KLStepConfig | None = None,
+            *, eta0=None) -> KLStepResult:
+    """KL-constrained LQG step (SPEC §6): ``min sum_k E[l_k]  s.t.  KL_k <= nu_k`` (or ``sum KL <= nu``).
+
+    Args:
+        dynamics, cost: the local linear-Gaussian model and quadratic cost expansion.
+        reference: ``phat`` (covariances must be positive definite).
+        nu: scalar (one total budget, one multiplier: the GPS form) or ``(T,)`` per-step
+            budgets; ``inf`` entries are unconstrained (``eta = 0``, deterministic step),
+            ``0`` entries pin the step to the reference (``eta = inf``).
+        mu0, P0: initial state distribution.
+        method: ``"closed_form"`` (backward passes + dual solve) or ``"casadi"`` (IPOPT NLP).
+        config: :class:`KLStepConfig`.
+        eta0: optional warm start of the multiplier(s) (closed form only).
+    Returns a :class:`KLStepResult`.
+    """
+    config = KLStepConfig() if config is None else config
+    if not isinstance(config, KLStepConfig):
+        raise TypeError(f"config must be a KLStepConfig, got {type(config).__name__}")
+    T, n, m = _check_dims(dynamics, cost=cost, reference=reference)
+    mu0, P0 = _check_init(mu0, P0, n)
+    nu_arr, scalar = _check_nu(nu, T)
+    prob = _Problem(dynamics, cost, reference, mu0, P0)
+    nu_out = float(nu_arr[0]) if scalar else nu_arr.copy()
+    if method == "closed_form":
+        return _kl_step_closed(prob, nu_arr, scalar, nu_out, config, eta0)
+    if method == "casadi":
+        return _kl_step_casadi(prob, nu_arr, scalar, nu_out, config)
+    raise ValueError(f"unknown method {method!r}; use 'closed_form' or 'casadi'")
+
+
+def _kl_step_closed(prob: _Problem, nu: np.ndarray, scalar: bool, nu_out, config, eta0) -> KLStepResult:
+    T = prob.T
+    if scalar:
+        v = float(nu[0])
+        if math.isinf(v) or v == 0.0:
+            eta_fixed = np.full(T, 0.0 if math.isinf(v) else math.inf)
+            r, nb, it, status = _solve_vector(prob, np.full(T, v), config, None)
+            status = "unconstrained (nu = inf): LQR" if math.isinf(v) else "nu = 0: reference policy"
+            eta = eta_fixed
+            dual = float(r.cost.sum())
+        else:
+            r, nb, it, status = _solve_scalar(prob, v, config, eta0)
+            eta = r.bw.eta.copy()
+            dual = float(r.cost.sum() + eta[0] * (r.kl.sum() - v))
+    else:
+        r, nb, it, status = _solve_vector(prob, nu, config, eta0)
+        eta = r.bw.eta.copy()
+        dual = _dual_value(r, eta, nu)
+    bw = r.bw
+    return KLStepResult(
+        policy=_policy_from(bw.K, bw.k, bw.S, eta),
+        eta=eta,
+        kl=r.kl.copy(),
+        expected_cost=float(r.cost.sum()),
+        n_backward=nb,
+        scalar_eta=scalar,
+        nu=nu_out,
+        dual_value=dual,
+        method="closed_form",
+        n_iter=it,
+        status=status,
+        marginals=r.marg,
+    )

@@ -1,0 +1,229 @@
+"""The M-step's entry points :func:`maximize` and :func:`maximize_moments` (SPEC §5), and the
+surrogate's closed-form maximisers.
+
+Time-varying sweep and time-invariant variant
+---------------------------------------------
+The Proposition's DP sweep runs ``j = T-1 .. 0`` maximising ``Lbar_j`` with the future terms fixed.
+With the smoothed moments fixed, ``Lbar_j`` depends on ``phi_j`` only and the future terms do not
+depend on ``phi_j``, so the sweep decouples into ``T`` independent problems: the CVXPY path runs the
+backward sweep literally, the closed form is batched over ``T`` (the order is immaterial).
+The time-invariant variant maximises ``sum_k Lbar_k`` over one shared ``phi``: the normal
+equations ``sum_k H_k F Stilde_k = sum_k R_k`` read ``(sum_k Stilde_k kron H_k) vec F = vec(sum_k R_k)``
+(the paper's ``M = sum_k M_k``), and ``Sigma`` comes from the constraint set with ``H = sum_k H_k``.
+A time-invariant trust region bounds ``||F - F_prev,k||_F <= delta`` at every step ``k``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import linalg as la
+from ..estep import Moments, moments
+from ..models import AugmentedModel, LinearGaussianPolicy, Smoothed
+from .config import MStepConfig
+from .constraints import MStepConstraints, pd_guaranteed, require_pd_covariance, sigma_closed
+from .cvx import cvxpy_ti, cvxpy_tv
+from .errors import ClosedFormUnavailableError
+from .exact_em import run_exact_em
+from .objectives import (
+    CVXPY_HINT,
+    MIN_NORM_HINT,
+    check_moments,
+    check_policy,
+    degeneracy,
+    policy_F,
+    raise_if_degenerate,
+    moment_stats,
+    ti_degenerate,
+    ti_normal_equations,
+    surrogate_from_moments,
+)
+
+__all__ = ["MStepResult", "maximize", "maximize_moments"]
+
+
+@dataclass(frozen=True)
+class MStepResult:
+    """Everything an M-step produced (``maximize_moments(..., return_result=True)``).
+
+    Fields:
+        policy: the maximiser.
+        objective: (T,) the maximised objective (``Lbar_k`` or ``exact_k``) at ``policy``.
+        solver_value: optimal value reported by CVXPY plus the constants it omits: (T,) for the
+            time-varying surrogate, (1,) for the time-invariant surrogate (``sum_k Lbar_k``);
+            None for closed forms and the exact objective.
+        status: solver statuses, one per CVXPY solve in order of solution (empty for closed forms).
+        duals: per CVXPY surrogate solve (indexed like ``solver_value``), the dual values by
+            constraint name (``offset_upper``, ``offset_lower``, ``trust`` (array over centres),
+            ``cov_floor``, ``cov_ceiling``, ``entropy_floor`` (the multiplier of
+            ``log det Sigma >= c``)).
+        solve_time: wall time (s) of each CVXPY surrogate solve, indexed like ``solver_value``.
+        history: exact objective only: (iterations+1, T) ``exact_k`` before and after each inner step.
+        iterations: number of exact-EM inner iterations (0 otherwise).
+        converged: exact-EM stopping rule met (True otherwise).
+    """
+
+    policy: LinearGaussianPolicy
+    objective: np.ndarray
+    solver_value: np.ndarray | None = None
+    status: tuple[str, ...] = ()
+    duals: tuple[dict, ...] = ()
+    solve_time: np.ndarray | None = None
+    history: np.ndarray | None = None
+    iterations: int = 0
+    converged: bool = True
+
+
+def maximize(
+    model: AugmentedModel,
+    smoothed: Smoothed,
+    y: np.ndarray,
+    constraints: MStepConstraints | None = None,
+    method: str = "closed_form",
+    solver: str | None = None,
+    variant: str = "time_varying",
+    objective: str = "surrogate",
+    previous: LinearGaussianPolicy | None = None,
+    min_norm: bool = False,
+    config: MStepConfig | None = None,
+    return_result: bool = False,
+) -> LinearGaussianPolicy | MStepResult:
+    """The DP M-step (SPEC §5): maximise ``Lbar_k`` (or the exact objective) over the feasible set.
+
+    Args:
+        model: the augmented model (``Ao, co, So``).
+        smoothed, y: smoothed states and observations; reduced to :class:`Moments` by
+            :func:`soc_opt.estep.moments` (use :func:`maximize_moments` for precomputed moments).
+        constraints: the feasible set (:class:`MStepConstraints`; default: none, which is an error
+            for the surrogate unless ``allow_singular``, because its optimum is ``Sigma = 0``).
+        method: ``"closed_form"`` (batched Cholesky solves) or ``"cvxpy"`` (DPP problem per step).
+        solver: CVXPY solver, ``"CLARABEL"`` or ``"SCS"`` (default ``config.solver``).
+        variant: ``"time_varying"`` (one ``phi_k`` per step, the Proposition's sweep) or
+            ``"time_invariant"`` (one shared ``phi`` maximising ``sum_k``).
+        objective: ``"surrogate"`` (the paper's ``Lbar``) or ``"exact"`` (action integrated out,
+            inner EM started from ``previous``; the time-invariant variant starts from the time
+            average of ``previous``).  The number of inner iterations and convergence are in the
+            :class:`MStepResult`.
+        previous: the current policy; trust-region centre and exact-EM starting point.
+        min_norm: return the minimum-norm maximiser when it is not unique (closed form only).
+        config: :class:`MStepConfig` (tolerances, solver options).
+        return_result: return an :class:`MStepResult` instead of just the policy.
+
+    Raises:
+        NonUniqueMaximizerError: ``B_k`` rank deficient or ``P_k`` singular (names the step).
+        InfeasibleConstraintsError: empty constraint set.
+        ClosedFormUnavailableError: ``method="closed_form"`` with a set needing CVXPY.
+        SolverError: CVXPY failed (status and step in the message).
+        ShapeError: inconsistent shapes.
+    """
+    return maximize_moments(model, moments(smoothed, y), constraints, method, solver, variant, objective,
+                            previous, min_norm, config, return_result)
+
+
+def maximize_moments(
+    model: AugmentedModel,
+    mom: Moments,
+    constraints: MStepConstraints | None = None,
+    method: str = "closed_form",
+    solver: str | None = None,
+    variant: str = "time_varying",
+    objective: str = "surrogate",
+    previous: LinearGaussianPolicy | None = None,
+    min_norm: bool = False,
+    config: MStepConfig | None = None,
+    return_result: bool = False,
+) -> LinearGaussianPolicy | MStepResult:
+    """The M-step from precomputed :class:`Moments` (see :func:`maximize`)."""
+    cfg = config if config is not None else MStepConfig()
+    if method not in ("closed_form", "cvxpy"):
+        raise ValueError(f"method must be 'closed_form' or 'cvxpy', got {method!r}")
+    if variant not in ("time_varying", "time_invariant"):
+        raise ValueError(f"variant must be 'time_varying' or 'time_invariant', got {variant!r}")
+    if objective not in ("surrogate", "exact"):
+        raise ValueError(f"objective must be 'surrogate' or 'exact', got {objective!r}")
+    solver = (solver if solver is not None else cfg.solver).upper()
+    if solver not in ("CLARABEL", "SCS"):
+        raise ValueError(f"solver must be 'CLARABEL' or 'SCS', got {solver!r}")
+    if constraints is None:
+        constraints = MStepConstraints()
+    if not isinstance(constraints, MStepConstraints):
+        raise TypeError(f"constraints must be MStepConstraints, got {type(constraints).__name__}")
+    check_moments(model, mom)
+    if previous is not None:
+        check_policy(model, previous, "previous")
+    T, n, m = model.T, model.n, model.m
+    rc = constraints.resolve(m, T)
+    if rc.delta is not None and previous is None:
+        raise ValueError("trust_region needs previous= (the policy whose [K k] is the trust-region centre)")
+
+    if objective == "exact":
+        policy, hist, it, conv = run_exact_em(model, mom, rc, cfg, method, solver, variant, previous, min_norm)
+        if not return_result:
+            return policy
+        return MStepResult(policy, hist[-1], history=hist, iterations=it, converged=conv)
+
+    require_pd_covariance(rc)
+    if method == "closed_form" and rc.f_constrained:
+        raise ClosedFormUnavailableError(
+            f"the constraint set {rc.names()} has no closed-form maximiser (offset_bound and trust_region are "
+            f"CVXPY only); use method='cvxpy'"
+        )
+    st = moment_stats(model, mom)
+    Fprev = None if previous is None else policy_F(previous)
+    extra: dict = {}
+    if method == "closed_form":
+        if variant == "time_varying":
+            F, Sigma = _closed_form_tv(model, st, rc, cfg, min_norm)
+        else:
+            F, Sigma = _closed_form_ti(model, st, rc, cfg, min_norm)
+    else:
+        hint = CVXPY_HINT if min_norm else MIN_NORM_HINT + " (closed form only)"
+        if variant == "time_varying":
+            raise_if_degenerate(model, st, cfg, hint=hint)
+            F, Sigma, val, status, duals, times = cvxpy_tv(model, st, rc, cfg, solver, Fprev)
+        else:
+            F, Sigma, val, status, duals, times = cvxpy_ti(model, st, rc, cfg, solver, Fprev, hint=hint)
+        extra = dict(solver_value=val, status=status, duals=duals, solve_time=times)
+    if variant == "time_invariant":
+        F = np.broadcast_to(F, (T, m, n + 1))
+        Sigma = np.broadcast_to(Sigma, (T, m, m))
+    # without a PD guarantee require_pd_covariance only let us through with allow_singular=True
+    policy = LinearGaussianPolicy(np.array(F[..., :n]), np.array(F[..., n]), np.array(Sigma),
+                                  allow_singular=not pd_guaranteed(rc))
+    if not return_result:
+        return policy
+    return MStepResult(policy, surrogate_from_moments(model, mom, policy), **extra)
+
+
+# --------------------------------------------------------------------------- closed forms
+
+
+def _closed_form_tv(model, st, rc, cfg, min_norm):
+    T = model.T
+    h_bad, p_bad, _, _ = degeneracy(model, st, cfg)
+    degenerate = bool(np.any(h_bad | p_bad))
+    if degenerate and not min_norm:
+        raise_if_degenerate(model, st, cfg)
+    if degenerate:
+        Hp = np.linalg.pinv(st.H, rcond=cfg.eig_tol, hermitian=True)
+        Sp = np.linalg.pinv(st.S, rcond=cfg.eig_tol, hermitian=True)
+        F = Hp @ st.R @ Sp
+    else:
+        Lh, Ls = la.chol(st.H, "H"), la.chol(st.S, "Stilde")
+        F = la.right_cho_solve(la.cho_solve(Lh, st.R), Ls)
+    Sigma = sigma_closed(st.H, rc, cfg, [f"time step k={k}" for k in range(T)])
+    return F, Sigma
+
+
+def _closed_form_ti(model, st, rc, cfg, min_norm):
+    m, n1 = model.m, model.n + 1
+    Q, r = ti_normal_equations(st)
+    if ti_degenerate(model, st, cfg, Q, min_norm):
+        vF = np.linalg.pinv(Q, rcond=cfg.eig_tol, hermitian=True) @ r
+    else:
+        vF = la.cho_solve(la.chol(Q, "sum_k Stilde_k kron H_k"), r[:, None])[:, 0]
+    F = la.unvec(vF, m, n1)
+    Sigma = sigma_closed(st.H.sum(0)[None], rc.time_invariant(), cfg, ["time-invariant M-step"])[0]
+    return F, Sigma

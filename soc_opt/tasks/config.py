@@ -1,0 +1,213 @@
+"""Task configuration: the TOML schema of a task (SPEC §0, §8; ``docs/tasks.md``).
+
+:class:`TaskConfig` is the top level; ``cost`` entries are parsed into the term
+configs by their ``type`` key (:data:`TERM_TYPES`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from ..config import Config, ConfigError
+
+__all__ = [
+    "Ramp",
+    "FloatOrList",
+    "StateConfig",
+    "PointTermConfig",
+    "TorqueTermConfig",
+    "StateTermConfig",
+    "QuadraticTermConfig",
+    "TERM_TYPES",
+    "MetricConfig",
+    "LinearConfig",
+    "TaskConfig",
+]
+
+Ramp = Literal["constant", "linear", "quadratic", "final_only"]
+FloatOrList = float | tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class StateConfig(Config):
+    """Which simulator quantities make up the state vector (layout in the module docstring)."""
+
+    joints: tuple[str, ...] = ()
+    sites: tuple[str, ...] = ()
+    extra_joints: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class PointTermConfig(Config):
+    """``type = "point"``: ``1/2 l2 d^2 + l1 sqrt(alpha + d^2)`` of stacked site positions.
+
+    ``sites`` (MuJoCo) or ``indices`` (any task) pick the point coordinates; the
+    target is a fixed ``target`` (3 per site) or ``target_sites`` (moving points).
+    """
+
+    type: Literal["point"] = "point"
+    sites: tuple[str, ...] = ()
+    indices: tuple[int, ...] = ()
+    target: tuple[float, ...] | None = None
+    target_sites: tuple[str, ...] = ()
+    wp: FloatOrList = 1.0
+    l1: float = 0.0
+    l2: float = 1.0
+    alpha: float = 1e-5
+    ramp: Ramp = "constant"
+    final_multiplier: float = 1.0
+    weight: float = 1.0
+
+
+@dataclass(frozen=True)
+class TorqueTermConfig(Config):
+    """``type = "torque"``: ``1/2 a^T diag(wu) a``."""
+
+    type: Literal["torque"] = "torque"
+    wu: FloatOrList = 1.0
+    ramp: Ramp = "constant"
+    final_multiplier: float = 1.0
+    weight: float = 1.0
+
+
+@dataclass(frozen=True)
+class StateTermConfig(Config):
+    """``type = "state"``: ``1/2 sum w_i (s_i - s*_i)^2`` over ``joints`` (their angles),
+    ``labels`` (state labels), ``indices``, or the whole state if none is given."""
+
+    type: Literal["state"] = "state"
+    joints: tuple[str, ...] = ()
+    labels: tuple[str, ...] = ()
+    indices: tuple[int, ...] = ()
+    target: FloatOrList = 0.0
+    weights: FloatOrList = 1.0
+    ramp: Ramp = "constant"
+    final_multiplier: float = 1.0
+    weight: float = 1.0
+
+
+@dataclass(frozen=True)
+class QuadraticTermConfig(Config):
+    """``type = "quadratic"``: SPEC §0 ``(s-s*)^T Qs (s-s*) + (a-a*)^T Qa (a-a*)``.
+
+    ``Qs``/``Qa``: scalar (times identity), diagonal list or full matrix.
+    """
+
+    type: Literal["quadratic"] = "quadratic"
+    Qs: float | tuple[float, ...] | tuple[tuple[float, ...], ...] = 1.0
+    Qa: float | tuple[float, ...] | tuple[tuple[float, ...], ...] = 0.0
+    target: FloatOrList = 0.0
+    action_target: FloatOrList = 0.0
+    ramp: Ramp = "constant"
+    final_multiplier: float = 1.0
+    weight: float = 1.0
+
+
+TERM_TYPES: dict[str, type[Config]] = {
+    "point": PointTermConfig,
+    "torque": TorqueTermConfig,
+    "state": StateTermConfig,
+    "quadratic": QuadraticTermConfig,
+}
+
+
+@dataclass(frozen=True)
+class MetricConfig(Config):
+    """Task metric, evaluated on the true states of a rollout batch.
+
+    * ``min_distance``: per sample ``min_k ||p_k - target||`` of a ``site`` (or state
+      ``indices``); success/failure rates use the ``success``/``failure`` thresholds.
+    * ``min_joint``: per sample ``min_k q_k`` of ``joint`` (lower is better).
+    """
+
+    type: Literal["none", "min_distance", "min_joint"] = "none"
+    site: str | None = None
+    indices: tuple[int, ...] = ()
+    target: tuple[float, ...] = ()
+    joint: str | None = None
+    success: float | None = None
+    failure: float | None = None
+
+
+@dataclass(frozen=True)
+class LinearConfig(Config):
+    """``kind = "linear"``: ``x_{k+1} = A x_k + B a_k + c + xi_k``, ``xi_k ~ N(0, process_var I)``.
+
+    ``system = "point_mass_2d"`` builds ``A, B`` by exact zero-order-hold
+    discretisation (``dt`` = timestep * substeps) of a 2-D point mass with a
+    first-order force actuator per axis: ``p' = v, v' = f / mass, f' = (u - f) / tau``,
+    state ``(px, py, vx, vy, fx, fy)``.  ``system = "matrices"`` takes ``A``, ``B``
+    (and optionally ``c``) as given.
+    """
+
+    system: Literal["point_mass_2d", "matrices"] = "point_mass_2d"
+    mass: float = 1.0
+    tau: float = 0.2
+    A: tuple[tuple[float, ...], ...] = ()
+    B: tuple[tuple[float, ...], ...] = ()
+    c: tuple[float, ...] = ()
+    process_var: float = 1e-4
+    x0: tuple[float, ...] = ()
+    labels: tuple[str, ...] = ()
+    point: tuple[int, ...] = (0, 1)
+
+
+@dataclass(frozen=True)
+class TaskConfig(Config):
+    """A task: model, horizon, state definition, cost terms, noise, metric (see ``docs/tasks.md``).
+
+    ``cost`` is a list of tables, each with a ``type`` key selecting
+    :class:`PointTermConfig`, :class:`TorqueTermConfig`, :class:`StateTermConfig`
+    or :class:`QuadraticTermConfig`; they are parsed strictly on construction.
+    """
+
+    name: str
+    T: int
+    kind: Literal["mujoco", "linear"] = "mujoco"
+    description: str = ""
+    model: str | None = None
+    timestep: float | None = None
+    substeps: int = 1
+    q0: tuple[float, ...] = ()
+    offsets: tuple[tuple[float, ...], ...] = ()
+    state: StateConfig = field(default_factory=StateConfig)
+    actuated: tuple[str, ...] = ()
+    cost: tuple[dict[str, Any], ...] = ()
+    rho2: float = 0.1
+    init_var: float = 1.0
+    y_scale: float = 1.0
+    metric: MetricConfig = field(default_factory=MetricConfig)
+    linear: LinearConfig = field(default_factory=LinearConfig)
+    camera: str | None = None
+
+    def __post_init__(self):
+        checks = [
+            ("T", self.T >= 1, "must be >= 1"),
+            ("substeps", self.substeps >= 1, "must be >= 1"),
+            ("timestep", self.timestep is None or self.timestep > 0, "must be positive"),
+            ("rho2", self.rho2 >= 0, "must be >= 0"),
+            ("init_var", self.init_var > 0, "must be positive"),
+            ("y_scale", self.y_scale > 0, "must be positive"),
+        ]
+        for key, ok, msg in checks:
+            if not ok:
+                raise ConfigError(f"{key}: {msg}, got {getattr(self, key)!r}")
+        for i, off in enumerate(self.offsets):
+            if self.q0 and len(off) != len(self.q0):
+                raise ConfigError(f"offsets[{i}]: expected {len(self.q0)} entries (like q0), got {len(off)}")
+        terms = []
+        for i, term in enumerate(self.cost):
+            if isinstance(term, Config):
+                terms.append(term)
+                continue
+            typ = term.get("type")
+            if typ not in TERM_TYPES:
+                raise ConfigError(f"cost[{i}].type: {typ!r} is not one of {list(TERM_TYPES)}")
+            terms.append(TERM_TYPES[typ].from_dict(dict(term), _path=f"cost[{i}]"))
+        object.__setattr__(self, "cost", tuple(terms))
+
+    def to_dict(self) -> dict:
+        out = super().to_dict()
+        out["cost"] = [t.to_dict() for t in self.cost]
+        return out

@@ -1,0 +1,556 @@
+"""MuJoCo tasks: an MJCF model plus a :class:`TaskConfig` (SPEC §0, §8 "any MuJoCo model").
+
+State of a MuJoCo task (``x`` true, ``s = x + eps`` measured, SPEC §0)::
+
+    [ qpos(state.joints), qvel(state.joints),
+      site positions (3 per state.sites), site velocities (3 per site, world frame),
+      qpos(state.extra_joints), qvel(state.extra_joints) ]
+
+Rollouts: from ``x_0`` (``q0`` + condition offset, zero velocity) the action
+``a_k = K_k s_k + k_k + L_k w_k`` is computed from the *measured* state and held
+as ``ctrl`` for ``substeps`` calls of ``mj_step`` (``dt = timestep * substeps``).
+All noise (``eps`` then ``w``) is drawn from the Generator before simulating,
+so results do not depend on ``workers``.  The stage cost ``Y_k`` is evaluated on
+the measured ``s_k`` (SPEC §0) and ``y_k = exp(-y_scale * Y_k)``.
+
+Also here: the finite-difference linearisation in task coordinates
+(:meth:`MujocoTask.linearize`).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from ..config import ConfigError
+from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts, ShapeError, check_array
+from .base import SimulationError, TaskBase, _rng
+from .config import StateConfig, TaskConfig
+
+__all__ = ["MujocoTask", "MujocoSimulator"]
+
+
+def _mujoco():
+    import mujoco
+
+    return mujoco
+
+
+def _as_index(idx) -> slice | np.ndarray:
+    """A slice when ``idx`` is a contiguous ascending range (cheaper to copy), else the array."""
+    idx = np.asarray(idx, dtype=int)
+    if idx.size and np.all(np.diff(idx) == 1):
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
+
+
+_BAD_WARNINGS = ("mjWARN_CONTACTFULL", "mjWARN_CNSTRFULL", "mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC", "mjWARN_BADCTRL")
+
+
+class MujocoTask(TaskBase):
+    """A task from an MJCF model plus a :class:`TaskConfig` (SPEC §8 "any MuJoCo model")."""
+
+    kind = "mujoco"
+
+    def __init__(self, config: TaskConfig, model, *, condition: int = 0, source: str = "<model>"):
+        mj = _mujoco()
+        self.config = config
+        self.model = model
+        self.source = source
+        if config.timestep is not None:
+            model.opt.timestep = config.timestep
+        self.substeps = config.substeps
+        self.dt = float(model.opt.timestep) * self.substeps
+        if model.na:
+            raise ConfigError(f"model {source}: actuators with activation states (na={model.na}) are not supported")
+        self._setup_state(config.state)
+        self._setup_actuators(config.actuated)
+        self._setup_initial(condition)
+        self._setup_reader()
+
+        data = mj.MjData(model)
+        self._reset(data, None)
+        mj.mj_forward(model, data)
+        x0 = np.empty(self.n)
+        self._read(data, x0, np.empty(6))
+        self.x0 = x0
+        self._setup_common()
+
+    # -- construction steps (in this order: each uses what the previous ones set)
+    def _setup_state(self, sc: StateConfig):
+        """Look up and check the state joints and sites; state layout, labels and index maps."""
+        mj = _mujoco()
+        model = self.model
+        self._joint_ids = [self._find(mj.mjtObj.mjOBJ_JOINT, j, "state.joints") for j in sc.joints]
+        self._extra_ids = [self._find(mj.mjtObj.mjOBJ_JOINT, j, "state.extra_joints") for j in sc.extra_joints]
+        self._site_ids = [self._find(mj.mjtObj.mjOBJ_SITE, s, "state.sites") for s in sc.sites]
+        alljoints = list(sc.joints) + list(sc.extra_joints)
+        dup = {j for j in alljoints if alljoints.count(j) > 1} | {s for s in sc.sites if sc.sites.count(s) > 1}
+        if dup:
+            raise ConfigError(f"state: {sorted(dup)[0]!r} is listed twice")
+        for key, names, ids in (("state.joints", sc.joints, self._joint_ids), ("state.extra_joints", sc.extra_joints, self._extra_ids)):
+            for nm, j in zip(names, ids):
+                if int(model.jnt_type[j]) not in (int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE)):
+                    raise ConfigError(f"{key}: joint {nm!r} is not a hinge or slide joint (free/ball joints are not supported)")
+        if not alljoints and not sc.sites:
+            raise ConfigError("state: empty; list joints and/or sites")
+
+        # state layout
+        nj, ns, ne = len(sc.joints), len(sc.sites), len(sc.extra_joints)
+        self.n = 2 * nj + 6 * ns + 2 * ne
+        o_p, o_v, o_e = 2 * nj, 2 * nj + 3 * ns, 2 * nj + 6 * ns
+        self.layout = {
+            "qpos": slice(0, nj),
+            "qvel": slice(nj, 2 * nj),
+            "site_pos": slice(o_p, o_v),
+            "site_vel": slice(o_v, o_e),
+            "extra_qpos": slice(o_e, o_e + ne),
+            "extra_qvel": slice(o_e + ne, o_e + 2 * ne),
+        }
+        jids = self._joint_ids + self._extra_ids
+        self._qadr = np.array([model.jnt_qposadr[j] for j in jids], dtype=int)
+        self._dadr = np.array([model.jnt_dofadr[j] for j in jids], dtype=int)
+        self._sq = np.r_[np.arange(nj), o_e + np.arange(ne)].astype(int)
+        self._sqd = np.r_[nj + np.arange(nj), o_e + ne + np.arange(ne)].astype(int)
+        labels = [""] * self.n
+        for nm, i in zip(alljoints, self._sq):
+            labels[i] = f"q:{nm}"
+        for nm, i in zip(alljoints, self._sqd):
+            labels[i] = f"qd:{nm}"
+        for j, nm in enumerate(sc.sites):
+            for c, ax in enumerate("xyz"):
+                labels[o_p + 3 * j + c] = f"{nm}.{ax}"
+                labels[o_v + 3 * j + c] = f"{nm}.v{ax}"
+        self.state_labels = labels
+        self._joint_state_index = {nm: int(i) for nm, i in zip(alljoints, self._sq)}
+        self._site_state_index = {nm: o_p + 3 * j for j, nm in enumerate(sc.sites)}
+        self._all_dofs_in_state = sorted(self._dadr.tolist()) == list(range(model.nv))
+
+    def _setup_actuators(self, actuated):
+        """The controlled actuators ``_act (m,)`` (all of the model's if ``actuated`` is empty)."""
+        model = self.model
+        if actuated:
+            self._act = np.array([self._actuator_for(a) for a in actuated], dtype=int)
+            self.actuated = list(actuated)
+        else:
+            self._act = np.arange(model.nu)
+            self.actuated = [model.actuator(i).name for i in range(model.nu)]
+        if len(set(self._act.tolist())) != len(self._act):
+            raise ConfigError("actuated: an actuator is listed twice")
+        self.m = len(self._act)
+        if self.m == 0:
+            raise ConfigError(f"actuated: model {self.source} has no actuators")
+
+    def _setup_initial(self, condition: int):
+        """Initial full configuration ``_qinit (nq,)``: ``qpos0`` with the state joints at ``q0`` + offset."""
+        model = self.model
+        config = self.config
+        jids = self._joint_ids + self._extra_ids
+        qinit = model.qpos0.copy()
+        if config.q0:
+            if len(config.q0) != len(jids):
+                raise ConfigError(
+                    f"q0: expected {len(jids)} numbers (state.joints then state.extra_joints), got {len(config.q0)}"
+                )
+            q0 = np.array(config.q0, dtype=float)
+            if config.offsets:
+                if not 0 <= condition < len(config.offsets):
+                    raise ConfigError(f"condition {condition} out of range: {len(config.offsets)} offsets given")
+                q0 = q0 + np.array(config.offsets[condition], dtype=float)
+            qinit[self._qadr] = q0
+        self.condition = condition
+        self.n_conditions = max(1, len(config.offsets))
+        self._qinit = qinit
+
+    def _setup_reader(self):
+        """Copy plans for the fast state reader, integrator split and divergence warnings."""
+        mj = _mujoco()
+        model = self.model
+        o_v = self.layout["site_vel"].start
+        ns = len(self._site_ids)
+        self._q_src, self._q_dst = self._split_plan(self._qadr, self._sq)
+        self._qd_src, self._qd_dst = self._split_plan(self._dadr, self._sqd)
+        self._site_arr = np.array(self._site_ids, dtype=int)
+        self._site_pos_sl = self.layout["site_pos"]
+        self._site_vel_slices = [slice(o_v + 3 * j, o_v + 3 * j + 3) for j in range(ns)]
+        self._split_step = int(model.opt.integrator) != int(mj.mjtIntegrator.mjINT_RK4)
+        self._bad_warn = np.array([int(getattr(mj.mjtWarning, w)) for w in _BAD_WARNINGS])
+        self._obj_site = mj.mjtObj.mjOBJ_SITE
+
+    # -- lookups
+    def _find(self, objtype, name, key) -> int:
+        mj = _mujoco()
+        i = mj.mj_name2id(self.model, objtype, name)
+        if i < 0:
+            kind = {mj.mjtObj.mjOBJ_JOINT: "joint", mj.mjtObj.mjOBJ_SITE: "site"}.get(objtype, "object")
+            count = self.model.njnt if kind == "joint" else self.model.nsite
+            names = [mj.mj_id2name(self.model, objtype, k) for k in range(count)]
+            raise ConfigError(f"{key}: {kind} {name!r} not found in model {self.source}; {kind}s: {names}")
+        return i
+
+    def _actuator_for(self, name) -> int:
+        mj = _mujoco()
+        m = self.model
+        j = mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, name)
+        if j >= 0:
+            for i in range(m.nu):
+                if int(m.actuator_trntype[i]) == int(mj.mjtTrn.mjTRN_JOINT) and int(m.actuator_trnid[i, 0]) == j:
+                    return i
+            raise ConfigError(f"actuated: joint {name!r} has no actuator in model {self.source}")
+        i = mj.mj_name2id(m, mj.mjtObj.mjOBJ_ACTUATOR, name)
+        if i >= 0:
+            return i
+        raise ConfigError(f"actuated: no joint or actuator named {name!r} in model {self.source}")
+
+    def _site_indices(self, sites, key) -> list[int]:
+        out = []
+        for s in sites:
+            if s not in self._site_state_index:
+                raise ConfigError(f"{key}: site {s!r} is not in the state (state.sites = {list(self.config.state.sites)})")
+            out += list(range(self._site_state_index[s], self._site_state_index[s] + 3))
+        return out
+
+    def _joint_index(self, joint, key) -> int:
+        if joint not in self._joint_state_index:
+            raise ConfigError(f"{key}: joint {joint!r} is not in the state (state.joints + state.extra_joints)")
+        return self._joint_state_index[joint]
+
+    @staticmethod
+    def _split_plan(src, dst):
+        """Group (src, dst) index pairs into runs that are contiguous in both (slice copies)."""
+        plan_src, plan_dst = [], []
+        start = 0
+        for i in range(1, len(src) + 1):
+            if i == len(src) or src[i] != src[i - 1] + 1 or dst[i] != dst[i - 1] + 1:
+                plan_src.append(slice(int(src[start]), int(src[i - 1]) + 1))
+                plan_dst.append(slice(int(dst[start]), int(dst[i - 1]) + 1))
+                start = i
+        return plan_src, plan_dst
+
+    # -- simulator state <-> task state
+    def _reset(self, d, x0):
+        mj = _mujoco()
+        mj.mj_resetData(self.model, d)
+        d.qpos[:] = self._qinit
+        if x0 is not None:
+            x0 = np.asarray(x0, dtype=float)
+            d.qpos[self._qadr] = x0[self._sq]
+            d.qvel[self._dadr] = x0[self._sqd]
+
+    def _reader(self, d):
+        """A function ``read(out)`` writing the task state of ``d`` into ``out (n,)``.
+
+        Needs positions and velocities computed (after ``mj_step1`` or ``mj_forward``).  The
+        array views of ``d`` and the copy plan are bound once: this runs every control step.
+        """
+        ov = _mujoco().mj_objectVelocity
+        m, obj = self.model, self._obj_site
+        qpos, qvel, site_xpos = d.qpos, d.qvel, d.site_xpos
+        qplan = list(zip(self._q_src, self._q_dst))
+        qdplan = list(zip(self._qd_src, self._qd_dst))
+        sites = self._site_arr
+        pos_sl = self._site_pos_sl
+        vplan = list(zip(self._site_ids, self._site_vel_slices))
+        res = np.empty(6)
+        lin = res[3:]
+
+        def read(out):
+            for src, dst in qplan:
+                out[dst] = qpos[src]
+            for src, dst in qdplan:
+                out[dst] = qvel[src]
+            if vplan:
+                out[pos_sl] = site_xpos[sites].ravel()
+                for sid, sl in vplan:
+                    ov(m, d, obj, sid, res, 0)
+                    out[sl] = lin
+
+        return read
+
+    def _read(self, d, out, res=None):
+        self._reader(d)(out)
+
+    def state_from_qpos(self, qpos, qvel=None) -> np.ndarray:
+        """Task state for a full ``qpos (nq,)`` (and ``qvel``, default zero), via ``mj_forward``."""
+        mj = _mujoco()
+        d = mj.MjData(self.model)
+        d.qpos[:] = qpos
+        if qvel is not None:
+            d.qvel[:] = qvel
+        mj.mj_forward(self.model, d)
+        out = np.empty(self.n)
+        self._read(d, out, np.empty(6))
+        return out
+
+    def qpos_from_state(self, x) -> np.ndarray:
+        """``(..., nq)`` full configurations: state joints from ``x``, other joints at their initial values."""
+        x = np.asarray(x, dtype=float)
+        q = np.broadcast_to(self._qinit, x.shape[:-1] + (self.model.nq,)).copy()
+        q[..., self._qadr] = x[..., self._sq]
+        return q
+
+    # -- rollouts (hot path)
+    def _run_samples(self, samples, K, offs, eps, x, s, a, x0):
+        mj = _mujoco()
+        m = self.model
+        d = mj.MjData(m)
+        step1, step2, step, forward = mj.mj_step1, mj.mj_step2, mj.mj_step, mj.mj_forward
+        nsub = self.substeps
+        split = self._split_step
+        ctrl = d.ctrl
+        act = _as_index(self._act)
+        warn = d.warning.number
+        bad = self._bad_warn
+        read = self._reader(d)
+        dot = np.dot
+        T = self.T
+        for i in samples:
+            self._reset(d, x0)
+            xi, si, ai, ei, oi = x[i], s[i], a[i], eps[i], offs[i]
+            for k in range(T):
+                if split:
+                    step1(m, d)
+                else:
+                    forward(m, d)
+                xk, sk, ak = xi[k], si[k], ai[k]
+                read(xk)
+                np.add(xk, ei[k], out=sk)
+                dot(K[k], sk, out=ak)
+                ak += oi[k]
+                ctrl[act] = ak
+                if split:
+                    step2(m, d)
+                    if nsub > 1:
+                        step(m, d, nsub - 1)
+                else:
+                    step(m, d, nsub)
+                if warn.any():
+                    self._diverged(i, k, d, warn, bad)
+            forward(m, d)
+            read(xi[T])
+            np.add(xi[T], ei[T], out=si[T])
+            if not (np.isfinite(xi).all() and np.isfinite(ai).all()):
+                bad_k = np.flatnonzero(~np.isfinite(xi[:T]).all(axis=1) | ~np.isfinite(ai).all(axis=1))
+                kk = int(bad_k[0]) if bad_k.size else T
+                raise SimulationError(f"sample {i} diverged at control step {kk}: non-finite state or action")
+
+    def _diverged(self, i, k, d, warn, bad):
+        mj = _mujoco()
+        names = [mj.mjtWarning(w).name for w in np.flatnonzero(warn) if w in bad]
+        if not names:  # harmless warning (e.g. inertia): clear it and continue
+            warn[:] = 0
+            return
+        raise SimulationError(
+            f"sample {i} diverged at control step {k} (t = {k * self.dt:.3f} s): MuJoCo warning "
+            f"{', '.join(names)} (NaN/inf or huge qpos/qvel/qacc/ctrl, or a full contact/constraint buffer)"
+        )
+
+    def rollouts(self, policy: LinearGaussianPolicy, M: int, rng, noise: bool = True, workers: int = 1, x0=None) -> Rollouts:
+        """``M`` sampled trajectories (SPEC §0).
+
+        Noise ``eps (M,T+1,n) ~ N(0, rho2 I)`` then ``w (M,T,m) ~ N(0, I)`` is drawn from
+        ``rng`` up front (``noise=False``: both zero, the policy mean on the true state).
+        ``workers > 1`` simulates contiguous blocks of samples in threads, one ``MjData``
+        each (MuJoCo releases the GIL while stepping); results are identical for any
+        ``workers``.  ``x0``: another initial state in task coordinates (its joint
+        components are used; default ``self.x0``).  ``a`` records the policy's action
+        before MuJoCo clamps it to ``ctrlrange``.  Raises :class:`SimulationError`
+        naming the sample and step on divergence.
+        """
+        self._check_policy(policy)
+        rng = _rng(rng)
+        M = int(M)
+        T, n, m = self.T, self.n, self.m
+        if noise:
+            draws = self.draw_noise(M, rng)
+            eps, w = draws.eps, draws.w
+            offs = policy.k[None] + np.einsum("tij,mtj->mti", policy.chol, w)
+        else:
+            eps = np.zeros((M, T + 1, n))
+            offs = np.broadcast_to(policy.k, (M, T, m))
+        K = np.ascontiguousarray(policy.K)
+        x = np.empty((M, T + 1, n))
+        s = np.empty((M, T + 1, n))
+        a = np.empty((M, T, m))
+        workers = max(1, min(int(workers), M))
+        if workers == 1:
+            self._run_samples(range(M), K, offs, eps, x, s, a, x0)
+        else:
+            blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
+            with ThreadPoolExecutor(max_workers=workers) as ex:
+                futs = [ex.submit(self._run_samples, b.tolist(), K, offs, eps, x, s, a, x0) for b in blocks]
+                errors = []
+                for f in futs:
+                    try:
+                        f.result()
+                    except SimulationError as e:
+                        errors.append(e)
+                if errors:
+                    raise errors[0]
+        return self._finish(x, s, a)
+
+    # -- deterministic step and linearisation
+    def step(self, x, u) -> np.ndarray:
+        """One noise-free control step from task state ``x (n,)`` with action ``u (m,)`` held for ``substeps``."""
+        sim = self.simulator()
+        sim.reset(x)
+        return sim.step(u)
+
+    def simulator(self) -> "MujocoSimulator":
+        """A step-by-step simulator with its own ``MjData`` (what :class:`soc_opt.envs.SocOptEnv` steps)."""
+        return MujocoSimulator(self)
+
+    def _output_jacobian(self, d) -> np.ndarray:
+        """``H = d s / d (dq, dv)`` at the state in ``d`` (positions computed): ``(n, 2 nv)``.
+
+        Joint rows are selections; site positions use ``mj_jacSite``; site
+        velocities ``v = J(q) qdot`` use ``J`` for ``d v / d qdot`` and central
+        differences of ``J(q) qdot`` in ``q`` (hinge/slide joints only).
+        """
+        mj = _mujoco()
+        m = self.model
+        nv = m.nv
+        H = np.zeros((self.n, 2 * nv))
+        H[self._sq, self._dadr] = 1.0
+        H[self._sqd, nv + self._dadr] = 1.0
+        if not self._site_ids:
+            return H
+        jac = np.zeros((3, nv))
+        o_p = self.layout["site_pos"].start
+        o_v = self.layout["site_vel"].start
+        qd = d.qvel.copy()
+        for j, sid in enumerate(self._site_ids):
+            mj.mj_jacSite(m, d, jac, None, sid)
+            H[o_p + 3 * j : o_p + 3 * j + 3, :nv] = jac
+            H[o_v + 3 * j : o_v + 3 * j + 3, nv:] = jac
+        h = 1e-6
+        q = d.qpos.copy()
+        d2 = mj.MjData(m)
+        for dof in range(nv):
+            jnt = m.dof_jntid[dof]
+            adr = m.jnt_qposadr[jnt]
+            vs = []
+            for sign in (1.0, -1.0):
+                d2.qpos[:] = q
+                d2.qpos[adr] += sign * h
+                mj.mj_kinematics(m, d2)
+                mj.mj_comPos(m, d2)
+                v = []
+                for sid in self._site_ids:
+                    mj.mj_jacSite(m, d2, jac, None, sid)
+                    v.append(jac @ qd)
+                vs.append(np.concatenate(v))
+            H[o_v : o_v + 3 * len(self._site_ids), dof] = (vs[0] - vs[1]) / (2 * h)
+        return H
+
+    def linearize(self, x, u, cov=0.0, eps: float = 1e-6) -> LinearGaussianDynamics:
+        """Local linear model ``s_{k+1} ~ A_k s_k + B_k a_k + c_k`` around ``(x_k, u_k)`` in task coordinates.
+
+        Per control step: ``mjd_transitionFD`` (centred, ``eps``) at each of the
+        ``substeps`` physics steps along the nominal substep trajectory, chained
+        (``A = A_S...A_1``, ``B = sum_j A_S...A_{j+1} B_j``, ctrl held), then mapped
+        to task coordinates: ``A_k = H_{k+1} A G``, ``B_k = H_{k+1} B`` with ``G``
+        picking ``(q, qdot)`` from the task state (site components are functions of
+        them, so their columns are zero) and ``H`` the output Jacobian (site
+        Jacobians).  ``c_k = step(x_k, u_k) - A_k x_k - B_k u_k``.  ``cov``: process
+        noise (scalar times identity, or ``(n, n)``).  Needs every degree of freedom
+        of the model in the state.
+        """
+        mj = _mujoco()
+        if not self._all_dofs_in_state:
+            raise ValueError(
+                f"linearize: task {self.name!r} does not have every degree of freedom of the model in its state"
+            )
+        T = self.T
+        x = check_array("linearize x", x, (None, self.n))
+        u = check_array("linearize u", u, (None, self.m))
+        if x.shape[0] not in (T, T + 1) or u.shape[0] != T:
+            raise ShapeError(f"linearize needs x ({T + 1}, {self.n}) and u ({T}, {self.m}), got {x.shape}, {u.shape}")
+        m = self.model
+        nv = m.nv
+        d = mj.MjData(m)
+        G = np.zeros((2 * nv, self.n))
+        G[self._dadr, self._sq] = 1.0
+        G[nv + self._dadr, self._sqd] = 1.0
+        Aj = np.zeros((2 * nv, 2 * nv))
+        Bj = np.zeros((2 * nv, m.nu))
+        A = np.zeros((T, self.n, self.n))
+        B = np.zeros((T, self.n, self.m))
+        c = np.zeros((T, self.n))
+        nxt = np.empty(self.n)
+        res = np.empty(6)
+        for k in range(T):
+            self._reset(d, x[k])
+            d.ctrl[self._act] = u[k]
+            Atot = np.eye(2 * nv)
+            Btot = np.zeros((2 * nv, m.nu))
+            for _ in range(self.substeps):
+                mj.mjd_transitionFD(m, d, eps, True, Aj, Bj, None, None)
+                Atot = Aj @ Atot
+                Btot = Aj @ Btot + Bj
+                mj.mj_step(m, d)
+            mj.mj_forward(m, d)
+            self._read(d, nxt, res)
+            H = self._output_jacobian(d)
+            A[k] = H @ Atot @ G
+            B[k] = H @ Btot[:, self._act]
+            c[k] = nxt - A[k] @ x[k] - B[k] @ u[k]
+        W = np.asarray(cov, dtype=float)
+        W = W * np.eye(self.n) if W.ndim == 0 else W
+        return LinearGaussianDynamics(A, B, c, np.broadcast_to(W, (T, self.n, self.n)).copy())
+
+    def ee_points(self, x) -> np.ndarray:
+        """``(..., P, 3)`` positions of the state sites (for figures)."""
+        x = np.asarray(x, dtype=float)
+        return x[..., self.layout["site_pos"]].reshape(x.shape[:-1] + (len(self._site_ids), 3))
+
+
+class MujocoSimulator:
+    """One trajectory of a :class:`MujocoTask`, one control step at a time, in its own ``MjData``.
+
+    The physics calls are those of :meth:`MujocoTask.rollouts` for one sample (positions and
+    velocities computed, state read, ``ctrl`` held for ``substeps`` steps), so an episode
+    with the same actions reproduces a rollout's true states.  ``data``: the ``MjData``
+    (e.g. for rendering); ``x``: the current true state ``(n,)``; ``k``: control steps taken.
+    """
+
+    def __init__(self, task: MujocoTask):
+        mj = _mujoco()
+        self.task = task
+        self.data = mj.MjData(task.model)
+        self._read = task._reader(self.data)
+        self._act = _as_index(task._act)
+        self.x = np.empty(task.n)
+        self.k = 0
+        self.reset()
+
+    def reset(self, x0=None) -> np.ndarray:
+        """Back to ``x0`` (task coordinates; default the task's ``x_0``); returns a copy of the state."""
+        mj = _mujoco()
+        self.task._reset(self.data, x0)
+        mj.mj_forward(self.task.model, self.data)
+        self._read(self.x)
+        self.k = 0
+        return self.x.copy()
+
+    def step(self, u, xi=None) -> np.ndarray:
+        """Hold ``u (m,)`` as ``ctrl`` for ``substeps`` physics steps; returns a copy of the new state.
+
+        Raises :class:`SimulationError` on a divergence warning or a non-finite state.
+        """
+        if xi is not None:
+            raise ValueError(f"task {self.task.name!r}: MuJoCo tasks have no process noise (xi must be None)")
+        mj = _mujoco()
+        task, d = self.task, self.data
+        d.ctrl[self._act] = u
+        mj.mj_step(task.model, d, task.substeps)
+        warn = d.warning.number
+        if warn.any():
+            task._diverged(0, self.k, d, warn, task._bad_warn)
+        mj.mj_forward(task.model, d)
+        self._read(self.x)
+        self.k += 1
+        if not np.isfinite(self.x).all():
+            raise SimulationError(f"task {task.name!r} diverged at control step {self.k - 1}: non-finite state")
+        return self.x.copy()

@@ -1,0 +1,130 @@
+"""Pictures of trajectories: offscreen MuJoCo filmstrips with a matplotlib fallback (SPEC §8).
+
+The frames are rendered in a subprocess running :mod:`soc_opt.tasks.render_worker`, so
+that a broken GL driver cannot take the caller down.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..models import Rollouts
+from .mujoco import MujocoTask, _mujoco
+
+__all__ = ["RenderResult", "render_filmstrip"]
+
+_WORKER = "soc_opt.tasks.render_worker"
+
+
+def _worker_env(**extra) -> dict[str, str]:
+    """The caller's environment plus ``extra``, with the directory holding this ``soc_opt``
+    first on ``PYTHONPATH`` so that the worker imports the same package as the caller."""
+    root = str(Path(__file__).resolve().parents[2])
+    env = dict(os.environ, **extra)
+    env["PYTHONPATH"] = os.pathsep.join([root] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    return env
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """Where the picture went and how: ``backend`` is ``"egl"``, ``"osmesa"``, ... or ``"matplotlib"``."""
+
+    path: str
+    backend: str
+    message: str
+
+
+def _trajectory(traj) -> np.ndarray:
+    if isinstance(traj, Rollouts):
+        return np.asarray(traj.x)
+    x = np.asarray(traj, dtype=float)
+    return x[None] if x.ndim == 2 else x
+
+
+def render_filmstrip(task, traj, path, frames: int = 8, width: int = 320, height: int = 240,
+                     backends: tuple[str, ...] | None = None, timeout: float = 120.0) -> RenderResult:
+    """A PNG filmstrip of a trajectory (``Rollouts``: sample 0's true states; or ``x (T+1, n)``).
+
+    MuJoCo tasks are rendered offscreen with ``mujoco.Renderer`` in a subprocess
+    (so a broken GL driver cannot take the caller down), trying ``MUJOCO_GL`` =
+    ``egl`` then ``osmesa`` (a user-set ``MUJOCO_GL`` first).  If no backend works,
+    or the task has no MuJoCo model, a matplotlib 3-D plot of the end-effector
+    points of all samples is written instead and ``message`` says why.
+    """
+    path = str(path)
+    X = _trajectory(traj)
+    reasons = []
+    if isinstance(task, MujocoTask):
+        if backends is None:
+            env_gl = os.environ.get("MUJOCO_GL", "").lower()
+            backends = tuple(dict.fromkeys([b for b in (env_gl, "egl", "osmesa") if b in ("egl", "osmesa", "glfw")]))
+        x = X[0]
+        idx = np.unique(np.linspace(0, x.shape[0] - 1, max(1, frames)).round().astype(int))
+        Q = task.qpos_from_state(x[idx])
+        mj = _mujoco()
+        m = task.model
+        width = min(width, int(m.vis.global_.offwidth))
+        height = min(height, int(m.vis.global_.offheight))
+        pts = task.ee_points(x)
+        center = pts.reshape(-1, 3).mean(axis=0) if pts.size else np.asarray(m.stat.center)
+        spec = {
+            "path": os.path.abspath(path), "width": width, "height": height, "camera": task.config.camera,
+            "lookat": [float(v) for v in center], "distance": float(1.5 * max(m.stat.extent, 0.3)),
+            "azimuth": 135.0, "elevation": -25.0,
+        }
+        with tempfile.TemporaryDirectory() as work:
+            mj.mj_saveModel(m, os.path.join(work, "model.mjb"), None)
+            np.save(os.path.join(work, "qpos.npy"), Q)
+            with open(os.path.join(work, "spec.json"), "w") as f:
+                json.dump(spec, f)
+            for b in backends:
+                env = _worker_env(MUJOCO_GL=b)
+                if b in ("egl", "osmesa"):
+                    env["PYOPENGL_PLATFORM"] = b
+                try:
+                    p = subprocess.run([sys.executable, "-m", _WORKER, work], env=env, capture_output=True,
+                                       text=True, timeout=timeout)
+                except subprocess.TimeoutExpired:
+                    reasons.append(f"{b}: timed out")
+                    continue
+                if p.returncode == 0 and os.path.isfile(path):
+                    return RenderResult(path, b, f"rendered {len(idx)} frames with MUJOCO_GL={b}")
+                err = (p.stderr.strip().splitlines() or [f"exit code {p.returncode}"])[-1]
+                reasons.append(f"{b}: {err}")
+        message = "MuJoCo offscreen rendering unavailable (" + "; ".join(reasons) + "); wrote a matplotlib plot instead"
+    else:
+        message = f"task {task.name!r} has no MuJoCo model; wrote a matplotlib plot of its points"
+    _plot_points(task, X, path, message)
+    return RenderResult(path, "matplotlib", message)
+
+
+def _plot_points(task, X, path, title):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    pts = task.ee_points(X)  # (M, T+1, P, 3)
+    fig = Figure(figsize=(6, 5))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(projection="3d")
+    for p in range(pts.shape[2]):
+        color = f"C{p}"
+        for i in range(pts.shape[0]):
+            ax.plot(pts[i, :, p, 0], pts[i, :, p, 1], pts[i, :, p, 2], color=color, alpha=0.6, lw=1,
+                    label=f"point {p}" if i == 0 else None)
+        ax.scatter(*pts[:, 0, p].T, color=color, marker="o", s=12)
+        ax.scatter(*pts[:, -1, p].T, color=color, marker="x", s=16)
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.set_zlabel("z")
+    ax.legend(loc="upper left", fontsize=7)
+    fig.suptitle(f"{task.name}: end-effector points (o start, x end)", fontsize=9)
+    fig.text(0.01, 0.01, title[:200], fontsize=6)
+    fig.savefig(path, dpi=100)
