@@ -9,6 +9,7 @@ Subcommands::
     soc-opt solvers [--json] [--quick]
     soc-opt bench [--json] [--only NAMES]
     soc-opt tasks
+    soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--dry-run]
     soc-opt config-doc [--out FILE]
 
 ``TASK`` is a built-in name (``linear2d``, ``peg``, ``door``) or the path of a task TOML file.
@@ -210,6 +211,22 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _cmd_sweep(args) -> int:
+    from .sweep import describe, load_sweep
+
+    spec = load_sweep(args.file)  # validates every trial before anything starts
+    out = Path(args.out or f"runs/sweep-{spec.name}")
+    _print(f"sweep {spec.name}: {describe(spec)}; output {out}")
+    if args.dry_run:
+        _print("\n".join(t.id for t in spec.trials))
+        return 0
+    from .sweep_runner import run_sweep
+
+    res = run_sweep(spec, out, address=args.address, workers=args.workers, max_retries=args.max_retries)
+    c = res["counts"]
+    _print(f"{c['done']} done, {c['failed']} failed; report: {res['report']}  (trial states: {out / 'status.json'})")
+    return 1 if c["failed"] else 0
+
 def _cmd_config_doc(args) -> int:
     from .config_doc import render
 
@@ -274,6 +291,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("tasks", help="list the built-in tasks")
     t.set_defaults(func=_cmd_tasks)
+
+    w = sub.add_parser("sweep", help="a grid of trials (tasks x settings x methods x seeds) on Ray (docs/sweeps.md)")
+    w.add_argument("file", help="sweep TOML file")
+    w.add_argument("--out", help="output directory (default runs/sweep-NAME); a rerun skips finished trials")
+    w.add_argument("--address", help="join this Ray cluster (default: start a local Ray on this machine's cores)")
+    w.add_argument("--workers", type=int, help="at most this many trials at once (default: all cores)")
+    w.add_argument("--max-retries", dest="max_retries", type=int, default=3,
+                   help="re-executions of a trial whose worker process died (resumes from its checkpoint)")
+    w.add_argument("--dry-run", dest="dry_run", action="store_true", help="validate and list the trials only")
+    w.set_defaults(func=_cmd_sweep)
 
     d = sub.add_parser("config-doc", help="write the configuration reference (docs/configuration.md)")
     d.add_argument("--out", help="write to this file instead of standard output")

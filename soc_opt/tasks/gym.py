@@ -150,7 +150,7 @@ class RewardCost(CostSum):
         s = np.asarray(s, dtype=float)
         if a.ndim != 2 or a.shape[1] != self.m or s.ndim != 2 or s.shape[1] != self.n or s.shape[0] not in (len(a), len(a) + 1):
             raise ShapeError(f"reward cost: need s (T+1, {self.n}) and a (T, {self.m}), got {s.shape}, {a.shape}")
-        T, n, N = len(a), self.n, self.n + self.m
+        T, n = len(a), self.n
         out = Derivatives(np.zeros(T), np.zeros((T, n)), np.zeros((T, self.m)), np.zeros((T, n, n)),
                           np.zeros((T, self.m, self.m)), np.zeros((T, self.m, n)))
         for k in range(T):
