@@ -26,7 +26,7 @@ from . import ilqg as ilqg_mod
 from .algorithms import DPSOCConfig, RunState
 from .config import ConfigError, read_toml
 from .progress import Progress, as_progress
-from .rundir import CHECKPOINT, CheckpointError, RunDirectory, RunDirectoryError, lock_directory
+from .rundir import CHECKPOINT, CheckpointError, RunDirectory, RunDirectoryError, differences, lock_directory
 from .tblog import MISSING_MESSAGE, RunLog
 
 if TYPE_CHECKING:
@@ -101,6 +101,12 @@ def _ilqg_overrides(cfg: DPSOCConfig, values: dict, paper: bool) -> DPSOCConfig:
     if "iterations" in values:
         cfg = cfg.replace(ilqg=cfg.ilqg.replace(iterations=values["iterations"]))
     return cfg
+
+
+def _same_settings(old, new) -> bool:
+    """Every setting recorded in ``old`` has the same value in ``new`` (keys only in ``new`` are
+    ignored): no :func:`soc_opt.rundir.differences`.  Kept for ``soc_opt.sweep_runner``."""
+    return not differences(old, new)
 
 
 def fork_state(state: RunState) -> RunState:

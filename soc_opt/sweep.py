@@ -377,7 +377,9 @@ def _config(task_ref, cfg_file, paper, common, setting, method) -> DPSOCConfig:
         it = _lookup(d, ("baseline", "iterations"))
         if isinstance(d.get("i_switch"), int) and isinstance(it, int) and it >= 1:
             d["i_switch"] = min(d["i_switch"], it - 1)
-    return DPSOCConfig.from_dict(d)
+    cfg = DPSOCConfig.from_dict(d)
+    cfg.check_for(method)  # method-specific rules (i_switch < iterations for DPSOC-EM), before any trial
+    return cfg
 
 
 def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
