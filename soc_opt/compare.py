@@ -21,7 +21,7 @@ from . import report
 from . import algorithms
 from .algorithms import DPSOCConfig, EvalConfig, RunState
 from .experiment import fork_state, run_experiment
-from .rundir import _decode_checkpoint, _encode_checkpoint, atomic_write_bytes, lock_directory
+from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory
 from .models import LinearGaussianPolicy, Rollouts
 from .progress import Progress, as_progress
 
@@ -145,19 +145,22 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
 
     def keep_fork(st: RunState, _p=fork_path):
         if st.iteration == cfg.i_switch and not _p.exists():
-            atomic_write_bytes(_p, _encode_checkpoint(st))
+            atomic_write_bytes(_p, encode_checkpoint(st))
 
     # Baseline, with a copy of its state kept at i_switch for DPSOC-EM to start from.
     base = run_experiment(task, "lqr-flm", cfg, seed, sdir / "lqr-flm", task_name=task_name,
                           progress=progress, on_iteration=keep_fork, bar_level=level, restart=restart)
-    fork = _decode_checkpoint(fork_path) if fork_path.exists() else None
+    try:
+        fork = decode_checkpoint(fork_path) if fork_path.exists() else None
+    except CheckpointError:
+        fork = None  # damaged: it is recomputed below
     if fork is None or fork.iteration != cfg.i_switch:
-        # i_switch == 0, or a baseline resumed past i_switch without its fork: replay the
-        # deterministic baseline prefix in memory.
+        # i_switch == 0, a baseline resumed past i_switch without its fork, or a damaged fork:
+        # replay the deterministic baseline prefix in memory.
         st = algorithms.initial_state(task, cfg.baseline, seed)
         while st.iteration < cfg.i_switch:
             st = algorithms.lqr_flm_iteration(task, cfg.baseline, st)
-        atomic_write_bytes(fork_path, _encode_checkpoint(st))
+        atomic_write_bytes(fork_path, encode_checkpoint(st))
         fork = st
     em = run_experiment(
         task, "dpsoc-em", cfg, seed, sdir / "dpsoc-em", task_name=task_name, progress=progress,

@@ -58,7 +58,7 @@ except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
 __all__ = ["RunDirectoryError", "CheckpointError", "RunDirectory", "lock_directory", "differences",
-           "atomic_write_bytes", "CHECKPOINT", "PREVIOUS_CHECKPOINT", "LOCK"]
+           "atomic_write_bytes", "encode_checkpoint", "decode_checkpoint", "CHECKPOINT", "PREVIOUS_CHECKPOINT", "LOCK"]
 
 CHECKPOINT = "checkpoint.pkl"
 PREVIOUS_CHECKPOINT = "checkpoint.prev.pkl"
@@ -226,12 +226,13 @@ def _pid_lock(lp: Path):  # pragma: no cover - only where fcntl is missing
         os.unlink(lp)
 
 
-def _encode_checkpoint(state) -> bytes:
+def encode_checkpoint(state) -> bytes:
+    """The bytes of a checkpoint file: header, SHA-256 of the pickled ``state``, the pickle."""
     payload = pickle.dumps(state)
     return _MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n" + payload
 
 
-def _decode_checkpoint(path: Path):
+def decode_checkpoint(path: Path):
     """The state in checkpoint file ``path``; :class:`CheckpointError` saying what is wrong."""
     data = path.read_bytes()
     if not data:
@@ -326,21 +327,21 @@ class RunDirectory:
                 raise CheckpointError(f"run directory {str(self.path)!r} has no previous checkpoint; "
                                       "rerun without --previous-checkpoint, or with --restart")
             try:
-                return _decode_checkpoint(prev)
+                return decode_checkpoint(prev)
             except CheckpointError as e:
                 raise CheckpointError(f"run directory {str(self.path)!r}: {e}; rerun with --restart to "
                                       "start from scratch") from e
         if not main.exists():
-            return _decode_checkpoint(prev) if prev.exists() else None
+            return decode_checkpoint(prev) if prev.exists() else None
         try:
-            return _decode_checkpoint(main)
+            return decode_checkpoint(main)
         except CheckpointError as e:
             raise CheckpointError(f"run directory {str(self.path)!r}: {e}; {self._previous_hint()}") from e
 
     def _previous_hint(self) -> str:
         prev = self.path / PREVIOUS_CHECKPOINT
         try:
-            st = _decode_checkpoint(prev) if prev.exists() else None
+            st = decode_checkpoint(prev) if prev.exists() else None
         except CheckpointError:
             st = None
         if st is None:
@@ -380,7 +381,7 @@ class RunDirectory:
             atomic_write_bytes(self.path / "best_policy.npz", _npz_bytes(
                 **best.policy.to_dict(), mean_cost=best.mean_cost, iteration=best.iteration))
         self._keep_previous_checkpoint()
-        atomic_write_bytes(self.path / CHECKPOINT, _encode_checkpoint(state))
+        atomic_write_bytes(self.path / CHECKPOINT, encode_checkpoint(state))
 
     def _keep_previous_checkpoint(self) -> None:
         main = self.path / CHECKPOINT
