@@ -103,7 +103,7 @@ def _ilqg_overrides(cfg: DPSOCConfig, values: dict, paper: bool) -> DPSOCConfig:
     return cfg
 
 
-def _same_settings(old, new) -> bool:
+def same_settings(old, new) -> bool:
     """Every setting recorded in ``old`` has the same value in ``new`` (keys only in ``new`` are
     ignored): no :func:`soc_opt.rundir.differences`.  Kept for ``soc_opt.sweep_runner``."""
     return not differences(old, new)

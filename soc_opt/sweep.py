@@ -287,10 +287,10 @@ def _seeds(v) -> tuple[int, ...]:
 
 def _resolve_task(ref: str, base_dir: Path, i: int) -> tuple[str, str, Path]:
     """``(task reference passed to workers, label, task TOML path)``."""
-    from .tasks.loading import BUILTIN_TASKS, _problems_dir
+    from .tasks.loading import BUILTIN_TASKS, problems_dir
 
     if ref in BUILTIN_TASKS:
-        return ref, ref, _problems_dir() / BUILTIN_TASKS[ref]
+        return ref, ref, problems_dir() / BUILTIN_TASKS[ref]
     p = Path(ref)
     for cand in ([p] if p.is_absolute() else [base_dir / p, p]):
         if cand.is_file():

@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from .experiment import _same_settings
+from .experiment import same_settings
 from .sweep import (ERROR, PROGRESS, RESULT, TRIAL, SweepError, SweepSpec, TrialSpec, as_json, read_json, run_trial,
                     write_json)
 
@@ -45,7 +45,7 @@ def prepare_out(spec: SweepSpec, out: Path) -> dict[str, str]:
         d = out / t.relpath
         old = read_json(d / TRIAL)
         new = as_json(t.to_dict())
-        if old is not None and not _same_settings(old, new):
+        if old is not None and not same_settings(old, new):
             raise SweepError(f"trial directory {str(d)!r} holds trial {t.id} with a different specification; "
                              "use another --out or delete it")
         res = read_json(d / RESULT)

@@ -25,7 +25,7 @@ from soc_opt.linalg import single_thread_blas
 from soc_opt.sweep import TrialDiverged, check_finite, load_sweep, sweep_from_dict
 from soc_opt.sweep_runner import ProgressBoard, run_sweep
 from soc_opt.tasks import BUILTIN_TASKS, load_task
-from soc_opt.tasks.loading import _problems_dir
+from soc_opt.tasks.loading import problems_dir
 
 SMALL = {
     "name": "small",
@@ -45,7 +45,7 @@ def _quiet_board(n):
 
 def test_grid_is_the_product_of_tasks_settings_methods_and_seeds(tmp_path):
     own = tmp_path / "mytask.toml"
-    src = (_problems_dir() / BUILTIN_TASKS["linear2d"]).read_text()
+    src = (problems_dir() / BUILTIN_TASKS["linear2d"]).read_text()
     own.write_text(src.replace('name = "linear2d"', 'name = "mytask"'))
     data = {
         "tasks": ["linear2d", "mytask.toml"],

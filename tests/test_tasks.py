@@ -154,7 +154,7 @@ def test_door_can_be_hooked_and_pulled_open(door):
     """Feasibility of the door model: IK waypoints (hook tip down, into the gap behind the handle
     bar, then following the handle as the door turns) tracked by a joint PD policy open the door."""
     m, T = door.model, door.T
-    qa, hq = door._qadr[:6], door._qadr[6]
+    qa, hq = door.qpos_adr[:6], door.qpos_adr[6]
     jid = [m.joint(nm).id for nm in door.config.state.joints]
     lo = np.where(m.jnt_limited[jid], m.jnt_range[jid, 0], -np.pi)
     hi = np.where(m.jnt_limited[jid], m.jnt_range[jid, 1], np.pi)
@@ -184,7 +184,7 @@ def test_door_can_be_hooked_and_pulled_open(door):
     mujoco.mj_forward(m, d)
     Mf = np.zeros((m.nv, m.nv))
     mujoco.mj_fullM(m, d, Mf)
-    Md = np.diag(Mf)[door._dadr[:6]]
+    Md = np.diag(Mf)[door.dof_adr[:6]]
     Kp, Kd = 64.0 * Md, 2 * 0.8 * 8.0 * Md
     K = np.zeros((T, 6, door.n))
     j = np.arange(6)
@@ -220,7 +220,7 @@ def test_site_velocities_equal_finite_differences_of_positions(peg, door):
             x = r.x[0, k]
             q = t.qpos_from_state(x)
             qd = np.zeros(t.model.nv)
-            qd[t._dadr] = x[t._sqd]
+            qd[t.dof_adr] = x[t.state_qvel_idx]
             assert np.abs(qd).max() > 1e-2  # moving
             h = 1e-6
             pos = []
@@ -470,7 +470,7 @@ def test_divergence_raises_simulation_error_naming_sample_and_step():
 def _fd_step(task, x, u, h=1e-6):
     A = np.zeros((task.n, task.n))
     B = np.zeros((task.n, task.m))
-    joint_cols = np.r_[task._sq, task._sqd]
+    joint_cols = np.r_[task.state_qpos_idx, task.state_qvel_idx]
     for i in joint_cols:
         e = np.zeros(task.n)
         e[i] = h
@@ -487,8 +487,8 @@ def test_linearize_matches_finite_differences_of_step(name):
     task = load_task(name, overrides={"T": 2})
     rng = np.random.default_rng(3)
     x = task.x0.copy()
-    x[task._sq] += 0.05 * rng.normal(size=len(task._sq))
-    x[task._sqd] += 0.3 * rng.normal(size=len(task._sqd))
+    x[task.state_qpos_idx] += 0.05 * rng.normal(size=len(task.state_qpos_idx))
+    x[task.state_qvel_idx] += 0.3 * rng.normal(size=len(task.state_qvel_idx))
     x = task.step(x, np.zeros(task.m))  # consistent site components
     u = rng.normal(size=task.m)
     X = np.stack([x, x, x])
@@ -499,7 +499,7 @@ def test_linearize_matches_finite_differences_of_step(name):
     np.testing.assert_allclose(dyn.B[0], B_fd, atol=1e-5 * np.abs(B_fd).max())
     np.testing.assert_allclose(dyn.A[0] @ x + dyn.B[0] @ u + dyn.c[0], task.step(x, u), atol=1e-10)
     # site components of the state carry no information of their own
-    site_cols = np.setdiff1d(np.arange(task.n), np.r_[task._sq, task._sqd])
+    site_cols = np.setdiff1d(np.arange(task.n), np.r_[task.state_qpos_idx, task.state_qvel_idx])
     assert np.all(dyn.A[0][:, site_cols] == 0)
 
 
@@ -532,8 +532,8 @@ def test_render_filmstrip_offscreen(tmp_path, peg):
 def _random_joint_state(task, seed=3):
     rng = np.random.default_rng(seed)
     x = task.x0.copy()
-    x[task._sq] += 0.05 * rng.normal(size=len(task._sq))
-    x[task._sqd] += 0.3 * rng.normal(size=len(task._sqd))
+    x[task.state_qpos_idx] += 0.05 * rng.normal(size=len(task.state_qpos_idx))
+    x[task.state_qvel_idx] += 0.3 * rng.normal(size=len(task.state_qvel_idx))
     return task.step(x, np.zeros(task.m)), rng.normal(size=task.m)
 
 

@@ -31,7 +31,7 @@ from ..costs import CostSum, Derivatives
 from ..models import LinearGaussianDynamics, Rollouts, ShapeError, check_array
 from .base import SimulationError
 from .config import GYM_PREFIX, StateConfig, TaskConfig
-from .mujoco import MujocoTask, _mujoco
+from .mujoco import MujocoTask, import_mujoco
 
 __all__ = ["GYM_PREFIX", "DEFAULT_T", "DEFAULT_RHO2", "GymMujocoTask", "EnvReward", "RewardCost", "make_gym_env", "load_gym_task"]
 
@@ -63,7 +63,7 @@ def make_gym_env(env_id: str, kwargs: dict | None = None):
         raise ConfigError(f"{name}: unknown Gymnasium environment id {env_id!r} ({e})") from e
     except (TypeError, ValueError, ModuleNotFoundError) as e:
         raise ConfigError(f"{name}: gymnasium.make failed: {type(e).__name__}: {e}") from e
-    mj = _mujoco()
+    mj = import_mujoco()
     u = env.unwrapped
     if not (isinstance(getattr(u, "model", None), mj.MjModel) and isinstance(getattr(u, "data", None), mj.MjData)
             and hasattr(u, "set_state") and hasattr(u, "frame_skip")):
@@ -84,14 +84,14 @@ class EnvReward:
 
     def __init__(self, env, task: "GymMujocoTask"):
         self.u = env.unwrapped
-        self.qadr, self.sq = task._qadr, task._sq
-        self.dadr, self.sqd = task._dadr, task._sqd
+        self.qadr, self.sq = task.qpos_adr, task.state_qpos_idx
+        self.dadr, self.sqd = task.dof_adr, task.state_qvel_idx
         self.nq, self.nv = task.model.nq, task.model.nv
         self.name = task.name
         self.evaluations = 0
 
     def __call__(self, x, a) -> float:
-        mj = _mujoco()
+        mj = import_mujoco()
         u = self.u
         qpos = np.empty(self.nq)
         qvel = np.empty(self.nv)
@@ -192,7 +192,7 @@ class GymMujocoTask(MujocoTask):
     kind = "gym"
 
     def __init__(self, config: TaskConfig, env, *, condition: int = 0):
-        mj = _mujoco()
+        mj = import_mujoco()
         env_id = config.model[len(GYM_PREFIX):]
         name = config.model
         bad = [k for k, ok in (("q0", not config.q0), ("offsets", not config.offsets), ("actuated", not config.actuated),
@@ -248,7 +248,7 @@ class GymMujocoTask(MujocoTask):
         coordinates of the state (site components are functions of them: zero columns), the same
         for ``B_k``, and ``c_k = f(x_k, u_k) - A_k x_k - B_k u_k``; ``f`` is :meth:`step`.
         """
-        mj = _mujoco()
+        mj = import_mujoco()
         if int(self.model.opt.integrator) != int(mj.mjtIntegrator.mjINT_RK4):
             return super().linearize(x, u, cov=cov, eps=eps)
         T, n, m = self.T, self.n, self.m
@@ -262,7 +262,7 @@ class GymMujocoTask(MujocoTask):
             sim.reset(xk)
             return sim.step(uk)
 
-        cols = np.concatenate([self._sq, self._sqd])
+        cols = np.concatenate([self.state_qpos_idx, self.state_qvel_idx])
         A, B, c = np.zeros((T, n, n)), np.zeros((T, n, m)), np.zeros((T, n))
         for k in range(T):
             for i in cols:
@@ -283,19 +283,19 @@ class GymMujocoTask(MujocoTask):
         bodies of the kinematic tree (:attr:`ee_bodies`, e.g. a pendulum's pole, a cheetah's feet)."""
         if self._site_ids:
             return super().ee_points(x)
-        mj = _mujoco()
+        mj = import_mujoco()
         x = np.asarray(x, dtype=float)
         flat = x.reshape(-1, self.n)
         d = self._kin_data
         out = np.empty((len(flat), len(self._leaves), 3))
         for i, xi in enumerate(flat):
-            d.qpos[self._qadr] = xi[self._sq]
+            d.qpos[self.qpos_adr] = xi[self.state_qpos_idx]
             mj.mj_kinematics(self.model, d)
             out[i] = d.xpos[self._leaves]
         return out.reshape(x.shape[:-1] + (len(self._leaves), 3))
 
-    def _reset(self, d, x0):
-        super()._reset(d, x0)
+    def reset_data(self, d, x0):
+        super().reset_data(d, x0)
         if x0 is None:
             d.qvel[:] = self._qvel_init
 

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 __all__ = ["step_derivatives", "output_jacobian", "linearize"]
 
 
-def _mujoco():
+def import_mujoco():
     import mujoco
 
     return mujoco
@@ -39,7 +39,7 @@ def step_derivatives(m, d, eps: float, A: np.ndarray, B: np.ndarray) -> None:
     what ``mjd_transitionFD(m, d, eps, True, A, B, None, None)`` computes for the integrators it
     supports; here it serves the RK4 integrator.
     """
-    mj = _mujoco()
+    mj = import_mujoco()
     nv, nu = m.nv, m.nu
     qadr = np.array([m.jnt_qposadr[m.dof_jntid[v]] for v in range(nv)], dtype=int)
     work = mj.MjData(m)
@@ -67,13 +67,13 @@ def output_jacobian(task: MujocoTask, d) -> np.ndarray:
     velocities ``v = J(q) qdot`` use ``J`` for ``d v / d qdot`` and central differences of
     ``J(q) qdot`` in ``q`` (hinge/slide joints only).
     """
-    mj = _mujoco()
+    mj = import_mujoco()
     m = task.model
     nv = m.nv
     H = np.zeros((task.n, 2 * nv))
-    H[task._sq, task._dadr] = 1.0
-    H[task._sqd, nv + task._dadr] = 1.0
-    points = task._points
+    H[task.state_qpos_idx, task.dof_adr] = 1.0
+    H[task.state_qvel_idx, nv + task.dof_adr] = 1.0
+    points = task.point_refs
     if not points:
         return H
     jac = np.zeros((3, nv))
@@ -117,7 +117,7 @@ def linearize(task: MujocoTask, x, u, cov=0.0, eps: float = 1e-6) -> LinearGauss
     (scalar times identity, or ``(n, n)``).  Needs every degree of freedom of the model in the
     state (:meth:`MujocoTask.check_linearizable`).
     """
-    mj = _mujoco()
+    mj = import_mujoco()
     task.check_linearizable()
     T = task.T
     x = check_array("linearize x", x, (None, task.n))
@@ -129,8 +129,8 @@ def linearize(task: MujocoTask, x, u, cov=0.0, eps: float = 1e-6) -> LinearGauss
     rk4 = int(m.opt.integrator) == int(mj.mjtIntegrator.mjINT_RK4)
     d = mj.MjData(m)
     G = np.zeros((2 * nv, task.n))
-    G[task._dadr, task._sq] = 1.0
-    G[nv + task._dadr, task._sqd] = 1.0
+    G[task.dof_adr, task.state_qpos_idx] = 1.0
+    G[nv + task.dof_adr, task.state_qvel_idx] = 1.0
     Aj = np.zeros((2 * nv, 2 * nv))
     Bj = np.zeros((2 * nv, m.nu))
     A = np.zeros((T, task.n, task.n))
@@ -138,8 +138,8 @@ def linearize(task: MujocoTask, x, u, cov=0.0, eps: float = 1e-6) -> LinearGauss
     c = np.zeros((T, task.n))
     nxt = np.empty(task.n)
     for k in range(T):
-        task._reset(d, x[k])
-        d.ctrl[task._act] = u[k]
+        task.reset_data(d, x[k])
+        d.ctrl[task.actuator_ids] = u[k]
         Atot = np.eye(2 * nv)
         Btot = np.zeros((2 * nv, m.nu))
         for _ in range(task.substeps):
@@ -151,10 +151,10 @@ def linearize(task: MujocoTask, x, u, cov=0.0, eps: float = 1e-6) -> LinearGauss
             Btot = Aj @ Btot + Bj
             mj.mj_step(m, d)
         mj.mj_forward(m, d)
-        task._read(d, nxt)
+        task.read_state(d, nxt)
         H = output_jacobian(task, d)
         A[k] = H @ Atot @ G
-        B[k] = H @ Btot[:, task._act]
+        B[k] = H @ Btot[:, task.actuator_ids]
         c[k] = nxt - A[k] @ x[k] - B[k] @ u[k]
     W = np.asarray(cov, dtype=float)
     W = W * np.eye(task.n) if W.ndim == 0 else W

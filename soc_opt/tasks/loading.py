@@ -14,12 +14,12 @@ from pathlib import Path
 from ..config import ConfigError, read_toml
 from .config import GYM_PREFIX, TaskConfig
 from .linear import LinearTask
-from .mujoco import MujocoTask, _mujoco
+from .mujoco import MujocoTask, import_mujoco
 
 __all__ = ["BUILTIN_TASKS", "build_task", "load_task", "mjcf_files"]
 
 
-def _problems_dir() -> Path:
+def problems_dir() -> Path:
     try:
         import problems
 
@@ -109,7 +109,7 @@ def build_task(config: TaskConfig | dict, base_dir: str | Path | None = None, *,
         task = LinearTask(config, condition=condition)
         task.provenance = {"name": config.name, "config": config.to_dict(), "model_files": {}}
         return task
-    mj = _mujoco()
+    mj = import_mujoco()
     if xml is not None:
         source = "<xml string>"
         try:
@@ -149,7 +149,7 @@ def load_task(name_or_path: str | Path, *, condition: int = 0, overrides: dict |
         from .gym import load_gym_task
 
         return load_gym_task({"model": name, **(overrides or {})}, condition=condition)
-    path = _problems_dir() / BUILTIN_TASKS[name] if name in BUILTIN_TASKS else Path(name)
+    path = problems_dir() / BUILTIN_TASKS[name] if name in BUILTIN_TASKS else Path(name)
     if not path.is_file():
         raise ConfigError(f"task {name!r}: not a built-in task ({', '.join(BUILTIN_TASKS)}), no file {str(path)!r} "
                           f"and not {GYM_PREFIX}<EnvId>")

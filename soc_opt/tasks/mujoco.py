@@ -36,7 +36,7 @@ from .config import StateConfig, TaskConfig
 __all__ = ["MujocoTask", "MujocoSimulator"]
 
 
-def _mujoco():
+def import_mujoco():
     import mujoco
 
     return mujoco
@@ -62,7 +62,7 @@ class MujocoTask(TaskBase):
     kind = "mujoco"
 
     def __init__(self, config: TaskConfig, model, *, condition: int = 0, source: str = "<model>"):
-        mj = _mujoco()
+        mj = import_mujoco()
         self.config = config
         self.model = model
         self.source = source
@@ -78,22 +78,22 @@ class MujocoTask(TaskBase):
         self._setup_reader()
 
         data = mj.MjData(model)
-        self._reset(data, None)
+        self.reset_data(data, None)
         mj.mj_forward(model, data)
         x0 = np.empty(self.n)
-        self._read(data, x0, np.empty(6))
+        self.read_state(data, x0, np.empty(6))
         self.x0 = x0
         self._setup_common()
 
     # -- construction steps (in this order: each uses what the previous ones set)
     def _setup_state(self, sc: StateConfig):
         """Look up and check the state joints and sites; state layout, labels and index maps."""
-        mj = _mujoco()
+        mj = import_mujoco()
         model = self.model
         self._joint_ids = [self._find(mj.mjtObj.mjOBJ_JOINT, j, "state.joints") for j in sc.joints]
         self._extra_ids = [self._find(mj.mjtObj.mjOBJ_JOINT, j, "state.extra_joints") for j in sc.extra_joints]
-        self._points = [self._find_point(s, "state.sites") for s in sc.sites]
-        self._site_ids = [pid for kind, pid in self._points if kind == "site"]
+        self.point_refs = [self._find_point(s, "state.sites") for s in sc.sites]
+        self._site_ids = [pid for kind, pid in self.point_refs if kind == "site"]
         alljoints = list(sc.joints) + list(sc.extra_joints)
         dup = {j for j in alljoints if alljoints.count(j) > 1} | {s for s in sc.sites if sc.sites.count(s) > 1}
         if dup:
@@ -118,36 +118,36 @@ class MujocoTask(TaskBase):
             "extra_qvel": slice(o_e + ne, o_e + 2 * ne),
         }
         jids = self._joint_ids + self._extra_ids
-        self._qadr = np.array([model.jnt_qposadr[j] for j in jids], dtype=int)
-        self._dadr = np.array([model.jnt_dofadr[j] for j in jids], dtype=int)
-        self._sq = np.r_[np.arange(nj), o_e + np.arange(ne)].astype(int)
-        self._sqd = np.r_[nj + np.arange(nj), o_e + ne + np.arange(ne)].astype(int)
+        self.qpos_adr = np.array([model.jnt_qposadr[j] for j in jids], dtype=int)
+        self.dof_adr = np.array([model.jnt_dofadr[j] for j in jids], dtype=int)
+        self.state_qpos_idx = np.r_[np.arange(nj), o_e + np.arange(ne)].astype(int)
+        self.state_qvel_idx = np.r_[nj + np.arange(nj), o_e + ne + np.arange(ne)].astype(int)
         labels = [""] * self.n
-        for nm, i in zip(alljoints, self._sq):
+        for nm, i in zip(alljoints, self.state_qpos_idx):
             labels[i] = f"q:{nm}"
-        for nm, i in zip(alljoints, self._sqd):
+        for nm, i in zip(alljoints, self.state_qvel_idx):
             labels[i] = f"qd:{nm}"
         for j, nm in enumerate(sc.sites):
             for c, ax in enumerate("xyz"):
                 labels[o_p + 3 * j + c] = f"{nm}.{ax}"
                 labels[o_v + 3 * j + c] = f"{nm}.v{ax}"
         self.state_labels = labels
-        self._joint_state_index = {nm: int(i) for nm, i in zip(alljoints, self._sq)}
+        self._joint_state_index = {nm: int(i) for nm, i in zip(alljoints, self.state_qpos_idx)}
         self._site_state_index = {nm: o_p + 3 * j for j, nm in enumerate(sc.sites)}
-        self._all_dofs_in_state = sorted(self._dadr.tolist()) == list(range(model.nv))
+        self._all_dofs_in_state = sorted(self.dof_adr.tolist()) == list(range(model.nv))
 
     def _setup_actuators(self, actuated):
-        """The controlled actuators ``_act (m,)`` (all of the model's if ``actuated`` is empty)."""
+        """The controlled actuators ``actuator_ids (m,)`` (all of the model's if ``actuated`` is empty)."""
         model = self.model
         if actuated:
-            self._act = np.array([self._actuator_for(a) for a in actuated], dtype=int)
+            self.actuator_ids = np.array([self._actuator_for(a) for a in actuated], dtype=int)
             self.actuated = list(actuated)
         else:
-            self._act = np.arange(model.nu)
+            self.actuator_ids = np.arange(model.nu)
             self.actuated = [model.actuator(i).name for i in range(model.nu)]
-        if len(set(self._act.tolist())) != len(self._act):
+        if len(set(self.actuator_ids.tolist())) != len(self.actuator_ids):
             raise ConfigError("actuated: an actuator is listed twice")
-        self.m = len(self._act)
+        self.m = len(self.actuator_ids)
         if self.m == 0:
             raise ConfigError(f"actuated: model {self.source} has no actuators")
 
@@ -167,19 +167,19 @@ class MujocoTask(TaskBase):
                 if not 0 <= condition < len(config.offsets):
                     raise ConfigError(f"condition {condition} out of range: {len(config.offsets)} offsets given")
                 q0 = q0 + np.array(config.offsets[condition], dtype=float)
-            qinit[self._qadr] = q0
+            qinit[self.qpos_adr] = q0
         self.condition = condition
         self.n_conditions = max(1, len(config.offsets))
         self._qinit = qinit
 
     def _setup_reader(self):
         """Copy plans for the fast state reader, integrator split and divergence warnings."""
-        mj = _mujoco()
+        mj = import_mujoco()
         model = self.model
         o_v = self.layout["site_vel"].start
-        ns = len(self._points)
-        self._q_src, self._q_dst = self._split_plan(self._qadr, self._sq)
-        self._qd_src, self._qd_dst = self._split_plan(self._dadr, self._sqd)
+        ns = len(self.point_refs)
+        self._q_src, self._q_dst = self._split_plan(self.qpos_adr, self.state_qpos_idx)
+        self._qd_src, self._qd_dst = self._split_plan(self.dof_adr, self.state_qvel_idx)
         self._site_arr = np.array(self._site_ids, dtype=int)
         self._site_pos_sl = self.layout["site_pos"]
         self._site_vel_slices = [slice(o_v + 3 * j, o_v + 3 * j + 3) for j in range(ns)]
@@ -187,11 +187,11 @@ class MujocoTask(TaskBase):
         self._bad_warn = np.array([int(getattr(mj.mjtWarning, w)) for w in _BAD_WARNINGS])
         self._obj_site = mj.mjtObj.mjOBJ_SITE
         self._obj_of = {"site": mj.mjtObj.mjOBJ_SITE, "body": mj.mjtObj.mjOBJ_XBODY}
-        self._all_sites = all(kind == "site" for kind, _ in self._points)
+        self._all_sites = all(kind == "site" for kind, _ in self.point_refs)
 
     # -- lookups
     def _find(self, objtype, name, key) -> int:
-        mj = _mujoco()
+        mj = import_mujoco()
         i = mj.mj_name2id(self.model, objtype, name)
         if i < 0:
             kind = {mj.mjtObj.mjOBJ_JOINT: "joint", mj.mjtObj.mjOBJ_SITE: "site"}.get(objtype, "object")
@@ -202,7 +202,7 @@ class MujocoTask(TaskBase):
 
     def _find_point(self, name, key) -> tuple[str, int]:
         """``("site", id)`` for a site named ``name``, else ``("body", id)`` for a body (its origin)."""
-        mj = _mujoco()
+        mj = import_mujoco()
         i = mj.mj_name2id(self.model, mj.mjtObj.mjOBJ_SITE, name)
         if i >= 0:
             return "site", i
@@ -215,7 +215,7 @@ class MujocoTask(TaskBase):
                           f"sites: {sites}; bodies: {bodies}")
 
     def _actuator_for(self, name) -> int:
-        mj = _mujoco()
+        mj = import_mujoco()
         m = self.model
         j = mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, name)
         if j >= 0:
@@ -254,14 +254,14 @@ class MujocoTask(TaskBase):
         return plan_src, plan_dst
 
     # -- simulator state <-> task state
-    def _reset(self, d, x0):
-        mj = _mujoco()
+    def reset_data(self, d, x0):
+        mj = import_mujoco()
         mj.mj_resetData(self.model, d)
         d.qpos[:] = self._qinit
         if x0 is not None:
             x0 = np.asarray(x0, dtype=float)
-            d.qpos[self._qadr] = x0[self._sq]
-            d.qvel[self._dadr] = x0[self._sqd]
+            d.qpos[self.qpos_adr] = x0[self.state_qpos_idx]
+            d.qvel[self.dof_adr] = x0[self.state_qvel_idx]
 
     def _reader(self, d):
         """A function ``read(out)`` writing the task state of ``d`` into ``out (n,)``.
@@ -269,18 +269,18 @@ class MujocoTask(TaskBase):
         Needs positions and velocities computed (after ``mj_step1`` or ``mj_forward``).  The
         array views of ``d`` and the copy plan are bound once: this runs every control step.
         """
-        ov = _mujoco().mj_objectVelocity
+        ov = import_mujoco().mj_objectVelocity
         m = self.model
         qpos, qvel, site_xpos = d.qpos, d.qvel, d.site_xpos
         qplan = list(zip(self._q_src, self._q_dst))
         qdplan = list(zip(self._qd_src, self._qd_dst))
         sites = self._site_arr
         pos_sl = self._site_pos_sl
-        vplan = [(self._obj_of[kind], pid, sl) for (kind, pid), sl in zip(self._points, self._site_vel_slices)]
+        vplan = [(self._obj_of[kind], pid, sl) for (kind, pid), sl in zip(self.point_refs, self._site_vel_slices)]
         # positions: one fancy-index copy when every point is a site, else one copy per point
         o_p = pos_sl.start
         pplan = [((site_xpos if kind == "site" else d.xpos), pid, slice(o_p + 3 * j, o_p + 3 * j + 3))
-                 for j, (kind, pid) in enumerate(self._points)]
+                 for j, (kind, pid) in enumerate(self.point_refs)]
         all_sites = self._all_sites
         res = np.empty(6)
         lin = res[3:]
@@ -302,45 +302,45 @@ class MujocoTask(TaskBase):
 
         return read
 
-    def _read(self, d, out, res=None):
+    def read_state(self, d, out, res=None):
         self._reader(d)(out)
 
     def state_from_qpos(self, qpos, qvel=None) -> np.ndarray:
         """Task state for a full ``qpos (nq,)`` (and ``qvel``, default zero), via ``mj_forward``."""
-        mj = _mujoco()
+        mj = import_mujoco()
         d = mj.MjData(self.model)
         d.qpos[:] = qpos
         if qvel is not None:
             d.qvel[:] = qvel
         mj.mj_forward(self.model, d)
         out = np.empty(self.n)
-        self._read(d, out, np.empty(6))
+        self.read_state(d, out, np.empty(6))
         return out
 
     def qpos_from_state(self, x) -> np.ndarray:
         """``(..., nq)`` full configurations: state joints from ``x``, other joints at their initial values."""
         x = np.asarray(x, dtype=float)
         q = np.broadcast_to(self._qinit, x.shape[:-1] + (self.model.nq,)).copy()
-        q[..., self._qadr] = x[..., self._sq]
+        q[..., self.qpos_adr] = x[..., self.state_qpos_idx]
         return q
 
     # -- rollouts (hot path)
     def _run_samples(self, samples, K, offs, eps, x, s, a, x0):
-        mj = _mujoco()
+        mj = import_mujoco()
         m = self.model
         d = mj.MjData(m)
         step1, step2, step, forward = mj.mj_step1, mj.mj_step2, mj.mj_step, mj.mj_forward
         nsub = self.substeps
         split = self._split_step
         ctrl = d.ctrl
-        act = _as_index(self._act)
+        act = _as_index(self.actuator_ids)
         warn = d.warning.number
         bad = self._bad_warn
         read = self._reader(d)
         dot = np.dot
         T = self.T
         for i in samples:
-            self._reset(d, x0)
+            self.reset_data(d, x0)
             xi, si, ai, ei, oi = x[i], s[i], a[i], eps[i], offs[i]
             for k in range(T):
                 if split:
@@ -370,7 +370,7 @@ class MujocoTask(TaskBase):
                 raise SimulationError(f"sample {i} diverged at control step {kk}: non-finite state or action")
 
     def _diverged(self, i, k, d, warn, bad):
-        mj = _mujoco()
+        mj = import_mujoco()
         names = [mj.mjtWarning(w).name for w in np.flatnonzero(warn) if w in bad]
         if not names:  # harmless warning (e.g. inertia): clear it and continue
             warn[:] = 0
@@ -443,9 +443,9 @@ class MujocoTask(TaskBase):
         """
         if self._all_dofs_in_state:
             return
-        mj = _mujoco()
+        mj = import_mujoco()
         m = self.model
-        in_state = set(self._dadr.tolist())
+        in_state = set(self.dof_adr.tolist())
         missing = [j for j in range(m.njnt) if any(
             dof not in in_state for dof in range(m.jnt_dofadr[j], m.jnt_dofadr[j] + _JOINT_DOFS[int(m.jnt_type[j])]))]
         names = [mj.mj_id2name(m, mj.mjtObj.mjOBJ_JOINT, j) or f"<joint {j}>" for j in missing]
@@ -470,7 +470,7 @@ class MujocoTask(TaskBase):
     def ee_points(self, x) -> np.ndarray:
         """``(..., P, 3)`` positions of the state points (for figures)."""
         x = np.asarray(x, dtype=float)
-        return x[..., self.layout["site_pos"]].reshape(x.shape[:-1] + (len(self._points), 3))
+        return x[..., self.layout["site_pos"]].reshape(x.shape[:-1] + (len(self.point_refs), 3))
 
 
 class MujocoSimulator:
@@ -483,21 +483,21 @@ class MujocoSimulator:
     """
 
     def __init__(self, task: MujocoTask):
-        mj = _mujoco()
+        mj = import_mujoco()
         self.task = task
         self.data = mj.MjData(task.model)
-        self._read = task._reader(self.data)
-        self._act = _as_index(task._act)
+        self.read_state = task._reader(self.data)
+        self.actuator_ids = _as_index(task.actuator_ids)
         self.x = np.empty(task.n)
         self.k = 0
         self.reset()
 
     def reset(self, x0=None) -> np.ndarray:
         """Back to ``x0`` (task coordinates; default the task's ``x_0``); returns a copy of the state."""
-        mj = _mujoco()
-        self.task._reset(self.data, x0)
+        mj = import_mujoco()
+        self.task.reset_data(self.data, x0)
         mj.mj_forward(self.task.model, self.data)
-        self._read(self.x)
+        self.read_state(self.x)
         self.k = 0
         return self.x.copy()
 
@@ -508,15 +508,15 @@ class MujocoSimulator:
         """
         if xi is not None:
             raise ValueError(f"task {self.task.name!r}: MuJoCo tasks have no process noise (xi must be None)")
-        mj = _mujoco()
+        mj = import_mujoco()
         task, d = self.task, self.data
-        d.ctrl[self._act] = u
+        d.ctrl[self.actuator_ids] = u
         mj.mj_step(task.model, d, task.substeps)
         warn = d.warning.number
         if warn.any():
             task._diverged(0, self.k, d, warn, task._bad_warn)
         mj.mj_forward(task.model, d)
-        self._read(self.x)
+        self.read_state(self.x)
         self.k += 1
         if not np.isfinite(self.x).all():
             raise SimulationError(f"task {task.name!r} diverged at control step {self.k - 1}: non-finite state")

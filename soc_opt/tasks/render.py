@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..models import Rollouts
-from .mujoco import MujocoTask, _mujoco
+from .mujoco import MujocoTask, import_mujoco
 
 __all__ = ["RenderResult", "render_filmstrip", "frame_scene"]
 
@@ -55,7 +55,7 @@ def _geom_spheres(task, Q) -> tuple[np.ndarray, np.ndarray]:
     The geoms of every body but the world body (the world usually holds the floor); planes are
     infinite and never framed.  If that leaves nothing, every non-plane geom.
     """
-    mj = _mujoco()
+    mj = import_mujoco()
     m = task.model
     d = mj.MjData(m)
     plane = int(mj.mjtGeom.mjGEOM_PLANE)
@@ -116,7 +116,7 @@ def render_filmstrip(task, traj, path, frames: int = 8, width: int = 320, height
         x = X[0]
         idx = np.unique(np.linspace(0, x.shape[0] - 1, max(1, frames)).round().astype(int))
         Q = task.qpos_from_state(x[idx])
-        mj = _mujoco()
+        mj = import_mujoco()
         m = task.model
         width = min(width, int(m.vis.global_.offwidth))
         height = min(height, int(m.vis.global_.offheight))
