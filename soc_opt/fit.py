@@ -135,13 +135,14 @@ class FitConfig(Config):
                               [True].
         max_iter:             maximum VB iterations per fit; with warm starts VB continues
                               at the next iteration, so the cap only bounds the cost of the
-                              first iterations, where the data move most [20].
+                              first iterations, where the data move most [10].
         tol:                  VB stops when the evidence lower bound changes by less than
                               ``tol`` per fitted tuple (sklearn's ``tol`` is absolute on the
                               total bound; we pass ``tol * N``) [1e-3].
         seed:                 seed used when no ``numpy.random.Generator`` is passed [0].
         min_weight:           mixture components with weight below this are dropped (and the
-                              rest renormalised) after VB [1e-3].
+                              rest renormalised) after VB, and not carried into the next
+                              warm start [1e-3].
         mixture_reg:          sklearn ``reg_covar``, added to the component covariances in
                               standardised (unit-variance) coordinates [1e-6].
         min_eig:              relative eigenvalue floor of ``So_k`` (times the mean diagonal of
@@ -162,7 +163,7 @@ class FitConfig(Config):
     reg: float = 1e-6
     buffer_size: int = 2000
     prior_warm_start: bool = True
-    max_iter: int = 20
+    max_iter: int = 10
     tol: float = 1e-3
     seed: int = 0
     min_weight: float = 1e-3

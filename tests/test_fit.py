@@ -338,12 +338,18 @@ def _loop_fit(ro: Rollouts, prior: MixturePrior, cfg: FitConfig, include_y: bool
     return {k: np.array(v) for k, v in out.items()}
 
 
+@pytest.fixture(scope="module")
+def prior6(data):
+    prior = update_prior(None, data, FitConfig(n_components=6), np.random.default_rng(0))
+    assert prior.n_components >= 2
+    return prior
+
+
 @pytest.mark.parametrize("include_y", [True, False])
-def test_batched_posterior_matches_per_step_loop_to_1e10(data, include_y):
+def test_batched_posterior_matches_per_step_loop_to_1e10(data, prior6, include_y):
     cfg = FitConfig(n_components=6, k0=2.0, n0=1.5)
     ro = _subset(data, slice(0, 5))  # M = 5 < n+m: the prior matters
-    prior = update_prior(None, data, cfg, np.random.default_rng(0))
-    assert prior.n_components >= 2
+    prior = prior6
     ref = _loop_fit(ro, prior, cfg, include_y)
     mu0, S0 = prior.step_prior(tuples(ro, include_y), include_y)
     if include_y:
@@ -359,8 +365,8 @@ def test_batched_posterior_matches_per_step_loop_to_1e10(data, include_y):
         np.testing.assert_allclose(got, ref[key], rtol=1e-10, atol=1e-10 * scale, err_msg=key)
 
 
-def test_batched_responsibilities_match_per_component_densities(data):
-    prior = update_prior(None, data, FitConfig(n_components=6), np.random.default_rng(1))
+def test_batched_responsibilities_match_per_component_densities(data, prior6):
+    prior = prior6
     X = tuples(data).reshape(-1, prior.dim)[:300]
     dens = np.stack([w * multivariate_normal(mu, S).pdf(X)
                      for w, mu, S in zip(prior.weights, prior.means, prior.covariances)], axis=1)
