@@ -434,8 +434,9 @@ def run(
     rollouts is reported alongside.  Times are the best of ``repeats`` runs
     (the fits are deterministic).  With ``tables`` the (seed-averaged)
     convergence, few-sample and pendulum tables follow as rows, and with
-    ``settings`` the peg settings table (:func:`settings_table`, a few minutes: the
-    reference setting refits from scratch every iteration).
+    ``settings`` the peg settings table (:func:`settings_table`; ~15 minutes on the
+    shared 2-core machine at load ~6, almost all of it the reference setting, which
+    refits from scratch every iteration).
     """
     rng = np.random.default_rng(seed)
     system = ltv_system(n, m, T, rng)
