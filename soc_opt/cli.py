@@ -191,7 +191,7 @@ def _cmd_solvers(args) -> int:
         _print(json.dumps({"mstep": m_rows, "kl_step": l_rows}, indent=1, default=float))
     else:
         _print("M-step: closed form vs CVXPY (Clarabel, SCS)\n" + _table(m_rows))
-        _print("\nKL-constrained LQG step: closed form vs CasADi/IPOPT\n" + _table(l_rows))
+        _print("\nKL-constrained LQG step: closed form vs CasADi/IPOPT and fatrop\n" + _table(l_rows))
     return 0
 
 
@@ -279,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--instances", type=int, default=20)
     v.set_defaults(func=_cmd_verify)
 
-    s = sub.add_parser("solvers", help="compare closed forms with CVXPY and CasADi/IPOPT")
+    s = sub.add_parser("solvers", help="compare closed forms with CVXPY, CasADi/IPOPT and fatrop")
     s.add_argument("--json", action="store_true")
     s.add_argument("--quick", action="store_true", help="small sizes only")
     s.set_defaults(func=_cmd_solvers)

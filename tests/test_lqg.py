@@ -286,17 +286,23 @@ def _budgets(rng, T, kind):
         nu[::4] = np.inf  # slack, eta = 0
         nu[2] = 1e3  # slack at eta_min
         nu[-1] = 0.0  # pinned to the reference, eta = inf
+    if kind == "per_step_pinned":
+        nu[[1, -1]] = 0.0  # pinned to the reference, eta = inf
     return nu
 
 
-def _compare(seed, n, m, T, kind, config=None, make=make_problem):
+def _compare(seed, n, m, T, kind, config=None, make=make_problem, method="casadi"):
     rng = np.random.default_rng(seed)
     dyn, cost, ref, mu0, P0 = make(rng, n, m, T)
     nu = _budgets(rng, T, kind)
     cf = kl_step(dyn, cost, ref, nu, mu0, P0)
-    ip = kl_step(dyn, cost, ref, nu, mu0, P0, method="casadi", config=config)
-    assert ip.status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-    if config is not None and config.casadi_nlp != "auto":
+    ip = kl_step(dyn, cost, ref, nu, mu0, P0, method=method, config=config)
+    assert ip.method == method
+    if method == "casadi":
+        assert ip.status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+    else:
+        assert ip.status.startswith("fatrop") and ip.solver_stats["formulation"] == "multiple_shooting"
+    if method == "casadi" and config is not None and config.casadi_nlp != "auto":
         assert ip.solver_stats["formulation"] == config.casadi_nlp
     assert max_policy_diff(cf.policy, ip.policy) < 1e-5
     assert abs(cf.expected_cost - ip.expected_cost) <= 1e-7 * max(1.0, abs(cf.expected_cost))
@@ -469,6 +475,95 @@ def test_structured_ipopt_at_benchmark_size(kind):
 
     cf, ip = _compare(31, 26, 7, 100, kind, make=make)
     assert ip.solver_stats["formulation"] == "structured" and ip.solver_stats["n_vars"] == 21_700
+
+
+# ----------------------------------------------------------------------------------------------
+# KL step: closed form vs fatrop (multiple shooting in the joint moments)
+# ----------------------------------------------------------------------------------------------
+
+FATROP_CASES = [
+    # (seed, n, m, T, budget kind): finite budgets only (fatrop rejects nu = inf)
+    (20, 3, 1, 8, "per_step"),
+    (22, 4, 2, 10, "total"),
+    (24, 5, 2, 6, "total"),
+    (25, 4, 2, 10, "per_step_pinned"),
+]
+
+
+@pytest.mark.parametrize("seed,n,m,T,kind", FATROP_CASES)
+def test_closed_form_matches_fatrop(seed, n, m, T, kind):
+    cf, fr = _compare(seed, n, m, T, kind, method="fatrop")
+    assert fr.n_iter <= 30
+
+
+@pytest.mark.parametrize("kind", ["per_step", "total"])
+def test_fatrop_matches_closed_form_at_small_benchmark_size(kind):
+    """The benchmark's small instance (n=4, m=2, T=20) of :mod:`soc_opt.bench.lqg`."""
+    from soc_opt.bench.lqg import make_instance
+
+    cf, fr = _compare(32, 4, 2, 20, kind, make=lambda rng, n, m, T: make_instance(n, m, T, rng), method="fatrop")
+
+
+@pytest.mark.parametrize("rank", [0, 2], ids=["P0_zero", "P0_rank2"])
+@pytest.mark.parametrize("nu", [0.8, np.full(8, 0.1)], ids=["total", "per_step"])
+def test_fatrop_with_singular_initial_covariance(nu, rank):
+    """Singular P0 (rank 0 or 2 of 3): the first step is parametrised by the moments in the range
+    U of P0, K_0 = Kh_0 on its null space; everything identifiable (K_0 U, K_0 mu0 + k_0, the
+    later steps, Sigma, eta, the cost) matches the closed form."""
+    rng = np.random.default_rng(3)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 8)
+    U, _ = np.linalg.qr(rng.standard_normal((3, rank)))
+    P0 = U @ np.diag(rng.uniform(0.05, 0.2, rank)) @ U.T
+    cf = kl_step(dyn, cost, ref, nu, mu0, P0)
+    fr = kl_step(dyn, cost, ref, nu, mu0, P0, method="fatrop")
+    p, q = cf.policy, fr.policy
+    assert max(np.abs(p.K[1:] - q.K[1:]).max(), np.abs(p.k[1:] - q.k[1:]).max(), np.abs(p.cov - q.cov).max()) < 1e-5
+    np.testing.assert_allclose(q.K[0] @ mu0 + q.k[0], p.K[0] @ mu0 + p.k[0], atol=1e-5)
+    np.testing.assert_allclose(q.K[0] @ U, p.K[0] @ U, atol=1e-5)
+    null = np.eye(3) - U @ U.T
+    np.testing.assert_allclose(q.K[0] @ null, ref.K[0] @ null, atol=1e-12)
+    if rank == 0:
+        np.testing.assert_array_equal(q.K[0], ref.K[0])
+    np.testing.assert_allclose(fr.eta, cf.eta, rtol=1e-4)
+    assert abs(cf.expected_cost - fr.expected_cost) <= 1e-7 * abs(cf.expected_cost)
+
+
+@pytest.mark.parametrize("nu", [np.array([0.3, 0.0, 0.05, 2.0, 0.1, 0.2]), 1.5], ids=["per_step", "total"])
+def test_fatrop_start_policy_spends_each_budget(nu):
+    """fatrop's start point (Kh, kh, alpha_t Sh_t): its KL (kl_divergence, an independent oracle)
+    is the step's budget (total: an equal share of the free steps), so no KL row starts at the
+    reference, where its gradient vanishes."""
+    from soc_opt.lqg.casadi_nlp import _casadi_kinds
+    from soc_opt.lqg.fatrop_nlp import _FatropOCP
+    from soc_opt.lqg.problem import _Problem
+
+    rng = np.random.default_rng(41)
+    T = 6
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, T)
+    scalar = np.isscalar(nu)
+    nu_full, kind = _casadi_kinds(np.atleast_1d(np.asarray(nu, float)), scalar, T)
+    ub = [float(nu)] if scalar else list(nu_full[kind == "free"])
+    ocp = _FatropOCP(_Problem(dyn, cost, ref, mu0, P0), kind, scalar, KLStepConfig())
+    S0 = ocp._start_covariances(ub)
+    kl = kl_divergence(dyn, LinearGaussianPolicy(ref.K, ref.k, S0), ref, mu0, P0)
+    want = np.full(T, nu / T) if scalar else nu
+    np.testing.assert_allclose(kl, want, rtol=1e-12, atol=1e-14)
+
+
+def test_fatrop_rejects_infinite_budgets_naming_the_step():
+    rng = np.random.default_rng(27)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
+    nu = np.full(6, 0.3)
+    nu[2] = np.inf
+    with pytest.raises(ValueError, match="inf at step 2"):
+        kl_step(dyn, cost, ref, nu, mu0, P0, method="fatrop")
+
+
+def test_fatrop_failure_raises_solver_error():
+    rng = np.random.default_rng(26)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
+    with pytest.raises(SolverError, match="fatrop failed"):
+        kl_step(dyn, cost, ref, 0.5, mu0, P0, method="fatrop", config=KLStepConfig(fatrop_max_iter=1))
 
 
 @pytest.mark.parametrize("form", ["symbolic", "structured"])
@@ -647,7 +742,15 @@ def test_benchmark_rows():
         assert r["ipopt_size"] == (2, 1, 4) and r["n_backward"] >= 1 and r["ipopt_formulation"] == "symbolic"
         assert r["ipopt_status"] == "Solve_Succeeded" and r["note"] is None
         assert r["max_policy_diff"] < 1e-5 and r["max_rel_eta_diff"] < 1e-4 and r["worst_violation"] < 1e-6
+        assert r["fatrop_iter"] >= 1 and r["fatrop_build_s"] > 0 and r["fatrop_solve_s"] > 0
+        assert r["fatrop_max_policy_diff"] < 1e-5 and r["fatrop_max_rel_eta_diff"] < 1e-4
+        assert r["fatrop_worst_violation"] < 1e-6
     rows = run(sizes=((2, 1, 4), (3, 1, 5)), repeats=1, budgets=("per_step",), ipopt_max_vars=20,
-               config=KLStepConfig(casadi_nlp="structured"))
+               fatrop_max_vars=20, config=KLStepConfig(casadi_nlp="structured"))
     assert rows[0]["ipopt_formulation"] == "structured" and rows[0]["max_rel_eta_diff"] < 1e-4
-    assert rows[1]["ipopt_s"] is None and "skipped" in rows[1]["note"]
+    assert rows[1]["ipopt_s"] is None and rows[1]["fatrop_s"] is None
+    assert "IPOPT skipped" in rows[1]["note"] and "fatrop skipped" in rows[1]["note"]
+    # the benchmark's large size: fatrop is skipped by default, with the reason (closed form only here)
+    (big,) = run(sizes=((26, 7, 100),), repeats=1, budgets=("total",), ipopt_max_vars=0)
+    assert big["fatrop_s"] is None and big["ipopt_s"] is None and big["worst_violation"] < 1e-6
+    assert "fatrop skipped: 21700 NLP variables > fatrop_max_vars=5000 (solver build" in big["note"]

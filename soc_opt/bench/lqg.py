@@ -1,8 +1,8 @@
-"""KL-constrained LQG step: closed-form dual vs CasADi/IPOPT (SPEC §6).
+"""KL-constrained LQG step: closed-form dual vs CasADi/IPOPT and fatrop (SPEC §6).
 
 ``run()`` builds random, stable, convex instances (time-varying dynamics with process noise,
 quadratic costs with a PD action block, a PD reference policy) and solves the KL step with
-both methods for a total budget (one multiplier, the GPS form) and per-step budgets.  One row
+each method for a total budget (one multiplier, the GPS form) and per-step budgets.  One row
 per (size, budget kind):
 
     n, m, T, budget          problem size and budget kind ("total" or "per_step")
@@ -20,7 +20,12 @@ per (size, budget kind):
     max_policy_diff          max |difference| of K, k, Sigma
     max_rel_eta_diff         max relative difference of the multipliers (active budgets)
     worst_violation          max over both solutions of (KL - nu) / nu (<= 0: feasible)
-    note                     why IPOPT was skipped, if it was
+    fatrop_status, fatrop_iter, fatrop_s, fatrop_build_s, fatrop_solve_s
+                             the same KL step solved by fatrop (``method="fatrop"``, multiple shooting
+                             in the joint moments; see ``soc_opt.lqg.fatrop_nlp``)
+    fatrop_max_policy_diff, fatrop_max_rel_eta_diff, fatrop_worst_violation
+                             its policy and multipliers against the closed form, its (KL - nu) / nu
+    note                     why IPOPT or fatrop was skipped, if it was
 
 At ``n=26, m=7, T=100`` (21 700 NLP variables) the symbolic formulation (dense exact Hessian
 built by CasADi) is out of reach, and "auto" uses the structured one (per-step block-diagonal
@@ -29,7 +34,12 @@ Hessian, exact at the solution; see ``soc_opt.lqg``): IPOPT converges in 15-16 i
 the 2-core development machine while it was shared with another job (closed form: 75-130 ms and
 36-57 ms), agreeing with the closed form to about 1e-11 in policy and multipliers.  Wall times
 on a loaded machine vary by up to a factor 2 between runs.
-``ipopt_max_vars`` (default: no limit) skips IPOPT above that many NLP variables.
+``ipopt_max_vars`` (default: no limit) skips IPOPT above that many NLP variables,
+``fatrop_max_vars`` (default: ``FATROP_MAX_VARS``) fatrop, with the reason in ``note``: at
+``n=26, m=7, T=100`` building fatrop's solver (CasADi AD of 100 stages of 377 states and 217
+controls) did not finish within 7 minutes (5.9 GB resident).  At ``n=4, m=2, T=20`` fatrop takes
+0.5-0.7 s to build and 0.02-0.03 s to solve (10-11 iterations), policy and multipliers within
+about 1e-9 of the closed form.
 """
 
 from __future__ import annotations
@@ -41,7 +51,12 @@ import numpy as np
 from ..lqg import KLStepConfig, kl_step
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost
 
-__all__ = ["run", "make_instance"]
+__all__ = ["run", "make_instance", "FATROP_MAX_VARS"]
+
+FATROP_MAX_VARS = 5000
+"""Default ``fatrop_max_vars`` of :func:`run` (NLP variables in the closed-form count): fatrop's
+solver build did not finish within 7 minutes at 21 700 (``n=26, m=7, T=100``)."""
+_FATROP_SKIP_REASON = "solver build > 7 min and > 5.9 GB at n=26, m=7, T=100"
 
 
 def make_instance(n: int, m: int, T: int, rng: np.random.Generator):
@@ -88,7 +103,35 @@ def _time_closed_form(prob, nu, repeats: int, config):
     return res, np.array(times)
 
 
-def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None) -> dict:
+def _compare_to(cf, res, nu, config) -> dict:
+    """Policy, multiplier and feasibility differences of ``res`` against the closed form ``cf``."""
+    active = cf.eta > 10 * config.eta_min
+    pol_diff = max(np.abs(cf.policy.K - res.policy.K).max(), np.abs(cf.policy.k - res.policy.k).max(),
+                   np.abs(cf.policy.cov - res.policy.cov).max())
+    return {
+        "max_policy_diff": float(pol_diff),
+        "max_rel_eta_diff": float(np.max(np.abs(res.eta[active] / cf.eta[active] - 1))) if active.any() else 0.0,
+        "violation": _violation(res, nu),
+    }
+
+
+def _fatrop_columns(prob, nu, cf, config, run: bool) -> dict:
+    row = {k: None for k in ("fatrop_status", "fatrop_iter", "fatrop_s", "fatrop_build_s", "fatrop_solve_s",
+                             "fatrop_max_policy_diff", "fatrop_max_rel_eta_diff", "fatrop_worst_violation")}
+    if not run:
+        return row
+    t0 = time.perf_counter()
+    fr = kl_step(*prob[:3], nu, *prob[3:], method="fatrop", config=config)
+    t_fr = time.perf_counter() - t0
+    d = _compare_to(cf, fr, nu, config)
+    row.update({"fatrop_status": fr.status, "fatrop_iter": fr.n_iter, "fatrop_s": t_fr,
+                "fatrop_build_s": fr.solver_stats["build_s"], "fatrop_solve_s": fr.solver_stats["solve_s"],
+                "fatrop_max_policy_diff": d["max_policy_diff"], "fatrop_max_rel_eta_diff": d["max_rel_eta_diff"],
+                "fatrop_worst_violation": d["violation"]})
+    return row
+
+
+def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None, run_fatrop: bool = True) -> dict:
     rng = np.random.default_rng([seed, n, m, T])
     prob = make_instance(n, m, T, rng)
     nu = _budget(kind, T, rng)
@@ -102,14 +145,13 @@ def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None) -> di
         "speedup_solve": None, "objective_gap": None, "max_policy_diff": None,
         "max_rel_eta_diff": None, "worst_violation": _violation(cf, nu), "note": note,
     }
+    row.update(_fatrop_columns(prob, nu, cf, config, run_fatrop))
     if not run_ipopt:
         return row
     t0 = time.perf_counter()
     ip = kl_step(*prob[:3], nu, *prob[3:], method="casadi", config=config)
     t_ip = time.perf_counter() - t0
-    active = cf.eta > 10 * config.eta_min
-    pol_diff = max(np.abs(cf.policy.K - ip.policy.K).max(), np.abs(cf.policy.k - ip.policy.k).max(),
-                   np.abs(cf.policy.cov - ip.policy.cov).max())
+    d = _compare_to(cf, ip, nu, config)
     row.update({
         "ipopt_size": (n, m, T), "ipopt_formulation": ip.solver_stats["formulation"], "ipopt_status": ip.status,
         "ipopt_iter": ip.n_iter, "ipopt_s": t_ip, "ipopt_build_s": ip.solver_stats["build_s"],
@@ -117,28 +159,37 @@ def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None) -> di
         "speedup": t_ip / float(np.median(times)),
         "speedup_solve": ip.solver_stats["solve_s"] / float(np.median(times)),
         "objective_gap": cf.expected_cost - ip.expected_cost,
-        "max_policy_diff": float(pol_diff),
-        "max_rel_eta_diff": float(np.max(np.abs(ip.eta[active] / cf.eta[active] - 1))) if active.any() else 0.0,
-        "worst_violation": max(_violation(cf, nu), _violation(ip, nu)),
+        "max_policy_diff": d["max_policy_diff"],
+        "max_rel_eta_diff": d["max_rel_eta_diff"],
+        "worst_violation": max(_violation(cf, nu), d["violation"]),
     })
     return row
 
 
 def run(sizes=((4, 2, 20), (26, 7, 100)), seed: int = 0, *, repeats: int = 7, ipopt_max_vars: int | None = None,
-        budgets=("total", "per_step"), config: KLStepConfig | None = None) -> list[dict]:
-    """Closed form vs CasADi/IPOPT on random instances; one row per (size, budget) (module docstring).
+        fatrop_max_vars: int | None = FATROP_MAX_VARS, budgets=("total", "per_step"),
+        config: KLStepConfig | None = None) -> list[dict]:
+    """Closed form vs CasADi/IPOPT and fatrop on random instances; one row per (size, budget)
+    (module docstring).
 
     IPOPT runs at every size (formulation from ``config.casadi_nlp``, default "auto"), unless the
-    NLP has more than ``ipopt_max_vars`` variables: then the row is closed-form only and says so.
+    NLP has more than ``ipopt_max_vars`` variables, and fatrop unless more than ``fatrop_max_vars``
+    (default :data:`FATROP_MAX_VARS`; ``None``: no limit): then the row says so in ``note``.
     """
     config = KLStepConfig() if config is None else config
     rows = []
     for n, m, T in sizes:
         nv = _nlp_vars(n, m, T)
         run_ipopt = ipopt_max_vars is None or nv <= ipopt_max_vars
-        note = None if run_ipopt else f"IPOPT skipped: {nv} NLP variables > ipopt_max_vars={ipopt_max_vars}"
+        run_fatrop = fatrop_max_vars is None or nv <= fatrop_max_vars
+        notes = [f"{name} skipped: {nv} NLP variables > {name.lower()}_max_vars={lim}"
+                 for name, ok, lim in (("IPOPT", run_ipopt, ipopt_max_vars), ("fatrop", run_fatrop, fatrop_max_vars))
+                 if not ok]
+        if not run_fatrop and fatrop_max_vars == FATROP_MAX_VARS:
+            notes[-1] += f" ({_FATROP_SKIP_REASON})"
         for kind in budgets:
-            rows.append(_row(n, m, T, kind, seed, repeats, config, run_ipopt, note=note))
+            rows.append(_row(n, m, T, kind, seed, repeats, config, run_ipopt, note="; ".join(notes) or None,
+                             run_fatrop=run_fatrop))
     return rows
 
 
@@ -153,7 +204,8 @@ def _fmt(v) -> str:
 if __name__ == "__main__":
     cols = ["n", "m", "T", "budget", "cf_ms_median", "n_backward", "ipopt_formulation", "ipopt_status", "ipopt_s",
             "ipopt_build_s", "ipopt_solve_s", "ipopt_iter", "speedup", "speedup_solve", "objective_gap",
-            "max_policy_diff", "max_rel_eta_diff", "worst_violation"]
+            "max_policy_diff", "max_rel_eta_diff", "worst_violation", "fatrop_build_s", "fatrop_solve_s",
+            "fatrop_iter", "fatrop_max_policy_diff", "fatrop_max_rel_eta_diff"]
     out = run()
     print(" | ".join(cols))
     for r in out:

@@ -22,6 +22,13 @@ definite (Cholesky fails), the smallest multiplier making it PD with the later s
 the multiplier is raised to ``max(repair_factor * eta, (1 + repair_margin) * eta_crit)`` and the pass
 restarted (scalar ``eta``) or continued (per step).  Past ``config.eta_max`` a
 :class:`~soc_opt.models.NotPositiveDefiniteError` names the step.
+
+Cost.  Both passes are loops over ``T`` of small matrix products whose Python overhead is of
+the order of their arithmetic at ``n=26, m=7``: the backward loop runs in deviation coordinates
+(no KL cross terms, nothing recomputed per step that does not depend on ``eta``), one LAPACK
+``posv`` per step in place on preallocated buffers, and everything that is not recursive
+(``Quu^-1``, ``Sigma``, log-determinants, gains) batched over ``T`` afterwards; the forward loop
+propagates ``[Cov; mean^T]`` with one pair of products per step (:mod:`.moments`).
 """
 
 from __future__ import annotations
@@ -68,79 +75,105 @@ def _backward(prob: _Problem, eta: np.ndarray, *, repair: np.ndarray | None = No
     """Backward pass for fixed multipliers ``eta`` (T,).
 
     ``eta_k = 0``: deterministic LQR step; ``eta_k = inf``: step pinned to the reference.
-    For ``eta_k > 0`` the deviation from the reference is computed directly,
-    ``[dK, dk] = -Quu^-1 (Q0ux + Q0uu [Kh, kh])``, which stays accurate when ``eta`` is large
-    and the policy is close to the reference.  Raises :class:`_NotPD` at the first (latest)
-    step whose ``Quu`` is not PD, unless that step is marked in the boolean mask ``repair``:
-    then ``eta_k`` is raised in place by the repair rule (see above) and the pass continues.
+    The recursion runs in the deviation coordinates ``z' = (s, 1, delta)``, ``delta = a - Kh s - kh``
+    (``_Problem.Fd``, ``Ctd``), where the KL term is ``eta delta^T Sh^-1 delta / 2`` without cross
+    terms: with ``Q'`` the Q-function of ``l + V_{k+1}`` in these coordinates,
+    ``Quu = Q'uu + eta Sh^-1``, the deviation gain ``[dK, dk] = -Quu^-1 Q'ux`` and
+    ``V = Q'xx - Q'xu Quu^-1 Q'ux``.  Nothing here grows with ``eta``, so the policy stays accurate
+    when ``eta`` is large and it is close to the reference.  Steps with ``eta_k = 0`` use the
+    coordinates ``(s, 1, a)`` (the same operations as :func:`lqr`, so ``nu = inf`` reproduces it
+    exactly).  Per step only the Q-function and one
+    LAPACK ``posv`` (Cholesky factorisation and solve) run in the loop; ``Quu^-1``, ``Sigma`` and
+    the log-determinants are batched afterwards.  Raises :class:`_NotPD` at the
+    first (latest) step whose ``Quu`` is not PD, unless that step is marked in the boolean mask
+    ``repair``: then ``eta_k`` is raised in place by the repair rule (see above) and the pass
+    continues.
     """
     T, n, m = prob.T, prob.n, prob.m
     n1 = n + 1
     eta = np.array(eta, dtype=float)
-    Kt = np.empty((T, m, n1))
-    dKt = np.zeros((T, m, n1))
-    S = np.empty((T, m, m))
-    Qi_all = np.zeros((T, m, m))  # lower triangles of Quu^-1 (LAPACK potri), symmetrised below
-    Q0_all = np.empty((T, m, m))
-    logdetS = np.empty(T)
-    Ldiag = np.ones((T, m))
-    V = np.zeros((n1, n1))
-    Ct, Ft, F, H = prob.Ct, prob.Ft, prob.F, prob.H
-    has_ref = H is not None
+    has_ref = prob.has_ref
+    fin = np.isfinite(eta)
+    zero = eta == 0
+    Fd, Fdt_half, Ctd = prob.Fd, prob.Fdt_half, prob.Ctd
+    dev = has_ref & ~zero  # steps in deviation coordinates; eta = 0 steps (LQR) in z~ = (s, 1, a)
+    if has_ref and zero.any():
+        sel = zero[:, None, None]
+        Fd = np.where(sel, prob.F, Fd)
+        Fdt_half = np.where(sel, 0.5 * np.swapaxes(prob.F, 1, 2), Fdt_half)
+        Ctd = np.where(sel, prob.Ct, Ctd)
+    d = n1 + m
+    Qall = np.empty((T, d, d))
+    # per step, LAPACK posv works in place on Fortran-ordered views of these C-ordered buffers:
+    # Lall[t].T <- Quu, overwritten by its Cholesky factor L (so Lall[t] holds L^T in its upper
+    # triangle), and Xall[t].T <- [Q'ux, I], overwritten by [Quu^-1 Q'ux, Quu^-1]
+    Lall = np.empty((T, m, m))
+    Xall = np.zeros((T, d, m))
+    Xall[:, n1:, :] = np.eye(m)
     if has_ref:
-        Kth, KthR, Shinv = prob.Kth, prob.KthR, prob.Shinv
+        eR = np.where(fin, eta, 0.0)[:, None, None] * prob.Shinv  # KL term of Quu
+    else:
+        eR = np.zeros((T, m, m))
+    dposv = lapack.dposv
+    W = np.zeros((n1, n1))  # twice the value function (the factor 1/2 is folded into Fdt_half)
     for t in range(T - 1, -1, -1):
-        Q = Ct[t] + Ft[t] @ V @ F[t]
-        Q0uu = Q[n1:, n1:]
-        Q0_all[t] = Q0uu
-        e = eta[t]
-        if e == math.inf:  # pinned to the reference: cost-to-go under phat (KL_t = 0)
-            Kh_t = Kth[t]
-            Kt[t] = Kh_t
-            S[t] = prob.Sh[t]
-            logdetS[t] = logdet_chol(prob.Lh[t])
-            QxuK = Q[:n1, n1:] @ Kh_t
-            V = Q[:n1, :n1] + QxuK + QxuK.T + Kh_t.T @ Q0uu @ Kh_t
-            V = 0.5 * (V + V.T)
+        Q = Qall[t]
+        np.matmul(Fdt_half[t], W @ Fd[t], out=Q)
+        Q += Ctd[t]
+        if not fin[t]:  # pinned to the reference (delta = 0): cost-to-go under phat (KL_t = 0)
+            W = Q[:n1, :n1] + Q[:n1, :n1].T
             continue
-        Quu = Q0uu + e * Shinv[t] if e > 0 else Q0uu
-        L, info = lapack.dpotrf(Quu, lower=1, clean=1)
-        while info != 0:
-            crit = _eta_crit(prob, t, Q0uu) if has_ref else math.inf
-            if repair is None or not repair[t]:
-                raise _NotPD(t, e, crit)
-            e = max(config.repair_factor * e, (1.0 + config.repair_margin) * crit)
-            if e > config.eta_max:
-                raise NotPositiveDefiniteError(
-                    f"Quu[{t}] is not positive definite for any multiplier up to eta_max={config.eta_max:g} "
-                    f"(needs eta > {crit:.3e})"
-                )
-            eta[t] = e
-            Quu = Q0uu + e * Shinv[t]
-            L, info = lapack.dpotrf(Quu, lower=1, clean=1)
-        Qi_all[t] = lapack.dpotri(L, lower=1)[0]
-        Ldiag[t] = L.diagonal()
-        if e > 0:
-            D = -(lapack.dpotrs(L, Q[n1:, :n1] + Q0uu @ Kth[t], lower=1)[0])  # [dK, dk]
-            dKt[t] = D
-            Kt_t = Kth[t] + D
-            # V = min_a Q_eta = Q0xx + Q0xu [K,k] + eta (Hxx + Hxu [K,k]),  Hxx + Hxu [K,k] = -Kth^T R [dK,dk]
-            V = Q[:n1, :n1] + Q[:n1, n1:] @ Kt_t - e * (KthR[t] @ D)
-        else:
-            Kt_t = -lapack.dpotrs(L, Q[n1:, :n1], lower=1)[0]
-            if has_ref:
-                dKt[t] = Kt_t - Kth[t]
-            V = Q[:n1, :n1] + Q[:n1, n1:] @ Kt_t  # Qxx - Qxu Quu^-1 Qux
-        Kt[t] = Kt_t
-        V = 0.5 * (V + V.T)
-    Qi_all = np.tril(Qi_all) + np.swapaxes(np.tril(Qi_all, -1), 1, 2)
-    pos = np.isfinite(eta) & (eta > 0)
-    S[pos] = eta[pos, None, None] * Qi_all[pos]
-    S[eta == 0] = 0.0
-    logdetS[pos] = m * np.log(eta[pos]) - 2.0 * np.log(Ldiag[pos]).sum(axis=1)
-    logdetS[eta == 0] = -np.inf
-    return _Backward(Kt[:, :, :n].copy(), Kt[:, :, n].copy(), dKt[:, :, :n].copy(), dKt[:, :, n].copy(),
-                     S, logdetS, Qi_all, Q0_all, eta)
+        La, Xt = Lall[t], Xall[t]
+        np.add(Q[n1:, n1:], eR[t], out=La)
+        Xt[:n1] = Q[n1:, :n1].T
+        if dposv(La.T, Xt.T, lower=1, overwrite_a=1, overwrite_b=1)[2] != 0:
+            _repair(prob, t, Q[n1:, n1:], eta, repair, config)  # raises eta[t] (or raises _NotPD)
+            np.add(Q[n1:, n1:], eta[t] * prob.Shinv[t], out=La)
+            Xt[:n1] = Q[n1:, :n1].T
+            Xt[n1:] = np.eye(m)
+            dposv(La.T, Xt.T, lower=1, overwrite_a=1, overwrite_b=1)
+        W = Q[:n1, :n1] - Xt[:n1] @ Q[n1:, :n1]  # V = Q'xx - Q'xu Quu^-1 Q'ux
+        W = W + W.T
+    G = -np.swapaxes(Xall[:, :n1, :], 1, 2)  # (T, m, n1) gains of the step's coordinates, 0 where pinned
+    if has_ref:
+        devc = dev[:, None, None]
+        Kt = np.where(devc, prob.Kth + G, G)
+        D = np.where(devc, G, G - prob.Kth)  # deviation gains, computed directly where possible
+    else:
+        Kt = D = G
+    pinned = ~fin
+    Quu_inv = symmetrize(Xall[:, n1:, :])
+    Quu_inv[pinned] = 0.0
+    pos = fin & (eta > 0)
+    S = np.where(fin, eta, 0.0)[:, None, None] * Quu_inv  # 0 where eta = 0
+    logdetS = np.empty(T)
+    logdetS[pos] = m * np.log(eta[pos]) - 2.0 * np.log(np.diagonal(Lall[pos], axis1=1, axis2=2)).sum(axis=1)
+    logdetS[zero] = -np.inf
+    if pinned.any():
+        S[pinned] = prob.Sh[pinned]
+        logdetS[pinned] = logdet_chol(prob.Lh[pinned])
+    return _Backward(np.ascontiguousarray(Kt[:, :, :n]), np.ascontiguousarray(Kt[:, :, n]),
+                     np.ascontiguousarray(D[:, :, :n]), np.ascontiguousarray(D[:, :, n]),
+                     S, logdetS, Quu_inv, Qall[:, n1:, n1:], eta)
+
+
+def _repair(prob: _Problem, t: int, Q0uu: np.ndarray, eta: np.ndarray, repair, config) -> None:
+    """``Quu_t`` is not PD at ``eta[t]``: raise :class:`_NotPD`, or (``repair[t]``) raise ``eta[t]``
+    in place by the repair rule until ``Quu_t`` is PD."""
+    e = eta[t]
+    while True:
+        crit = _eta_crit(prob, t, Q0uu) if prob.has_ref else math.inf
+        if repair is None or not repair[t]:
+            raise _NotPD(t, e, crit)
+        e = max(config.repair_factor * e, (1.0 + config.repair_margin) * crit)
+        if e > config.eta_max:
+            raise NotPositiveDefiniteError(
+                f"Quu[{t}] is not positive definite for any multiplier up to eta_max={config.eta_max:g} "
+                f"(needs eta > {crit:.3e})"
+            )
+        eta[t] = e
+        if lapack.dpotrf(Q0uu + e * prob.Shinv[t], lower=1, clean=1)[1] == 0:
+            return
 
 
 class _Eval(NamedTuple):

@@ -195,28 +195,16 @@ def _casadi_symbolic(prob: _Problem, kind: np.ndarray, scalar: bool, ub, opts: d
                 for idx, (i, j) in enumerate(tril):
                     L[i, j] = lv[idx]
                 S = ca.mtimes(L, L.T)
-        C = ca.DM(cst.C[t])
-        a_mean = ca.mtimes(K, mu) + kk
-        PKt = ca.mtimes(P, K.T)
-        Pa = ca.mtimes(K, PKt) + S
-        zbar = ca.vertcat(mu, a_mean)
-        trace = (ca.sum1(ca.sum2(C[:n, :n] * P)) + 2 * ca.sum1(ca.sum2(C[:n, n:] * PKt))
-                 + ca.sum1(ca.sum2(C[n:, n:] * Pa)))
-        obj = obj + 0.5 * trace + 0.5 * ca.mtimes([zbar.T, C, zbar]) + ca.dot(ca.DM(cst.c[t]), zbar) + float(cst.c0[t])
-        if kind[t] == "free":
-            R = ca.DM(prob.Shinv[t])
-            dK = K - ca.DM(ref.K[t])
-            dm = ca.mtimes(dK, mu) + kk - ca.DM(ref.k[t])
-            logdetS = 2 * sum(ca.log(L[i, i]) for i in range(m))
-            kl = 0.5 * (ca.sum1(ca.sum2(R * S)) - m + float(prob.logdetSh[t]) - logdetS
-                        + ca.mtimes([dm.T, R, dm]) + ca.sum1(ca.sum2(ca.mtimes([R, dK, P]) * dK)))
+        D = {"A": ca.DM(dyn.A[t]), "B": ca.DM(dyn.B[t]), "c": ca.DM(dyn.c[t]), "W": ca.DM(dyn.cov[t]),
+             "C": ca.DM(cst.C[t]), "cl": ca.DM(cst.c[t]), "c0": float(cst.c0[t]), "Kh": ca.DM(ref.K[t]),
+             "kh": ca.DM(ref.k[t]), "R": ca.DM(prob.Shinv[t]), "logdetSh": float(prob.logdetSh[t])}
+        logdetS = 2 * sum(ca.log(L[i, i]) for i in range(m)) if kind[t] == "free" else None
+        stage_obj, kl, mu_n, P_n = _stage_terms(ca, D, n, mu, P, K, kk, S, logdetS)
+        obj = obj + stage_obj
+        if kl is not None:
             kl_terms.append(kl)
         if t < T - 1:
-            A, B = ca.DM(dyn.A[t]), ca.DM(dyn.B[t])
-            Acl = A + ca.mtimes(B, K)
-            mu = ca.mtimes(Acl, mu) + ca.mtimes(B, kk) + ca.DM(dyn.c[t])
-            P = ca.mtimes([Acl, P, Acl.T]) + ca.mtimes([B, S, B.T]) + ca.DM(dyn.cov[t])
-            P = 0.5 * (P + P.T)
+            mu, P = mu_n, P_n
 
     g_kl = ([sum(kl_terms)] if scalar else kl_terms) if kl_terms else []
     opts = dict(opts)
@@ -247,6 +235,33 @@ def _casadi_symbolic(prob: _Problem, kind: np.ndarray, scalar: bool, ub, opts: d
             pos += len(tril)
             Sout[t] = Lt @ Lt.T
     return Kout, kout, Sout, lam, status, n_iter, fval, {"build_s": build_s, "solve_s": solve_s}
+
+
+def _stage_terms(ca, D: dict, n: int, mu, P, K, kk, S, logdetS):
+    """CasADi expressions of one step (SPEC §6): ``(E[l], KL or None, E[s'], Cov(s'))`` for the state
+    moments ``(mu, P)``, the policy ``(K, kk, S)`` and the step's data ``D`` (keys ``A, B, c, W, C, cl,
+    c0, Kh, kh, R = Sh^-1, logdetSh``); ``KL`` only when ``logdetS`` (``log|S|``) is given.  Shared by
+    the symbolic IPOPT NLP and the fatrop stages."""
+    C = D["C"]
+    a_mean = ca.mtimes(K, mu) + kk
+    PKt = ca.mtimes(P, K.T)
+    Pa = ca.mtimes(K, PKt) + S
+    zbar = ca.vertcat(mu, a_mean)
+    trace = (ca.sum1(ca.sum2(C[:n, :n] * P)) + 2 * ca.sum1(ca.sum2(C[:n, n:] * PKt))
+             + ca.sum1(ca.sum2(C[n:, n:] * Pa)))
+    obj = 0.5 * trace + 0.5 * ca.mtimes([zbar.T, C, zbar]) + ca.dot(D["cl"], zbar) + D["c0"]
+    kl = None
+    if logdetS is not None:
+        R, m = D["R"], K.shape[0]
+        dK = K - D["Kh"]
+        dm = ca.mtimes(dK, mu) + kk - D["kh"]
+        kl = 0.5 * (ca.sum1(ca.sum2(R * S)) - m + D["logdetSh"] - logdetS
+                    + ca.mtimes([dm.T, R, dm]) + ca.sum1(ca.sum2(ca.mtimes([R, dK, P]) * dK)))
+    A, B = D["A"], D["B"]
+    Acl = A + ca.mtimes(B, K)
+    mu_n = ca.mtimes(Acl, mu) + ca.mtimes(B, kk) + D["c"]
+    P_n = ca.mtimes([Acl, P, Acl.T]) + ca.mtimes([B, S, B.T]) + D["W"]
+    return obj, kl, mu_n, 0.5 * (P_n + P_n.T)
 
 
 def _casadi_structured(prob: _Problem, kind: np.ndarray, scalar: bool, ub, opts: dict, config: KLStepConfig):

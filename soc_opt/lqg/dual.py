@@ -4,8 +4,9 @@ Each solver counts its backward passes (one backward pass = one policy; each is 
 one forward pass for the moments and ``KL_k``):
 
 * scalar ``eta`` (total budget): ``KL(eta) = sum_k KL_k`` is continuous and strictly decreasing,
-  so we solve ``log KL(e^x) = log nu`` for ``x = log eta`` by a safeguarded Newton/secant
-  iteration with bisection fallback (:func:`_solve_scalar`).  Typically 5-9 backward passes.
+  so we solve ``log KL(e^x) = log nu`` for ``x = log eta`` by safeguarded inverse quadratic
+  interpolation / Newton-secant steps with bisection fallback (:func:`_solve_scalar`).
+  Typically 5-8 backward passes.
 * vector ``eta`` (per-step budgets): the concave dual is maximised over ``eta_k >= eta_min`` by a
   projected, diagonally preconditioned L-BFGS method in ``x = log eta`` with the analytic
   gradient ``eta_k (KL_k - nu_k)`` (:func:`_solve_vector`).  Typically 10-20 backward passes,
@@ -49,14 +50,18 @@ class _Counter:
 def _solve_scalar(prob: _Problem, nu: float, config: KLStepConfig, eta0) -> tuple[_Eval, int, int, str]:
     """Root of ``f(x) = log sum_k KL_k(e^x) - log nu`` (continuous, strictly decreasing) in ``x = log eta``.
 
-    Safeguarded Newton iteration in log-log coordinates (``rtsafe``-style): the slope is the
-    secant through the last two points when they are within 1 of each other in ``log eta``,
-    else the analytic slope ``eta sum_k dKL_k/deta / sum_k KL_k`` through each step's own
-    policy (:func:`_direct_dkl`); slopes clipped to ``[-10, -1e-3]``, steps capped at
-    ``max_log_step``; a step leaving the current bracket, or two steps in a row that do not
-    halve ``|f|``, is replaced by bisection.  Non-PD points raise ``eta`` by the repair rule and
+    Safeguarded root finding in log-log coordinates (:func:`_scalar_proposal`): inverse
+    quadratic interpolation through the last three points once there are three, else a Newton
+    step whose slope is the secant through the last two points when they are within 1 of each
+    other in ``log eta``, else the analytic slope ``eta sum_k dKL_k/deta / sum_k KL_k`` through
+    each step's own policy (:func:`_direct_dkl`); slopes clipped to ``[-10, -1e-3]``, steps capped
+    at ``max_log_step``; a step leaving the current bracket, or two steps in a row that do not
+    halve ``|f|``, is replaced by bisection.  (``f`` is concave in ``x``, its slope going from about
+    0 at small ``eta`` to -2 at large ``eta``: a first Newton step from a small ``eta`` overshoots,
+    and the interpolation through three points uses that curvature; it saves about one backward
+    pass in eight against the secant.)  Non-PD points raise ``eta`` by the repair rule and
     become a lower end of the bracket.  Stops when ``|KL - nu| <= kl_rtol nu + T kl_atol``;
-    ``KL(eta_min) < nu`` returns ``eta_min`` (slack budget).  Typically 5-9 backward passes.
+    ``KL(eta_min) < nu`` returns ``eta_min`` (slack budget).  Typically 5-8 backward passes.
     Returns ``(eval, n_backward, n_iter, status)``.
     """
     T = prob.T
@@ -69,7 +74,7 @@ def _solve_scalar(prob: _Problem, nu: float, config: KLStepConfig, eta0) -> tupl
     e0 = float(np.max(e0)) if e0.size else config.eta_init
     x = min(max(math.log(max(e0, config.eta_min)), xmin), xmax)
     lo, hi = -math.inf, math.inf  # f(lo) > 0 (or lo outside the domain), f(hi) < 0
-    prev = None
+    pts: list[tuple[float, float]] = []  # last evaluated (x, f), oldest first
     slow = 0
     it = 0
     while True:
@@ -103,22 +108,38 @@ def _solve_scalar(prob: _Problem, nu: float, config: KLStepConfig, eta0) -> tupl
             if abs(f) > 1e3 * ftol:
                 raise SolverError(f"scalar dual did not converge: KL/nu - 1 = {math.expm1(f):.3e}")
             return r, call.n, it, "converged (bracket width)"
-        slope = None
-        if prev is not None and abs(x - prev[0]) < 1.0 and prev[1] != f:
-            slope = (f - prev[1]) / (x - prev[0])
-        if slope is None or not -10.0 < slope < -1e-3:
-            sd = math.exp(x) * float(_direct_dkl(prob, r).sum()) / max(ksum, 1e-300)
-            slope = min(max(sd, -10.0), -1e-3) if math.isfinite(sd) else -1.0
-        slow = slow + 1 if prev is not None and abs(f) > 0.5 * abs(prev[1]) else 0
-        xn = x + min(max(-f / slope, -cap), cap)
+        slow = slow + 1 if pts and abs(f) > 0.5 * abs(pts[-1][1]) else 0
+        pts = (pts + [(x, f)])[-3:]
+        xn = _scalar_proposal(pts, lo, hi, cap, lambda: math.exp(x) * float(_direct_dkl(prob, r).sum()) / ksum)
         if not lo < xn < hi or (slow >= 2 and math.isfinite(lo) and math.isfinite(hi)):
             if math.isfinite(lo) and math.isfinite(hi):
                 xn = 0.5 * (lo + hi)
                 slow = 0
             else:
                 xn = x + (cap if f > 0 else -cap)
-        prev = (x, f)
         x = min(max(xn, xmin), xmax)
+
+
+def _scalar_proposal(pts: list, lo: float, hi: float, cap: float, direct_slope) -> float:
+    """Next ``x`` of :func:`_solve_scalar` from the last points ``pts = [(x, f), ...]`` (current
+    last): inverse quadratic interpolation through three points with distinct ``f`` when it lands
+    inside the bracket ``(lo, hi)`` within ``cap`` of the current point, else the capped Newton step
+    with the secant slope (last two points within 1 in ``x``) or ``direct_slope()``."""
+    x, f = pts[-1]
+    if len(pts) == 3:
+        (a, fa), (b, fb), (c, fc) = pts
+        if fa != fb and fa != fc and fb != fc:
+            xn = (a * fb * fc / ((fa - fb) * (fa - fc)) + b * fa * fc / ((fb - fa) * (fb - fc))
+                  + c * fa * fb / ((fc - fa) * (fc - fb)))
+            if lo < xn < hi and abs(xn - x) <= cap:
+                return xn
+    slope = None
+    if len(pts) >= 2 and abs(x - pts[-2][0]) < 1.0 and pts[-2][1] != f:
+        slope = (f - pts[-2][1]) / (x - pts[-2][0])
+    if slope is None or not -10.0 < slope < -1e-3:
+        sd = direct_slope()
+        slope = min(max(sd, -10.0), -1e-3) if math.isfinite(sd) else -1.0
+    return x + min(max(-f / slope, -cap), cap)
 
 
 def _solve_vector(prob: _Problem, nu: np.ndarray, config: KLStepConfig, eta0) -> tuple[_Eval, int, int, str]:

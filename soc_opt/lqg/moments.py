@@ -14,25 +14,26 @@ def _forward_arrays(dynamics: LinearGaussianDynamics, K, k, S, mu0, P0) -> Margi
     T, n = dynamics.T, dynamics.n
     A, B = dynamics.A, dynamics.B
     Acl = A + B @ K  # (T, n, n) closed-loop state matrices
+    # state moments as one (T+1, n+1, n) array, rows [Cov(s_k); E[s_k]^T]: per step
+    # [Cov'; E'^T] = blkdiag(Acl, 1) [Cov; E^T] Acl^T + [B Sigma B^T + W; (B k + c)^T].
+    # The products are not exactly symmetric; the covariances are symmetrised once at the end (the
+    # symmetric part of the recursion does not depend on the antisymmetric roundoff).
+    Aaug = np.zeros((T, n + 1, n + 1))
+    Aaug[:, :n, :n] = Acl
+    Aaug[:, n, n] = 1.0
     AclT = np.swapaxes(Acl, 1, 2)
-    bias = (B @ k[:, :, None])[:, :, 0] + dynamics.c
-    N = (B @ S) @ np.swapaxes(B, 1, 2) + dynamics.cov  # B Sigma B^T + W
-    mean = np.empty((T + 1, n))
-    cov = np.empty((T + 1, n, n))
-    mean[0] = mu0
-    cov[0] = P0
-    mu = mu0
-    tmp = np.empty((n, n))
+    add = np.empty((T, n + 1, n))
+    add[:, :n] = (B @ S) @ np.swapaxes(B, 1, 2) + dynamics.cov
+    add[:, n] = (B @ k[:, :, None])[:, :, 0] + dynamics.c
+    Cm = np.empty((T + 1, n + 1, n))
+    Cm[0, :n] = P0
+    Cm[0, n] = mu0
     for t in range(T):
-        Ac = Acl[t]
-        mu = Ac @ mu + bias[t]
-        mean[t + 1] = mu
-        np.matmul(Ac, cov[t], out=tmp)
-        Pn = cov[t + 1]
-        np.matmul(tmp, AclT[t], out=Pn)
-        Pn += N[t]
-        Pn += Pn.T
-        Pn *= 0.5
+        nxt = Cm[t + 1]
+        np.matmul(Aaug[t], Cm[t] @ AclT[t], out=nxt)
+        nxt += add[t]
+    cov = symmetrize(Cm[:, :n])
+    mean = np.ascontiguousarray(Cm[:, n])
     sa_cov = cov[:T] @ np.swapaxes(K, 1, 2)  # Cov(s, a) = P K^T, (T, n, m)
     a_mean = (K @ mean[:T, :, None])[:, :, 0] + k
     a_cov = symmetrize(K @ sa_cov + S)

@@ -15,7 +15,7 @@ from scipy.linalg import lapack
 
 from .. import errors
 from ..config import Config
-from ..linalg import logdet_chol
+from ..linalg import inv_from_chol, logdet_chol, tri_solve
 from ..models import (
     LinearGaussianDynamics,
     LinearGaussianPolicy,
@@ -86,6 +86,13 @@ class KLStepConfig(Config):
                         symbolic size, 540 variables at ``n=6, m=3, T=20``, where the symbolic
                         Hessian already takes tens of seconds to build; its cost grows about
                         cubically with the size).
+    fatrop (method ``"fatrop"``, :mod:`soc_opt.lqg.fatrop_nlp`):
+        fatrop_tol:     fatrop ``tol`` (1e-8; policy and multipliers then agree with the closed
+                        form to about 1e-10 on the tested instances).
+        fatrop_max_iter: fatrop ``max_iter`` (1000).
+        fatrop_expand:  expand the NLP's MX graph into SX before solving (True: faster
+                        evaluations; False saves build time and memory on large problems).
+        fatrop_options: extra fatrop options (override the above).
     Step-size adaptation (:func:`adapt_step`, GPS rule):
         min_mult, max_mult: clip of the budget multiplier ``predicted / (2 (predicted - actual))``
                         (0.1, 5.0).
@@ -109,6 +116,10 @@ class KLStepConfig(Config):
     ipopt_options: dict[str, Any] = field(default_factory=dict)
     casadi_nlp: Literal["auto", "symbolic", "structured"] = "auto"
     casadi_auto_max_vars: int = 600
+    fatrop_tol: float = 1e-8
+    fatrop_max_iter: int = 1000
+    fatrop_expand: bool = True
+    fatrop_options: dict[str, Any] = field(default_factory=dict)
     min_mult: float = 0.1
     max_mult: float = 5.0
     min_gap: float = 1e-4
@@ -117,7 +128,7 @@ class KLStepConfig(Config):
 
     def __post_init__(self):
         pos = ("kl_rtol", "kl_atol", "eta_init", "eta_min", "eta_max", "max_log_step", "ipopt_tol",
-               "ipopt_acceptable_tol", "chol_floor", "min_mult", "max_mult", "min_gap", "nu_min", "nu_max")
+               "ipopt_acceptable_tol", "chol_floor", "fatrop_tol", "min_mult", "max_mult", "min_gap", "nu_min", "nu_max")
         for name in pos:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -128,8 +139,10 @@ class KLStepConfig(Config):
             raise ValueError("KLStepConfig.repair_factor must be > 1 and repair_margin >= 0")
         if self.min_mult > self.max_mult or self.nu_min > self.nu_max:
             raise ValueError("KLStepConfig: min_mult <= max_mult and nu_min <= nu_max required")
-        if self.max_backward < 1 or self.ipopt_max_iter < 1:
-            raise ValueError("KLStepConfig.max_backward and ipopt_max_iter must be >= 1")
+        if self.max_backward < 1 or self.ipopt_max_iter < 1 or self.fatrop_max_iter < 1:
+            raise ValueError("KLStepConfig.max_backward, ipopt_max_iter and fatrop_max_iter must be >= 1")
+        if not isinstance(self.fatrop_expand, bool):
+            raise ValueError(f"KLStepConfig.fatrop_expand must be true or false, got {self.fatrop_expand!r}")
         if self.casadi_nlp not in ("auto", "symbolic", "structured"):
             raise ValueError("KLStepConfig.casadi_nlp must be 'auto', 'symbolic' or 'structured', "
                              f"got {self.casadi_nlp!r}")
@@ -152,16 +165,17 @@ class KLStepResult(NamedTuple):
         nu:            the budget(s) as given: float or (T,).
         dual_value:    ``g(eta) = sum E[l] + sum eta (KL - nu)`` (closed form) or the NLP
                        objective (CasADi).
-        method:        ``"closed_form"`` or ``"casadi"``.
-        n_iter:        dual iterations (closed form) or IPOPT iterations.
+        method:        ``"closed_form"``, ``"casadi"`` or ``"fatrop"``.
+        n_iter:        dual iterations (closed form) or IPOPT / fatrop iterations.
         status:        solver status string.
         marginals:     :class:`Marginals` of the optimal policy.
-        lam_g:         CasADi only: IPOPT multipliers of the KL constraints (one per constrained
-                       step, or one for the total budget).
+        lam_g:         CasADi and fatrop only: multipliers of the KL constraints (one per
+                       constrained step, or one for the total budget).
         solver_stats:  CasADi only: ``{"n_vars", "formulation", "build_s", "solve_s"}`` (NLP size,
                        ``"symbolic"`` or ``"structured"`` (``"none"`` if nothing was solved),
                        seconds to build the NLP (symbolic: with its exact Hessian), seconds in
-                       IPOPT).
+                       IPOPT); fatrop: the same keys (formulation ``"multiple_shooting"``) and
+                       ``"n_ocp_vars"`` (states and controls of the multiple-shooting NLP).
     """
 
     policy: LinearGaussianPolicy
@@ -214,18 +228,20 @@ def _check_init(mu0, P0, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _reference_chol(reference: LinearGaussianPolicy) -> np.ndarray:
-    """Lower Cholesky factors of the reference covariances; clear error if not PD."""
-    out = np.empty_like(reference.cov)
+    """Lower Cholesky factors of the reference covariances (batched); clear error naming the
+    first step that is not PD."""
+    try:
+        return np.linalg.cholesky(reference.cov)
+    except np.linalg.LinAlgError:
+        pass
     for t in range(reference.T):
-        L, info = lapack.dpotrf(reference.cov[t], lower=1, clean=1)
-        if info != 0:
+        if lapack.dpotrf(reference.cov[t], lower=1, clean=1)[1] != 0:
             ev = float(np.linalg.eigvalsh(reference.cov[t])[0])
             raise NotPositiveDefiniteError(
                 f"reference cov[{t}] is not positive definite (smallest eigenvalue {ev:.3e}); "
                 "the KL step needs a reference policy with Sigma > 0"
             )
-        out[t] = L
-    return out
+    raise NotPositiveDefiniteError("reference cov is not positive definite")  # pragma: no cover
 
 
 def _check_nu(nu, T: int) -> tuple[np.ndarray, bool]:
@@ -248,13 +264,8 @@ def _check_nu(nu, T: int) -> tuple[np.ndarray, bool]:
 
 
 def _ref_inverse(Lh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(Sh^-1, log|Sh|)`` from the Cholesky factors (LAPACK ``potri``), symmetrised."""
-    T = Lh.shape[0]
-    Shinv = np.empty_like(Lh)
-    for t in range(T):
-        X = lapack.dpotri(Lh[t], lower=1)[0]
-        Shinv[t] = np.tril(X) + np.tril(X, -1).T
-    return Shinv, logdet_chol(Lh)
+    """``(Sh^-1, log|Sh|)`` from the Cholesky factors (batched triangular solves), symmetrised."""
+    return inv_from_chol(Lh), logdet_chol(Lh)
 
 
 # --------------------------------------------------------------------------------------------
@@ -266,7 +277,15 @@ class _Problem:
     """Per-step arrays of one problem, precomputed once (vectorised over T).
 
     In homogeneous coordinates ``z~ = (s, 1, a)`` the stage cost is ``1/2 z~^T Ct z~``, the mean
-    dynamics ``(s', 1) = F z~`` and ``-log phat(a|s) = 1/2 z~^T H z~ + const``.
+    dynamics ``(s', 1) = F z~`` and ``-log phat(a|s) = 1/2 z~^T H z~ + const``.  The backward
+    pass (:mod:`.backward`) works in the deviation coordinates ``z' = (s, 1, delta)``,
+    ``delta = a - Kh s - kh`` (``delta = a`` without a reference): ``z~ = E z'`` with
+    ``E = [[I, 0], [Kth, I]]``, dynamics ``Fd = F E`` and stage cost ``Ctd = E^T Ct E``.
+
+    Fields (``n1 = n + 1``, ``d = n1 + m``): ``F`` (T, n1, d), ``Ct`` (T, d, d), ``Fd`` (T, n1, d),
+    ``Fdt_half = Fd^T / 2`` (T, d, n1), ``Ctd`` (T, d, d), ``has_ref``; with a reference also
+    ``Lh`` (T, m, m) (``Sh = Lh Lh^T``), ``Lhinv = Lh^-1``, ``Shinv`` (T, m, m), ``logdetSh`` (T,),
+    ``Kth = [Kh, kh]`` (T, m, n1) and ``H`` (T, d, d) (computed on first use).
     """
 
     def __init__(self, dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference, mu0, P0):
@@ -274,38 +293,60 @@ class _Problem:
         self.T, self.n, self.m = T, n, m
         self.dynamics, self.cost = dynamics, cost
         self.mu0, self.P0 = mu0, P0
-        d = n + 1 + m
-        F = np.zeros((T, n + 1, d))
+        n1 = n + 1
+        d = n1 + m
+        F = np.zeros((T, n1, d))
         F[:, :n, :n] = dynamics.A
         F[:, :n, n] = dynamics.c
-        F[:, :n, n + 1 :] = dynamics.B
+        F[:, :n, n1:] = dynamics.B
         F[:, n, n] = 1.0
         self.F = F
-        self.Ft = np.ascontiguousarray(np.swapaxes(F, 1, 2))
         Ct = np.zeros((T, d, d))
         C, c = cost.C, cost.c
         Ct[:, :n, :n] = C[:, :n, :n]
-        Ct[:, :n, n + 1 :] = C[:, :n, n:]
-        Ct[:, n + 1 :, :n] = C[:, n:, :n]
-        Ct[:, n + 1 :, n + 1 :] = C[:, n:, n:]
+        Ct[:, :n, n1:] = C[:, :n, n:]
+        Ct[:, n1:, :n] = C[:, n:, :n]
+        Ct[:, n1:, n1:] = C[:, n:, n:]
         Ct[:, :n, n] = c[:, :n]
         Ct[:, n, :n] = c[:, :n]
-        Ct[:, n + 1 :, n] = c[:, n:]
-        Ct[:, n, n + 1 :] = c[:, n:]
+        Ct[:, n1:, n] = c[:, n:]
+        Ct[:, n, n1:] = c[:, n:]
         Ct[:, n, n] = 2.0 * cost.c0
         self.Ct = Ct
-        self.H = None
-        if reference is not None:
-            self.reference = reference
-            self.Lh = _reference_chol(reference)
-            self.Kh, self.kh, self.Sh = reference.K, reference.k, reference.cov
-            self.Shinv, self.logdetSh = _ref_inverse(self.Lh)
-            G = np.concatenate(
-                [-reference.K, -reference.k[:, :, None], np.broadcast_to(np.eye(m), (T, m, m))], axis=2
-            )
-            self.H = symmetrize(np.swapaxes(G, 1, 2) @ self.Shinv @ G)
-            self.Kth = np.concatenate([reference.K, reference.k[:, :, None]], axis=2)  # (T, m, n+1)
-            self.KthR = np.swapaxes(self.Kth, 1, 2) @ self.Shinv  # (T, n+1, m)
+        self.has_ref = reference is not None
+        self._H = None
+        if not self.has_ref:
+            self.Fd, self.Ctd = F, Ct
+            self.Fdt_half = 0.5 * np.swapaxes(F, 1, 2)
+            return
+        self.reference = reference
+        self.Lh = _reference_chol(reference)
+        self.Kh, self.kh, self.Sh = reference.K, reference.k, reference.cov
+        self.Shinv, self.logdetSh = _ref_inverse(self.Lh)
+        self.Kth = Kth = np.concatenate([reference.K, reference.k[:, :, None]], axis=2)  # (T, m, n1)
+        self.Lhinv = tri_solve(self.Lh, np.broadcast_to(np.eye(m), (T, m, m)))  # (T, m, m)
+        # Fd = F E = [Fx + Fu Kth, Fu];  Ctd = E^T Ct E by blocks (Ct_ux + Ct_uu Kth = Ctd_ux)
+        Fu = F[:, :, n1:]
+        self.Fd = np.concatenate([F[:, :, :n1] + Fu @ Kth, Fu], axis=2)
+        self.Fdt_half = 0.5 * np.swapaxes(self.Fd, 1, 2)  # (T, d, n1), contiguous
+        Ctd = np.empty((T, d, d))
+        ux = Ct[:, n1:, :n1] + Ct[:, n1:, n1:] @ Kth
+        xx = Ct[:, :n1, :n1] + Ct[:, :n1, n1:] @ Kth + np.swapaxes(Kth, 1, 2) @ ux
+        Ctd[:, :n1, :n1] = symmetrize(xx)
+        Ctd[:, n1:, :n1] = ux
+        Ctd[:, :n1, n1:] = np.swapaxes(ux, 1, 2)
+        Ctd[:, n1:, n1:] = Ct[:, n1:, n1:]
+        self.Ctd = Ctd
+
+    @property
+    def H(self) -> np.ndarray | None:
+        """(T, d, d) quadratic form of ``-log phat`` in ``z~`` (None without a reference)."""
+        if self._H is None and self.has_ref:
+            T, m = self.T, self.m
+            ref = self.reference
+            G = np.concatenate([-ref.K, -ref.k[:, :, None], np.broadcast_to(np.eye(m), (T, m, m))], axis=2)
+            self._H = symmetrize(np.swapaxes(G, 1, 2) @ self.Shinv @ G)
+        return self._H
 
 
 def _policy_from(K, k, S, eta) -> LinearGaussianPolicy:

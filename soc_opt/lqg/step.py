@@ -2,7 +2,8 @@
 
 ``method="closed_form"`` solves the dual over the multipliers (:mod:`.dual`) with one backward
 pass per trial multiplier (:mod:`.backward`); ``method="casadi"`` solves the primal NLP with
-IPOPT (:mod:`.casadi_nlp`).
+IPOPT (:mod:`.casadi_nlp`), ``method="fatrop"`` its multiple-shooting form with fatrop
+(:mod:`.fatrop_nlp`).
 """
 
 from __future__ import annotations
@@ -12,14 +13,16 @@ from typing import Literal
 
 import numpy as np
 
+from ..linalg import single_thread_blas_cached
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost
 from .casadi_nlp import _kl_step_casadi
+from .fatrop_nlp import _kl_step_fatrop
 from .dual import _dual_value, _solve_scalar, _solve_vector
 from .problem import KLStepConfig, KLStepResult, _check_dims, _check_init, _check_nu, _policy_from, _Problem
 
 
 def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: LinearGaussianPolicy, nu, mu0, P0,
-            method: Literal["closed_form", "casadi"] = "closed_form", config: KLStepConfig | None = None,
+            method: Literal["closed_form", "casadi", "fatrop"] = "closed_form", config: KLStepConfig | None = None,
             *, eta0=None) -> KLStepResult:
     """KL-constrained LQG step (SPEC §6): ``min sum_k E[l_k]  s.t.  KL_k <= nu_k`` (or ``sum KL <= nu``).
 
@@ -30,7 +33,8 @@ def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: Li
             budgets; ``inf`` entries are unconstrained (``eta = 0``, deterministic step),
             ``0`` entries pin the step to the reference (``eta = inf``).
         mu0, P0: initial state distribution.
-        method: ``"closed_form"`` (backward passes + dual solve) or ``"casadi"`` (IPOPT NLP).
+        method: ``"closed_form"`` (backward passes + dual solve), ``"casadi"`` (IPOPT NLP) or
+            ``"fatrop"`` (multiple-shooting optimal control NLP solved by fatrop).
         config: :class:`KLStepConfig`.
         eta0: optional warm start of the multiplier(s) (closed form only).
     Returns a :class:`KLStepResult`.
@@ -41,13 +45,17 @@ def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: Li
     T, n, m = _check_dims(dynamics, cost=cost, reference=reference)
     mu0, P0 = _check_init(mu0, P0, n)
     nu_arr, scalar = _check_nu(nu, T)
-    prob = _Problem(dynamics, cost, reference, mu0, P0)
     nu_out = float(nu_arr[0]) if scalar else nu_arr.copy()
     if method == "closed_form":
-        return _kl_step_closed(prob, nu_arr, scalar, nu_out, config, eta0)
+        # many small matrix products: threaded BLAS gains nothing there, and on a loaded machine
+        # its spinning threads made the dual solve several times slower
+        with single_thread_blas_cached():
+            return _kl_step_closed(_Problem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config, eta0)
     if method == "casadi":
-        return _kl_step_casadi(prob, nu_arr, scalar, nu_out, config)
-    raise ValueError(f"unknown method {method!r}; use 'closed_form' or 'casadi'")
+        return _kl_step_casadi(_Problem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config)
+    if method == "fatrop":
+        return _kl_step_fatrop(_Problem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config)
+    raise ValueError(f"unknown method {method!r}; use 'closed_form', 'casadi' or 'fatrop'")
 
 
 def _kl_step_closed(prob: _Problem, nu: np.ndarray, scalar: bool, nu_out, config, eta0) -> KLStepResult:
