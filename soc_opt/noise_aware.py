@@ -18,6 +18,10 @@ loop then calls exactly what it called before this module existed.
   the smoothed tuple moments combined with the (noise-corrected) NIW prior of the step exactly as
   the plain fit combines empirical moments with it, then conditioned (:func:`ssm_em_fit`).
 
+``time_window = h > 0`` pools the tuple moments of steps ``k-h..k+h`` before either noise-aware
+fit (:func:`pool_moments`): with ``M`` rollouts of a few tens of steps and ``rho2`` comparable to
+the spread of the states, per-step moments cannot resolve ``A_k`` (``docs/noise.md`` §10).
+
 ``estimator = "kalman"`` (SPEC §10.2): the policy is a
 :class:`~soc_opt.estimator.FilteredPolicy` acting on ``xhat``, whose filter is built from the
 model fitted in the iteration that produced it (:func:`loop_filter`); rollouts run it online.
@@ -68,6 +72,8 @@ __all__ = [
     "noise_model",
     "gains",
     "sampler_noise_action_cov",
+    "pool_moments",
+    "pool_noise_action_cov",
     "moment_correction",
     "fit_local",
     "ssm_em_fit",
@@ -99,6 +105,9 @@ class NoiseConfig(Config):
     em_max_iter:     maximum EM iterations of ``"ssm_em"``.
     em_tol:          ``"ssm_em"`` stops when ``log p(s | a)`` changes by less than ``em_tol`` per
                      sequence and time step.
+    time_window:     ``h``: the noise-aware fits pool the tuple moments of the steps ``k-h..k+h``
+                     (:func:`pool_moments`); ``0``: per step (SPEC §2's time-varying fit), ``h >= T``:
+                     one time-invariant model.  Needs a ``fit_correction``.
     """
 
     estimator: Literal["none", "kalman"] = "none"
@@ -108,6 +117,7 @@ class NoiseConfig(Config):
     estep_p0_jitter: float = 1e-6
     em_max_iter: int = 20
     em_tol: float = 1e-4
+    time_window: int = 0
 
     def __post_init__(self):
         if self.estimator not in ("none", "kalman"):
@@ -124,6 +134,11 @@ class NoiseConfig(Config):
             raise ValueError(f"em_max_iter must be >= 1, got {self.em_max_iter!r}")
         if not (np.isfinite(self.em_tol) and self.em_tol >= 0):
             raise ValueError(f"em_tol must be a finite number >= 0, got {self.em_tol!r}")
+        if self.time_window < 0:
+            raise ValueError(f"time_window must be >= 0, got {self.time_window!r}")
+        if self.time_window > 0 and self.fit_correction == "none":
+            raise ValueError("time_window pools the noise-aware fits' moments; it needs fit_correction "
+                             "'moments' or 'ssm_em' (the paper's fit is per step)")
 
     @property
     def paper(self) -> bool:
@@ -132,8 +147,10 @@ class NoiseConfig(Config):
 
     @property
     def label(self) -> str:
-        """Short description for tables: ``"paper"`` or e.g. ``"kalman + moments"``."""
-        return "paper" if self.paper else f"{self.estimator} + {self.fit_correction}"
+        """Short description for tables: ``"paper"`` or e.g. ``"kalman + moments"`` (``", window h"``)."""
+        if self.paper:
+            return "paper"
+        return f"{self.estimator} + {self.fit_correction}" + (f", window {self.time_window}" if self.time_window else "")
 
 
 class NoiseModel(NamedTuple):
@@ -178,12 +195,45 @@ def sampler_noise_action_cov(policy, R) -> np.ndarray:
     return noise_action_cov(R, gains(policy).K)
 
 
-def moment_correction(R, X, n: int, m: int, min_reliability: float):
+def pool_moments(mu: np.ndarray, Lam: np.ndarray, h: int) -> tuple[np.ndarray, np.ndarray]:
+    """Moments of the union of the tuples of steps ``k-h..k+h`` (clipped to ``0..T-1``), equal weights.
+
+    ``mu (T, d)``, ``Lam (T, d, d)`` per step -> pooled ``(mu, Lam)``: the mean of the means, and
+    the mean of the covariances plus the spread of the step means about the pooled mean.  ``h = 0``
+    returns the inputs.  (``X_k`` pools the same way: :func:`pool_noise_action_cov`.)
+    """
+    if h <= 0:
+        return mu, Lam
+    T = mu.shape[0]
+    out_mu = np.empty_like(mu)
+    out_L = np.empty_like(Lam)
+    for k in range(T):
+        lo, hi = max(0, k - h), min(T, k + h + 1)
+        mk = mu[lo:hi].mean(axis=0)
+        dev = mu[lo:hi] - mk
+        out_mu[k] = mk
+        out_L[k] = Lam[lo:hi].mean(axis=0) + dev.T @ dev / (hi - lo)
+    return out_mu, symmetrize(out_L)
+
+
+def pool_noise_action_cov(X: np.ndarray, h: int) -> np.ndarray:
+    """``X_k`` averaged over the window of :func:`pool_moments` (the noise part of a pooled
+    covariance is the mean of the steps' noise parts; the step means carry no noise)."""
+    if h <= 0:
+        return X
+    T = X.shape[0]
+    return np.stack([X[max(0, k - h): min(T, k + h + 1)].mean(axis=0) for k in range(T)])
+
+
+def moment_correction(R, X, n: int, m: int, min_reliability: float, time_window: int = 0):
     """The ``correct`` hook of :func:`soc_opt.fit.fit_dynamics` / ``fit_augmented``: joint moments of
-    ``(s_k, a_k, s_{k+1}[, y_k])`` -> moments of ``(x_k, a_k, x_{k+1}[, y_k])`` (``noisefit.correct_joint``)."""
+    ``(s_k, a_k, s_{k+1}[, y_k])`` -> moments of ``(x_k, a_k, x_{k+1}[, y_k])`` (``noisefit.correct_joint``),
+    after pooling over ``time_window`` (:func:`pool_moments`)."""
+    Xp = pool_noise_action_cov(np.asarray(X, dtype=float), time_window)
 
     def correct(mu, Lam):
-        cm = correct_joint(mu, Lam, n, m, R, X, min_reliability=min_reliability)
+        mu, Lam = pool_moments(mu, Lam, time_window)
+        cm = correct_joint(mu, Lam, n, m, R, Xp, min_reliability=min_reliability)
         return cm.mean, cm.cov
 
     return correct
@@ -213,7 +263,7 @@ def fit_local(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Nois
         return fitter(rollouts, fit_cfg, prior)
     X = sampler_noise_action_cov(sampler, noise.R)
     if noise_cfg.fit_correction == "moments":
-        hook = moment_correction(noise.R, X, rollouts.n, rollouts.m, noise_cfg.min_reliability)
+        hook = moment_correction(noise.R, X, rollouts.n, rollouts.m, noise_cfg.min_reliability, noise_cfg.time_window)
         return fitter(rollouts, fit_cfg, prior, correct=hook)
     return ssm_em_fit(rollouts, fit_cfg, prior, noise_cfg, noise, X, fitter(rollouts, fit_cfg, prior),
                       include_y=include_y)
@@ -253,8 +303,11 @@ def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Noi
 
     E-step: RTS smoother of ``x`` given the measured ``s`` and the actions (filter prior
     ``noise.mu0, noise.P0``; ``W`` floored as for the loop's filter).  M-step: the smoothed tuple
-    moments, combined with the step's NIW prior (the mixture prior's moments, corrected for the
-    noise with the sampler's ``X``; counts ``k0, n0``) as in ``fit.joint_posterior``, ridge
+    moments (pooled over ``time_window``), combined with the step's NIW prior (the mixture
+    prior's moments, corrected for the noise with the sampler's ``X``; counts ``k0, n0``) as in
+    ``fit.joint_posterior``, the pooled moments counting as the ``M`` samples of one step (pooling
+    borrows strength across steps for the model of step ``k``; it does not weaken the prior, which
+    carries the tuples of earlier iterations), ridge
     ``reg`` on the ``(x, a)`` block, conditioned with ``noisefit.condition_joint``.  With the prior
     folded in this is not exact maximum likelihood; EM stops when ``log p(s | a)`` changes by
     less than ``em_tol`` per sequence and step, or after ``em_max_iter`` iterations.
@@ -272,6 +325,7 @@ def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Noi
     scale = float(z.var(axis=0).mean())
     lam = fit_cfg.reg * (scale if scale > 0 and np.isfinite(scale) else 1.0)
     floor = _w_floor(noise_cfg, noise.R)
+    h = noise_cfg.time_window
     last = -np.inf
     for _ in range(noise_cfg.em_max_iter):
         W = _floor_eig(So[:, :n, :n], floor) if floor > 0 else So[:, :n, :n]
@@ -281,7 +335,7 @@ def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Noi
         if abs(ll - last) < noise_cfg.em_tol * M * (T + 1):
             break
         last = ll
-        mu, Lam = _smoothed_moments(sm, rollouts, include_y)
+        mu, Lam = pool_moments(*_smoothed_moments(sm, rollouts, include_y), noise_cfg.time_window)
         if pri is not None:
             k0, n0 = fit_cfg.k0, fit_cfg.n0
             d = mu - pri[0]

@@ -214,6 +214,23 @@ def test_ssm_em_fit_is_closer_to_the_system_than_the_naive_fit_with_the_mixture_
     assert err(aug.dynamics()) < 0.75 * err(naive)
 
 
+@pytest.mark.parametrize("h", [0, 1, 3, 50])
+def test_pooled_moments_are_the_moments_of_the_union_of_the_windows_tuples(h):
+    rng = np.random.default_rng(5)
+    M, T, d = 7, 9, 4
+    Xs = rng.standard_normal((M, T, d)) + np.arange(T)[None, :, None] * rng.standard_normal(d)
+    mu = Xs.mean(axis=0)
+    Lam = np.einsum("mti,mtj->tij", Xs - mu, Xs - mu) / M
+    pm, pL = noise_aware.pool_moments(mu, Lam, h)
+    for k in range(T):
+        pts = Xs[:, max(0, k - h): min(T, k + h + 1)].reshape(-1, d)  # the oracle: pool the tuples
+        np.testing.assert_allclose(pm[k], pts.mean(axis=0), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(pL[k], np.cov(pts.T, bias=True), rtol=1e-12, atol=1e-12)
+    X = rng.standard_normal((T, 3, 2))
+    pX = noise_aware.pool_noise_action_cov(X, h)
+    np.testing.assert_allclose(pX[T // 2], X[max(0, T // 2 - h): T // 2 + h + 1].mean(axis=0), rtol=1e-12)
+
+
 # --------------------------------------------------------------------------- the loop with the estimator
 
 
@@ -302,8 +319,12 @@ def test_noise_config_rejects_unknown_values_with_the_key_named():
         NoiseConfig(estep_p0_jitter=0.0)
     with pytest.raises(ValueError, match="min_reliability"):
         NoiseConfig(min_reliability=0.0)
-    cfg = LQRFLMConfig.from_dict({"noise": {"estimator": "kalman", "fit_correction": "ssm_em"}})
-    assert cfg.noise.label == "kalman + ssm_em" and not cfg.noise.paper
+    with pytest.raises(ValueError, match="time_window"):
+        NoiseConfig(time_window=-1, fit_correction="moments")
+    with pytest.raises(ValueError, match="time_window .* needs fit_correction"):
+        NoiseConfig(time_window=5)
+    cfg = LQRFLMConfig.from_dict({"noise": {"estimator": "kalman", "fit_correction": "ssm_em", "time_window": 50}})
+    assert cfg.noise.label == "kalman + ssm_em, window 50" and not cfg.noise.paper
 
 
 def test_negative_noise_and_a_non_psd_noise_model_get_clear_errors():
