@@ -1,7 +1,10 @@
 """soc_opt: EM-based stochastic optimal control (DPSOC-EM) with KL-constrained iLQG.
 
-See ``docs/`` and the SPEC sections cited in each module's docstring.
+See ``docs/`` and the SPEC sections cited in each module's docstring.  The submodules are
+attributes of the package (``import soc_opt; soc_opt.lqg.kl_step(...)``), imported on first use.
 """
+
+import importlib as _importlib
 
 from .config import Config, ConfigError
 from .models import (
@@ -16,6 +19,23 @@ from .models import (
 )
 
 __version__ = "0.1.0"
+
+def _submodules() -> set[str]:
+    """The package's submodules and subpackages (found on disk, so new ones need no listing)."""
+    import pkgutil
+
+    return {m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")}
+
+
+def __getattr__(name: str):
+    if not name.startswith("_") and name in _submodules():
+        return _importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | _submodules())
+
 
 __all__ = [
     "AugmentedModel",

@@ -1,4 +1,5 @@
-"""Algorithms (SPEC §7): LQR-FLM baseline, DPSOC-EM (paper Algorithm 1), model-based iLQG.
+"""Algorithms (SPEC §7): LQR-FLM baseline, DPSOC-EM (paper Algorithm 1); model-based iLQG
+lives in :mod:`soc_opt.ilqg` (re-exported here: :class:`ILQGConfig`, :func:`ilqg`).
 
 The loop is written as a pure step function on an explicit :class:`RunState`
 (policy, KL multiplier, mixture prior, RNG state, history), so that a run can be
@@ -34,8 +35,9 @@ from typing import TYPE_CHECKING, Callable, Literal, NamedTuple
 import numpy as np
 
 from . import estep, fit, lqg, mstep, noise_aware
-from .config import Config
+from .config import Config, ConfigError
 from .estimator import FilteredPolicy
+from .ilqg import ILQGConfig, ilqg
 from .models import LinearGaussianPolicy, Rollouts
 from .noise_aware import NoiseConfig
 
@@ -51,6 +53,7 @@ __all__ = [
     "EvalConfig",
     "DPSOCConfig",
     "ILQGConfig",
+    "RUN_SECTIONS",
     "with_paper_scale",
     "BestPolicy",
     "PreviousStep",
@@ -132,6 +135,8 @@ class LQRFLMConfig(Config):
             raise ValueError(f"samples must be >= 2 (dynamics fitting needs 2 rollouts), got {self.samples}")
         if self.init_var <= 0 or self.kl_budget <= 0:
             raise ValueError("init_var and kl_budget must be positive")
+        if self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {self.workers}")
 
 
 @dataclass(frozen=True)
@@ -170,6 +175,10 @@ class EMConfig(Config):
             raise ValueError(f"n_em must be >= 1, got {self.n_em}")
         if not 0 < self.cov_floor_scale:
             raise ValueError(f"cov_floor_scale must be positive, got {self.cov_floor_scale}")
+        if self.y_samples is not None and self.y_samples < 1:
+            raise ValueError(f"y_samples must be >= 1, got {self.y_samples}")
+        if self.trust_region is not None and not self.trust_region > 0:
+            raise ValueError(f"trust_region must be positive, got {self.trust_region}")
 
 
 @dataclass(frozen=True)
@@ -187,62 +196,68 @@ class EvalConfig(Config):
     def __post_init__(self):
         if self.samples is not None and self.samples < 1:
             raise ValueError(f"samples must be >= 1, got {self.samples}")
+        if self.seed_offset < 0:
+            raise ValueError(f"seed_offset must be >= 0 (it seeds a numpy Generator), got {self.seed_offset}")
 
 
 @dataclass(frozen=True)
 class DPSOCConfig(Config):
     """DPSOC-EM (paper Algorithm 1): baseline until ``i_switch``, EM phase, baseline again.
 
-    The run configuration: it holds every sub-configuration of a run (one TOML file).
+    The run configuration: it holds every sub-configuration of a run (one TOML file, shared by
+    ``soc-opt run --method dpsoc-em|lqr-flm|ilqg`` and ``soc-opt compare``; each method reads
+    its own sections and ignores the others, see :meth:`check_for`).
 
     i_switch:   the EM phase runs after this many baseline iterations (default: the paper's,
-                ``PAPER.i_switch``).
+                ``PAPER.i_switch``); must be below ``baseline.iterations`` for DPSOC-EM only.
     baseline:   the LQR-FLM configuration (iterations = total baseline iterations).
     em:         the EM phase configuration.
     evaluation: evaluation of the final policies (``soc-opt compare``).
+    ilqg:       model-based iLQG (``soc-opt run --method ilqg``), :class:`soc_opt.ilqg.ILQGConfig`.
     """
 
     i_switch: int = PAPER.i_switch
     baseline: LQRFLMConfig = field(default_factory=LQRFLMConfig)
     em: EMConfig = field(default_factory=EMConfig)
     evaluation: EvalConfig = field(default_factory=EvalConfig)
+    ilqg: ILQGConfig = field(default_factory=ILQGConfig)
 
     def __post_init__(self):
-        if not 0 <= self.i_switch < self.baseline.iterations:
-            raise ValueError(
+        if self.i_switch < 0:
+            raise ValueError(f"i_switch must be >= 0, got {self.i_switch}")
+
+    def check_for(self, method: str) -> None:
+        """Method-specific checks (:data:`RUN_SECTIONS` lists what each method reads).
+
+        DPSOC-EM needs ``0 <= i_switch < baseline.iterations``; LQR-FLM and iLQG ignore
+        ``i_switch``.  Raises :class:`ConfigError` naming the key, or for an unknown method.
+        """
+        if method not in RUN_SECTIONS:
+            raise ConfigError(f"unknown method {method!r}; use one of {', '.join(map(repr, RUN_SECTIONS))}")
+        if method == "dpsoc-em" and not 0 <= self.i_switch < self.baseline.iterations:
+            raise ConfigError(
                 f"i_switch must be in [0, iterations={self.baseline.iterations}), got {self.i_switch}"
             )
+
+    def sections_for(self, method: str) -> dict:
+        """The part of :meth:`to_dict` that ``method`` reads (what a run directory must match)."""
+        full = self.to_dict()
+        return {k: full[k] for k in RUN_SECTIONS[method] if k in full}
+
+
+#: The top-level keys of :class:`DPSOCConfig` each method reads (``evaluation`` is read by
+#: ``soc-opt compare`` only, after the runs).
+RUN_SECTIONS: dict[str, tuple[str, ...]] = {
+    "lqr-flm": ("baseline",),
+    "dpsoc-em": ("i_switch", "baseline", "em"),
+    "ilqg": ("ilqg",),
+}
 
 
 def with_paper_scale(cfg: DPSOCConfig) -> DPSOCConfig:
     """``cfg`` at the paper's scale (:data:`PAPER`: iterations, samples, switch point)."""
     base = cfg.baseline.replace(iterations=PAPER.iterations, samples=PAPER.samples)
     return cfg.replace(baseline=base, i_switch=PAPER.i_switch)
-
-
-@dataclass(frozen=True)
-class ILQGConfig(Config):
-    """Model-based iLQG on a known MuJoCo model (SPEC §7).
-
-    iterations:  maximum outer iterations.
-    mu_init:     initial Levenberg–Marquardt regulariser added to the action Hessian.
-    mu_factor:   multiply/divide ``mu`` by this on rejection/acceptance.
-    mu_max:      give up past this regulariser.
-    mu_restart:  after a failed backward pass ``mu`` becomes at least this (so that ``mu_init = 0``
-                 still grows).
-    alphas:      backtracking line-search step sizes, tried in order.
-    tol:         stop when the relative cost decrease is below ``tol``.
-    policy_var:  covariance of the returned (initialiser) policy.
-    """
-
-    iterations: int = 20
-    mu_init: float = 1e-6
-    mu_factor: float = 10.0
-    mu_max: float = 1e10
-    mu_restart: float = 1e-6
-    alphas: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.03, 0.01)
-    tol: float = 1e-4
-    policy_var: float = 1.0
 
 
 class BestPolicy(NamedTuple):
@@ -604,6 +619,7 @@ def run_algorithm(
     step = METHODS.get(method)
     if step is None:
         raise ValueError(f"unknown method {method!r}; use one of {', '.join(map(repr, METHODS))}")
+    cfg.check_for(method)
     if state is None:
         state = initial_state(task, cfg.baseline, seed)
     while state.iteration < cfg.baseline.iterations:
@@ -611,72 +627,3 @@ def run_algorithm(
         if on_iteration is not None:
             on_iteration(state)
     return state
-
-
-def ilqg(task: Task, x0: np.ndarray | None = None, u_init: np.ndarray | None = None, cfg: ILQGConfig = ILQGConfig(),
-         on_iteration: Callable[[int, float, float], None] | None = None):
-    """Model-based iLQG on a known MuJoCo model (SPEC §7).
-
-    Derivatives by finite differences (``task.linearize``, built on ``mujoco.mjd_transitionFD``),
-    Levenberg–Marquardt regularisation ``mu I`` on the action Hessian, backtracking line search
-    on the feed-forward term.  Returns ``(policy, costs)`` where ``costs`` lists the cost of every
-    accepted iterate (strictly decreasing) and ``policy`` is a linear-Gaussian initialiser
-    ``a = u_bar + K (s - s_bar)`` with covariance ``policy_var * I``.
-    """
-    T, n, m = task.T, task.n, task.m
-    u = np.zeros((T, m)) if u_init is None else np.asarray(u_init, float).copy()
-    zero_cov = np.zeros((T, m, m))
-
-    def simulate(K, kff):
-        pol = LinearGaussianPolicy(K, kff, zero_cov, allow_singular=True)
-        ro = task.rollouts(pol, 1, np.random.default_rng(0), noise=False)
-        return ro.x[0], ro.a[0], float(task.true_cost(ro)[0].sum())
-
-    x, u, J = simulate(np.zeros((T, m, n)), u)
-    costs = [J]
-    mu = cfg.mu_init
-    K = np.zeros((T, m, n))
-    for it in range(cfg.iterations):
-        dyn = task.linearize(x, u)
-        cost = task.cost_expansion(x, u)
-        accepted = False
-        while mu <= cfg.mu_max and not accepted:
-            C = np.array(cost.C)
-            C[:, n:, n:] += mu * np.eye(m)
-            reg = type(cost)(C, cost.c, cost.n, cost.c0)
-            try:
-                pol = lqg.lqr(dyn, reg, x[0], np.eye(n) * 1e-9)  # (mu0, P0) do not enter the gains
-            except ValueError:
-                mu = max(mu * cfg.mu_factor, cfg.mu_restart)
-                continue
-            Knew = np.asarray(pol.K)
-            d = np.einsum("tij,tj->ti", Knew, x[:-1]) + pol.k - u  # change of the mean action at x_bar
-            for alpha in cfg.alphas:
-                kff = u + alpha * d - np.einsum("tij,tj->ti", Knew, x[:-1])
-                try:
-                    x_new, u_new, J_new = simulate(Knew, kff)
-                except Exception:
-                    continue
-                if J_new < J:
-                    accepted = True
-                    break
-            if accepted:
-                rel = (J - J_new) / max(abs(J), 1e-12)
-                x, u, J, K = x_new, u_new, J_new, Knew
-                costs.append(J)
-                mu = max(mu / cfg.mu_factor, cfg.mu_init)
-                if on_iteration is not None:
-                    on_iteration(it, J, mu)
-                if rel < cfg.tol:
-                    return _ilqg_policy(K, x, u, cfg), costs
-            else:
-                mu *= cfg.mu_factor
-        if not accepted:
-            break
-    return _ilqg_policy(K, x, u, cfg), costs
-
-
-def _ilqg_policy(K, x, u, cfg):
-    T, m, _ = K.shape
-    k = u - np.einsum("tij,tj->ti", K, x[:-1])
-    return LinearGaussianPolicy(K, k, np.broadcast_to(cfg.policy_var * np.eye(m), (T, m, m)).copy())

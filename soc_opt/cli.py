@@ -2,17 +2,24 @@
 
 Subcommands::
 
-    soc-opt run TASK --method dpsoc-em|lqr-flm|ilqg [--config FILE] [--seed N] [--out DIR] [--paper]
-    soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper]
+    soc-opt [--debug] run TASK --method dpsoc-em|lqr-flm|ilqg [--config FILE] [--seed N] [--out DIR] [--paper]
+                                [--iterations N] [--restart | --previous-checkpoint]
+    soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper] [--restart]
     soc-opt verify [--json] [--seed N] [--instances N]
     soc-opt solvers [--json] [--quick]
     soc-opt bench [--json] [--only NAMES]
     soc-opt tasks
+    soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--dry-run]
     soc-opt config-doc [--out FILE]
 
 ``TASK`` is a built-in name (``linear2d``, ``peg``, ``door``) or the path of a task TOML file.
-Configurations are validated before any simulation starts; they are built by
-:func:`soc_opt.experiment.load_run_config` (the same loader is public for scripts).
+Configurations are validated before any simulation starts and before anything is written to
+``--out``; they are built by :func:`soc_opt.experiment.load_run_config` (the same loader is
+public for scripts).  Every method writes a resumable run directory (:mod:`soc_opt.rundir`).
+
+Every error ends the command with one line ``soc-opt: error: ...`` on standard error and exit
+status 2 (``--debug``: the traceback instead).  Iterations are numbered from 0 on the console
+as in ``metrics.csv``.
 """
 
 from __future__ import annotations
@@ -24,6 +31,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from .config import ConfigError
 
 __all__ = ["main", "build_parser"]
 
@@ -45,6 +54,23 @@ def _progress(args):
     return Progress(getattr(args, "progress", "auto"), print_line=_print)
 
 
+def _log_to_tensorboard(out: Path, *, figures=(), step: int = 0, scalars: dict | None = None) -> None:
+    """Figures (PNG paths) and scalar series into ``out``'s TensorBoard events (if tensorboardX is installed)."""
+    from .tblog import RunLog
+
+    log = RunLog.open(out)
+    if log is None:
+        return
+    try:
+        for tag, values in (scalars or {}).items():
+            log.series(tag, values)
+        n = log.figures(figures, step)
+    finally:
+        log.close()
+    if figures:
+        _print(f"TensorBoard: {n} figures in {out} (tensorboard --logdir {out})")
+
+
 def _cmd_tasks(args) -> int:
     from .tasks import load_task
 
@@ -54,64 +80,62 @@ def _cmd_tasks(args) -> int:
     return 0
 
 
-def _run_ilqg(args, task, out: Path) -> int:
-    from .algorithms import ILQGConfig, ilqg
-
-    cfg = ILQGConfig.from_toml(args.config) if args.config else ILQGConfig()
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    with _progress(args).bar(cfg.iterations, "ilqg") as bar:
-        policy, costs = ilqg(task, cfg=cfg, on_iteration=lambda it, J, mu: bar.advance(
-            f"[ilqg] iter {it + 1:3d} cost {J:.6g} mu {mu:.1e} ({time.perf_counter() - t0:.1f}s)", cost=J, mu=mu))
-    np.savez_compressed(out / "policy.npz", **policy.to_dict())
-    (out / "costs.json").write_text(json.dumps(costs))
-    _print(f"iLQG: cost {costs[0]:.6g} -> {costs[-1]:.6g} in {len(costs) - 1} accepted iterations; wrote {out}")
-    return 0
-
-
-def _run_sampled(args, task, out: Path) -> int:
-    """LQR-FLM or DPSOC-EM (``soc_opt.algorithms.METHODS``) in a resumable run directory."""
+def _run_method(args, task, out: Path) -> int:
+    """One method (``RUNNERS``) in a resumable run directory; figures and a filmstrip at the end."""
     from .experiment import load_run_config, run_experiment
 
     cfg = load_run_config(args.task, args.config, paper=args.paper,
                           overrides={"iterations": args.iterations, "samples": args.samples,
                                      "workers": args.workers},
                           method=args.method)
-    state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_progress(args))
-    _write_run_figures(task, state, out)
+    state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_progress(args),
+                           restart=args.restart, previous_checkpoint=args.previous_checkpoint)
+    _write_run_figures(task, args.method, state, out)
     if state.last_rollouts is not None:
         from .tasks import render_filmstrip
 
         res = render_filmstrip(task, state.last_rollouts, out / "filmstrip.png")
         _print(f"filmstrip of the last iteration's first sample: {res.path} ({res.backend}"
                + (f"; {res.message}" if res.message else "") + ")")
+    _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=max(state.iteration - 1, 0))
+    if args.method == "ilqg":
+        np.savez_compressed(out / "policy.npz", **state.policy.to_dict())
+        why = {"converged": "converged (relative decrease below tol)", "no_descent": "no descent step found",
+               "running": "iteration limit"}[state.status]
+        _print(f"iLQG: cost {state.costs[0]:.6g} -> {state.costs[-1]:.6g} in {len(state.costs) - 1} accepted "
+               f"iterations ({why}); final policy {out / 'policy.npz'}; run directory {out}")
+        return 0
     best = state.best
-    _print(f"done: best mean cost {best.mean_cost:.6g} (iteration {best.iteration + 1}); run directory {out}")
+    _print(f"done: best mean cost {best.mean_cost:.6g} (iteration {best.iteration}); run directory {out}")
     return 0
 
 
 #: ``soc-opt run --method``: one runner per method.
-RUNNERS = {"dpsoc-em": _run_sampled, "lqr-flm": _run_sampled, "ilqg": _run_ilqg}
+RUNNERS = {"dpsoc-em": _run_method, "lqr-flm": _run_method, "ilqg": _run_method}
 
 
 def _cmd_run(args) -> int:
     from .tasks import load_task
 
+    if args.seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {args.seed}")
+    if args.restart and args.previous_checkpoint:
+        raise ConfigError("--restart and --previous-checkpoint exclude each other: choose one")
     task = load_task(args.task)
     out = Path(args.out or f"runs/{Path(args.task).stem}-{args.method}-seed{args.seed}")
     return RUNNERS[args.method](args, task, out)
 
 
-def _write_run_figures(task, state, out: Path) -> None:
+def _write_run_figures(task, method: str, state, out: Path) -> None:
     from . import report
     from .compare import point_names, point_targets
 
-    costs = {"dpsoc-em" if any(r.phase == "em" for r in state.history) else "lqr-flm":
-             [np.asarray(r.cost) for r in state.history if r.phase == "baseline"]}
-    report.plot_costs(costs, out / "cost_per_iteration.png", f"{task.name}: total cost per iteration")
+    phase = "ilqg" if method == "ilqg" else "baseline"
+    costs = {method: [np.asarray(r.cost) for r in state.history if r.phase == phase]}
+    if costs[method]:
+        report.plot_costs(costs, out / "cost_per_iteration.png", f"{task.name}: total cost per iteration")
     if state.last_rollouts is not None:
-        meth = next(iter(costs))
-        report.plot_ee({meth: np.asarray(task.ee_points(state.last_rollouts.x))}, task.dt,
+        report.plot_ee({method: np.asarray(task.ee_points(state.last_rollouts.x))}, task.dt,
                        out / "ee_trajectories.png", f"{task.name}: end-effector points (last iteration)",
                        point_names=point_names(task), targets=point_targets(task))
 
@@ -121,6 +145,8 @@ def _cmd_compare(args) -> int:
     from .experiment import load_run_config
     from .tasks import load_task
 
+    if args.seed < 0 or args.seeds < 1:
+        raise ConfigError(f"--seed must be >= 0 and --seeds >= 1, got {args.seed} and {args.seeds}")
     task = load_task(args.task)
     cfg = load_run_config(args.task, args.config, paper=args.paper,
                           overrides={"iterations": args.iterations, "samples": args.samples,
@@ -130,11 +156,13 @@ def _cmd_compare(args) -> int:
     _print(f"comparing LQR-FLM and DPSOC-EM on {args.task}: seeds {seeds}, {cfg.baseline.iterations} iterations, "
            f"{cfg.baseline.samples} samples, EM switch after iteration {cfg.i_switch}; output {out}")
     t0 = time.perf_counter()
-    summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_progress(args))
+    summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_progress(args),
+                      restart=args.restart)
     _print("")
     _print(_table([{k: r[k] for k in ("claim", "baseline_mean", "dpsoc_mean", "seeds_lower", "held")}
                    for r in summary["claims"]]))
-    _print(f"\nreport: {summary['report']}  ({time.perf_counter() - t0:.0f}s)")
+    _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=cfg.baseline.iterations - 1)
+    _print(f"\nreport: {summary['report']}  (total time {time.perf_counter() - t0:.0f}s)")
     return 0
 
 
@@ -183,6 +211,22 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _cmd_sweep(args) -> int:
+    from .sweep import describe, load_sweep
+
+    spec = load_sweep(args.file)  # validates every trial before anything starts
+    out = Path(args.out or f"runs/sweep-{spec.name}")
+    _print(f"sweep {spec.name}: {describe(spec)}; output {out}")
+    if args.dry_run:
+        _print("\n".join(t.id for t in spec.trials))
+        return 0
+    from .sweep_runner import run_sweep
+
+    res = run_sweep(spec, out, address=args.address, workers=args.workers, max_retries=args.max_retries)
+    c = res["counts"]
+    _print(f"{c['done']} done, {c['failed']} failed; report: {res['report']}  (trial states: {out / 'status.json'})")
+    return 1 if c["failed"] else 0
+
 def _cmd_config_doc(args) -> int:
     from .config_doc import render
 
@@ -197,6 +241,7 @@ def _cmd_config_doc(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="soc-opt", description="EM-based stochastic optimal control (DPSOC-EM).")
+    p.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = p.add_subparsers(dest="command", required=True)
 
     def common_algo(sp):
@@ -208,6 +253,8 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--samples", type=int, help="override baseline.samples")
         sp.add_argument("--workers", type=int, help="parallel rollout workers")
         sp.add_argument("--out", help="run directory (resumes if it holds a checkpoint)")
+        sp.add_argument("--restart", action="store_true",
+                        help="discard the run(s) already in --out and start from scratch")
         sp.add_argument("--progress", choices=["auto", "bar", "lines"], default="auto",
                         help="progress bar (auto: on a terminal) or plain lines (default: auto)")
 
@@ -215,6 +262,8 @@ def build_parser() -> argparse.ArgumentParser:
     common_algo(r)
     r.add_argument("--method", choices=list(RUNNERS), default="dpsoc-em")
     r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--previous-checkpoint", dest="previous_checkpoint", action="store_true",
+                   help="resume from the checkpoint before the last (when the last one is damaged)")
     r.set_defaults(func=_cmd_run)
 
     c = sub.add_parser("compare", help="LQR-FLM vs DPSOC-EM on the same seeds, with a Markdown report")
@@ -243,25 +292,50 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("tasks", help="list the built-in tasks")
     t.set_defaults(func=_cmd_tasks)
 
+    w = sub.add_parser("sweep", help="a grid of trials (tasks x settings x methods x seeds) on Ray (docs/sweeps.md)")
+    w.add_argument("file", help="sweep TOML file")
+    w.add_argument("--out", help="output directory (default runs/sweep-NAME); a rerun skips finished trials")
+    w.add_argument("--address", help="join this Ray cluster (default: start a local Ray on this machine's cores)")
+    w.add_argument("--workers", type=int, help="at most this many trials at once (default: all cores)")
+    w.add_argument("--max-retries", dest="max_retries", type=int, default=3,
+                   help="re-executions of a trial whose worker process died (resumes from its checkpoint)")
+    w.add_argument("--dry-run", dest="dry_run", action="store_true", help="validate and list the trials only")
+    w.set_defaults(func=_cmd_sweep)
+
     d = sub.add_parser("config-doc", help="write the configuration reference (docs/configuration.md)")
     d.add_argument("--out", help="write to this file instead of standard output")
     d.set_defaults(func=_cmd_config_doc)
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    from .config import ConfigError
+def _one_line(e: BaseException) -> str:
+    """The error as one line: its message (type name too when it is not one of ours) and notes."""
+    from .errors import SolverError
+    from .tasks import SimulationError
 
-    args = build_parser().parse_args(argv)
+    ours = (ConfigError, FileNotFoundError, SimulationError, SolverError)
+    text = str(e) if isinstance(e, ours) else f"{type(e).__name__}: {e}"
+    parts = [text] + list(getattr(e, "__notes__", ()))
+    if not isinstance(e, ours):
+        parts.append("rerun with --debug for the traceback")
+    return " ".join("; ".join(p.strip() for p in parts if p.strip()).split())
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    debug = "--debug" in argv
+    args = build_parser().parse_args([a for a in argv if a != "--debug"])
     try:
         return args.func(args)
-    except (ConfigError, FileNotFoundError) as e:
-        print(f"soc-opt: error: {e}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print("\nsoc-opt: interrupted; rerun the same command to resume from the last finished iteration",
               file=sys.stderr)
         return 130
+    except Exception as e:
+        if debug:
+            raise
+        print(f"soc-opt: error: {_one_line(e)}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

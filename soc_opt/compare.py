@@ -5,12 +5,13 @@ For each seed the baseline runs first; DPSOC-EM starts from a copy of the baseli
 ``i_switch`` iterations exactly and differ only from the EM phase on.  Each method's final
 policy is then evaluated on ``evaluation.samples`` fresh rollouts drawn with the same evaluation
 seed for both methods (:func:`evaluate_policy`, :class:`~soc_opt.algorithms.EvalConfig`).  Everything is written under ``out/``; a rerun with the same ``out`` resumes.
+``out`` is locked while the comparison runs (:func:`soc_opt.rundir.lock_directory`), and each
+method's run directory checks its contract (:mod:`soc_opt.rundir`).
 """
 
 from __future__ import annotations
 
 import json
-import pickle
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
@@ -20,13 +21,14 @@ from . import report
 from . import algorithms
 from .algorithms import DPSOCConfig, EvalConfig, RunState
 from .experiment import fork_state, run_experiment
+from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory
 from .models import LinearGaussianPolicy, Rollouts
 from .progress import Progress, as_progress
 
 if TYPE_CHECKING:
     from .tasks import Task
 
-__all__ = ["compare", "evaluate_policy", "spreads", "point_names", "point_targets"]
+__all__ = ["compare", "evaluate_policy", "spreads", "point_names", "point_targets", "action_names"]
 
 METHODS = ("lqr-flm", "dpsoc-em")
 
@@ -35,6 +37,12 @@ def point_names(task) -> list[str] | None:
     """Names of the end-effector points drawn in the figures (the task's state sites)."""
     sites = list(getattr(getattr(task.config, "state", None), "sites", ()) or ())
     return sites or None
+
+
+def action_names(task) -> list[str]:
+    """Names of the actions in the figures: the task's actuators (MuJoCo), else ``action i``."""
+    names = list(getattr(task, "actuated", None) or ())
+    return names if len(names) == task.m else [f"action {i}" for i in range(task.m)]
 
 
 def point_targets(task) -> np.ndarray | None:
@@ -87,16 +95,23 @@ def compare(
     task_name: str | None = None,
     eval_samples: int | None = None,
     progress: Progress | Callable[[str], None] | None = None,
+    restart: bool = False,
 ) -> dict:
     """Run both methods on ``seeds``, write figures and ``report.md`` under ``out``; return a summary.
 
-    ``eval_samples`` (optional) overrides ``cfg.evaluation.samples`` for the final evaluation.
+    ``eval_samples`` (optional) overrides ``cfg.evaluation.samples`` for the final evaluation;
+    ``restart`` discards the runs already in ``out``.
     ``progress``: a :class:`soc_opt.progress.Progress` (a bar over the seeds above each run's
     bar over its iterations, or plain lines), a callable printing lines, or ``None``.
     """
+    cfg.check_for("dpsoc-em")
     progress = as_progress(progress)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    with lock_directory(out):
+        return _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, restart)
+
+
+def _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, restart) -> dict:
     eval_samples = eval_samples or cfg.evaluation.samples or cfg.baseline.samples
     workers = cfg.baseline.workers
     per_seed = {m: {"cost": [], "state_spread": [], "action_spread": []} for m in METHODS}
@@ -106,7 +121,7 @@ def compare(
     try:
         for seed in seeds:
             _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progress,
-                          per_seed, histories, eval_ro)
+                          per_seed, histories, eval_ro, restart)
             if seeds_bar is not None:
                 final = {m: float(np.mean(per_seed[m]["cost"][-1])) for m in METHODS}
                 seeds_bar.advance(f"seed {seed}: final cost LQR-FLM {final['lqr-flm']:.4g}, "
@@ -118,31 +133,38 @@ def compare(
     return _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, task_name or task.name)
 
 
-def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progress, per_seed, histories, eval_ro):
+def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progress, per_seed, histories, eval_ro,
+                  restart):
     """Both methods on one seed (see :func:`compare`); appends to the per-method accumulators."""
     level = 1 if progress is not None and progress.mode == "bar" else 0
     sdir = out / f"seed_{seed}"
     sdir.mkdir(exist_ok=True)
     fork_path = sdir / "fork_state.pkl"
+    if restart and fork_path.exists():
+        fork_path.unlink()
 
     def keep_fork(st: RunState, _p=fork_path):
         if st.iteration == cfg.i_switch and not _p.exists():
-            _p.write_bytes(pickle.dumps(st))
+            atomic_write_bytes(_p, encode_checkpoint(st))
 
     # Baseline, with a copy of its state kept at i_switch for DPSOC-EM to start from.
     base = run_experiment(task, "lqr-flm", cfg, seed, sdir / "lqr-flm", task_name=task_name,
-                          progress=progress, on_iteration=keep_fork, bar_level=level)
-    if not fork_path.exists():
-        # i_switch == 0, or a baseline resumed past i_switch without its fork: replay the
-        # deterministic baseline prefix in memory.
+                          progress=progress, on_iteration=keep_fork, bar_level=level, restart=restart)
+    try:
+        fork = decode_checkpoint(fork_path) if fork_path.exists() else None
+    except CheckpointError:
+        fork = None  # damaged: it is recomputed below
+    if fork is None or fork.iteration != cfg.i_switch:
+        # i_switch == 0, a baseline resumed past i_switch without its fork, or a damaged fork:
+        # replay the deterministic baseline prefix in memory.
         st = algorithms.initial_state(task, cfg.baseline, seed)
         while st.iteration < cfg.i_switch:
             st = algorithms.lqr_flm_iteration(task, cfg.baseline, st)
-        fork_path.write_bytes(pickle.dumps(st))
-    fork = pickle.loads(fork_path.read_bytes())
+        atomic_write_bytes(fork_path, encode_checkpoint(st))
+        fork = st
     em = run_experiment(
         task, "dpsoc-em", cfg, seed, sdir / "dpsoc-em", task_name=task_name, progress=progress,
-        start_state=fork_state(fork), bar_level=level,
+        start_state=fork_state(fork), bar_level=level, restart=restart,
     )
     for meth, st in (("lqr-flm", base), ("dpsoc-em", em)):
         ro = evaluate_policy(task, st.policy, eval_samples, seed, workers, cfg.evaluation)
@@ -150,7 +172,15 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
         for k, v in spreads(task, ro).items():
             per_seed[meth][k].append(v)
         histories[meth].append(st.history)
-        np.savez_compressed(sdir / meth / "final_eval.npz", **ro.to_dict())
+        atomic_write_bytes(sdir / meth / "final_eval.npz", _npz(ro.to_dict()))
+
+
+def _npz(arrays: dict) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
 
 
 def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> dict:
@@ -176,8 +206,8 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> 
         pts, task.dt, out / "ee_trajectories.png", f"{name}: end-effector points",
         point_names=point_names(task), targets=point_targets(task))
     acts = {m: np.concatenate([ro.a for ro in eval_ro[m]]) for m in METHODS}
-    figs["Actions per joint of the final policies (over samples and time)"] = report.plot_actions(
-        acts, out / "actions.png", f"{name}: actions per joint")
+    figs["Actions per actuator of the final policies (over samples and time)"] = report.plot_actions(
+        acts, out / "actions.png", f"{name}: actions per actuator", names=action_names(task))
     first_metrics = metric_hist["lqr-flm"][0][0] if metric_hist["lqr-flm"] and metric_hist["lqr-flm"][0] else {}
     extra_tables = {}
     for key in first_metrics:
@@ -192,9 +222,9 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> 
         for m in METHODS:
             for ro in eval_ro[m]:
                 vals[m].append(task.metrics(ro)[key])
-        extra_tables.setdefault("Task metrics of the final policies (mean ± std over seeds)", (
+        extra_tables.setdefault(f"Task metrics of the final policies ({report.over_seeds(len(seeds))})", (
             ["metric", "LQR-FLM", "DPSOC-EM"], []))[1].append(
-            [key] + [f"{np.mean(vals[m]):.4g} ± {np.std(vals[m]):.3g}" for m in METHODS])
+            [key] + [report.mean_std(vals[m]) for m in METHODS])
     em_rows = []
     for seed, hist in zip(seeds, histories["dpsoc-em"]):
         for r in hist:

@@ -4,24 +4,63 @@ Every algorithm keeps its solver choice, tolerances and hyperparameters in one
 frozen dataclass deriving from :class:`Config`.  ``Config.from_dict`` rejects
 unknown keys and wrong types with a message naming the key, before any work
 starts; nested configs are nested TOML tables.
+
+Every ``Config`` also rejects NaN and infinite numbers in any of its float fields (and in
+lists of floats), whether built from TOML or in Python: :meth:`Config.__post_init__` checks them
+before a subclass's own ``__post_init__`` range checks run (:func:`check_finite`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 import types
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-__all__ = ["Config", "ConfigError", "read_toml"]
+__all__ = ["Config", "ConfigError", "read_toml", "check_finite"]
 
 C = TypeVar("C", bound="Config")
 
 
 class ConfigError(ValueError):
     """A configuration value or key is invalid; the message names it."""
+
+
+def _nonfinite(name: str, value: Any) -> str | None:
+    """The path of the first NaN/inf float in ``value`` (a float or nested lists of floats), or None."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else name
+    if isinstance(value, (tuple, list)):
+        for i, v in enumerate(value):
+            bad = _nonfinite(f"{name}[{i}]", v)
+            if bad is not None:
+                return bad
+    return None
+
+
+def check_finite(cfg: "Config") -> None:
+    """Raise :class:`ConfigError` naming the first field of ``cfg`` holding NaN or inf.
+
+    Floats and (nested) lists of floats are checked; nested configs check themselves when they
+    are built, and tables (``dict`` fields) are left to their owner.  The error's ``key`` attribute
+    is the field name, so that :meth:`Config.from_dict` can prefix the table path.
+    """
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        bad = _nonfinite(f.name, value)
+        if bad is not None:
+            err = ConfigError(f"{bad}: must be a finite number, got {_first_nonfinite(value)!r}")
+            err.key = f.name
+            raise err
+
+
+def _first_nonfinite(value: Any) -> float:
+    if isinstance(value, float):
+        return value
+    return next(_first_nonfinite(v) for v in value if _nonfinite("", v) is not None)
 
 
 def _check_type(path: str, value: Any, tp: Any) -> Any:
@@ -98,7 +137,26 @@ def read_toml(path: str | Path) -> dict:
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """Base class: a frozen dataclass with strict ``from_dict`` / ``from_toml`` / ``to_dict``."""
+    """Base class: a frozen dataclass with strict ``from_dict`` / ``from_toml`` / ``to_dict``.
+
+    Subclasses may define ``__post_init__`` for their range checks; it runs after
+    :func:`check_finite` (installed by ``__init_subclass__``), so a range check never sees NaN.
+    """
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        own = cls.__dict__.get("__post_init__")
+        if own is not None and not getattr(own, "_checks_finite", False):
+            def __post_init__(self, _own=own):
+                check_finite(self)
+                _own(self)
+
+            __post_init__._checks_finite = True
+            __post_init__.__doc__ = own.__doc__
+            cls.__post_init__ = __post_init__
+
+    def __post_init__(self):
+        check_finite(self)
 
     @classmethod
     def from_dict(cls: type[C], data: dict, _path: str = "") -> C:
@@ -119,7 +177,9 @@ class Config:
             kwargs[name] = _check_type(path, value, hints[name])
         try:
             return cls(**kwargs)
-        except ConfigError:
+        except ConfigError as e:
+            if _path and getattr(e, "key", None):
+                raise ConfigError(f"{_path}.{e}") from e
             raise
         except (TypeError, ValueError) as e:
             raise ConfigError(f"{_path or cls.__name__}: {e}") from e

@@ -25,7 +25,6 @@ __all__ = ["LIBRARY", "config_tables", "describe", "render"]
 LIBRARY = (
     ("soc_opt.lqg.KLStepConfig", "library: `lqg.kl_step(config=...)`, `lqg.adapt_step(config=...)`"),
     ("soc_opt.mstep.MStepConstraints", "library: `mstep.maximize(constraints=...)`"),
-    ("soc_opt.algorithms.ILQGConfig", "`soc-opt run TASK --method ilqg --config FILE`"),
 )
 
 
@@ -156,12 +155,23 @@ solver = "CLARABEL"
 
 [evaluation]              # final-policy evaluation of `soc-opt compare`
 seed_offset = 10000
+
+[ilqg]                    # model-based iLQG (`soc-opt run TASK --method ilqg`)
+iterations = 20
+mu_init = 1e-6
 ```
+
+Each method reads only its own sections of the shared file and ignores the others: LQR-FLM
+reads `[baseline]`; DPSOC-EM `i_switch`, `[baseline]` and `[em]` (and only DPSOC-EM requires
+`i_switch < baseline.iterations`); iLQG reads `[ilqg]`; `soc-opt compare` also reads
+`[evaluation]`.  Every number must be finite: NaN and infinities are rejected with the key's name.
+A run directory remembers the sections its method reads and refuses to resume with different ones.
 
 Precedence (`soc_opt.experiment.load_run_config`, used by the CLI): the task's default file
 `problems/experiments/<task>.toml` (if any), replaced by `--config FILE` when given; then
 `--paper` (the paper scale `soc_opt.algorithms.PAPER`: {iterations} iterations, {samples} samples,
-switch at {i_switch}), then the flags `--iterations`, `--samples`, `--workers`, `--i-switch`.
+switch at {i_switch}), then the flags `--iterations`, `--samples`, `--workers`, `--i-switch`
+(for `--method ilqg` only `--iterations`, which sets `ilqg.iterations`).
 
 Task configurations (model, horizon, state, cost terms, noise, metric) are described in
 `docs/tasks.md`.

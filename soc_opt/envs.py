@@ -84,7 +84,7 @@ def _action_space(task) -> spaces.Box:
     high = np.full(task.m, np.inf)
     if isinstance(task, MujocoTask):
         model = task.model
-        for j, i in enumerate(task._act):
+        for j, i in enumerate(task.actuator_ids):
             if bool(model.actuator_ctrllimited[i]):
                 low[j], high[j] = model.actuator_ctrlrange[i]
     return spaces.Box(low, high, (task.m,), np.float64)

@@ -272,8 +272,21 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
     The covariance update is the Joseph-like form of ``P^f - J P_{k+1} J^T + J P^s J^T``:
     a sum of positive semidefinite terms, so it stays positive definite over long horizons.
 
+    Args:
+        model: the augmented model :class:`~soc_opt.models.AugmentedModel` of
+            ``zeta_k = (s_{k+1}, y_k)`` given ``(s_k, a_k)`` (SPEC §1), horizon ``T``, state size ``n``.
+        policy: the :class:`~soc_opt.models.LinearGaussianPolicy` closing the loop,
+            ``K (T, m, n)``, ``k (T, m)``, ``cov (T, m, m)``.
+        y: the cost observations ``y_0..y_{T-1}``: ``(T,)`` for one sequence or ``(M, T)`` for
+            ``M`` sequences smoothed at once.
+        mu0: ``(n,)`` mean of the initial state ``s_0``.
+        P0: ``(n, n)`` covariance of ``s_0`` (positive definite).
+
     Returns :class:`~soc_opt.models.Smoothed`; for ``y (M, T)`` every field has a leading
     ``M`` axis (covariances are read-only broadcast views: they do not depend on ``y``).
+    Raises :class:`~soc_opt.models.ShapeError` for inconsistent shapes and
+    :class:`~soc_opt.models.NotPositiveDefiniteError` when a predicted covariance is not
+    positive definite.
     """
     Y, batched, mu0, P0 = _validate(model, policy, y, mu0, P0)
     fp = _forward(*closed_loop(model, policy), Y, mu0, P0)

@@ -23,7 +23,10 @@ Two estimators of the joint Gaussian:
   all time steps (and a bounded buffer of tuples from earlier iterations),
   fitted by variational Bayes with ``sklearn.mixture.BayesianGaussianMixture``
   (Dirichlet prior on the weights, normal-Wishart priors on the components,
-  Bishop §10.2), see :func:`update_prior`.  Per step it gives a single
+  Bishop §10.2), see :func:`update_prior`; the fitted mixture is a
+  :class:`soc_opt.mixture.MixturePrior`.  Each iteration's fit is warm-started
+  from the previous iteration's variational posterior
+  (``FitConfig.prior_warm_start``).  Per step it gives a single
   normal-inverse-Wishart prior
 
       mu0_k  = sum_c w_c^k mu_c,     w_c^k = mean responsibility of the step-k tuples,
@@ -52,8 +55,9 @@ all rollouts and time steps of the data being fitted (``1`` if every column is
 constant).  With ``M < n+m`` or a constant state component the empirical
 covariance is singular and ``lam`` keeps the Cholesky solve well posed.
 
-**Conditioning.**  ``Ao_k`` is obtained with a Cholesky solve of the ``(s, a)``
-block; ``So_k = Lambda_{zeta zeta} - Ao_k Lambda_{z zeta}`` is symmetrised and
+**Conditioning.**  All steps are computed at once (stacked Cholesky
+factorisations, batched products; no loop over ``k``).  ``Ao_k`` is obtained
+with a Cholesky solve of the ``(s, a)`` block; ``So_k = Lambda_{zeta zeta} - Ao_k Lambda_{z zeta}`` is symmetrised and
 its eigenvalues are floored at ``min_eig * mean(diag Lambda_{zeta zeta})``
 (absolute floor ``1e-12``) so that the result is positive definite.
 
@@ -70,15 +74,15 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import scipy.linalg
-from scipy.special import logsumexp
 
 from .config import Config
+from .linalg import T as _T
+from .linalg import as_generator, chol, cho_solve, single_thread_blas
+from .mixture import MixturePrior, VBState, standardisation
 from .models import (
     AugmentedModel,
     LinearGaussianDynamics,
     LinearGaussianPolicy,
-    NotPositiveDefiniteError,
     Rollouts,
     ShapeError,
     check_array,
@@ -88,6 +92,7 @@ from .models import (
 __all__ = [
     "FitConfig",
     "MixturePrior",
+    "VBState",
     "COST_MODES",
     "tuples",
     "update_prior",
@@ -110,7 +115,9 @@ class FitConfig(Config):
     Fields (defaults in brackets):
         prior:                ``"mixture"`` (VB mixture prior + NIW posterior) or ``"none"``
                               (per-step regularised least squares) [``"mixture"``].
-        n_components:         maximum number of mixture components; VB prunes the unused ones [20].
+        n_components:         number of mixture components of a cold (k-means initialised) VB
+                              fit; VB empties the unused ones, and a warm start carries over
+                              only the kept ones [10].
         weight_concentration: Dirichlet concentration of the mixture weights
                               (sklearn ``weight_concentration_prior`` with
                               ``weight_concentration_prior_type="dirichlet_distribution"``);
@@ -120,28 +127,43 @@ class FitConfig(Config):
                               ``Phi0_k = n0 * S0_k`` [1.0].
         reg:                  ridge on the ``(s, a)`` block, relative to the pooled data variance [1e-6].
         buffer_size:          maximum number of tuples kept from earlier iterations for the
-                              next prior fit (the newest are kept) [10000].
-        max_iter:             maximum VB iterations [100].
+                              next prior fit (the newest are kept); 2000 tuples are the
+                              previous iteration's 20 rollouts of 100 steps [2000].
+        prior_warm_start:     start VB from the previous prior's variational posterior
+                              (sklearn ``warm_start``) instead of a fresh k-means
+                              initialisation; ``False`` refits from scratch every iteration
+                              [True].
+        max_iter:             maximum VB iterations per fit; with warm starts VB continues
+                              at the next iteration, so the cap only bounds the cost of the
+                              first iterations, where the data move most [10].
         tol:                  VB stops when the evidence lower bound changes by less than
                               ``tol`` per fitted tuple (sklearn's ``tol`` is absolute on the
                               total bound; we pass ``tol * N``) [1e-3].
         seed:                 seed used when no ``numpy.random.Generator`` is passed [0].
         min_weight:           mixture components with weight below this are dropped (and the
-                              rest renormalised) after VB [1e-3].
+                              rest renormalised) after VB, and not carried into the next
+                              warm start [1e-3].
         mixture_reg:          sklearn ``reg_covar``, added to the component covariances in
                               standardised (unit-variance) coordinates [1e-6].
         min_eig:              relative eigenvalue floor of ``So_k`` (times the mean diagonal of
                               the ``zeta`` block of ``Lambda_k``) [1e-9].
+
+    The settings before warm starts (issue 10) remain selectable:
+    ``prior_warm_start = false``, ``n_components = 20``, ``buffer_size = 10000``,
+    ``max_iter = 100``.  The defaults were chosen by fit time against held-out
+    one-step prediction error on peg (``soc_opt.bench.fit.settings_table``,
+    docs/choices.md).
     """
 
     prior: Literal["mixture", "none"] = "mixture"
-    n_components: int = 20
+    n_components: int = 10
     weight_concentration: float = 0.05
     k0: float = 1.0
     n0: float = 1.0
     reg: float = 1e-6
-    buffer_size: int = 10000
-    max_iter: int = 100
+    buffer_size: int = 2000
+    prior_warm_start: bool = True
+    max_iter: int = 10
     tol: float = 1e-3
     seed: int = 0
     min_weight: float = 1e-3
@@ -165,103 +187,6 @@ class FitConfig(Config):
             raise ValueError(f"min_weight must be in [0, 1), got {self.min_weight!r}")
 
 
-@dataclass(frozen=True)
-class MixturePrior:
-    """A Gaussian mixture over tuples ``(s_k, a_k, s_{k+1}, y_k)`` (SPEC §2 step 1).
-
-    Fields:
-        weights:     (C,)       mixture weights (sum to 1, pruned components removed).
-        means:       (C, D)     component means, ``D = 2n+m+1``, original (unstandardised) units.
-        covariances: (C, D, D)  component covariances (the variational posterior's expected
-                                covariance, as sklearn's ``covariances_``).
-        buffer:      (N, D)     tuples kept for the next :func:`update_prior` (newest last).
-        n, m:        state and action dimensions.
-        converged:   whether VB met sklearn's tolerance within ``max_iter``.
-        n_iter:      VB iterations run.
-    """
-
-    weights: np.ndarray
-    means: np.ndarray
-    covariances: np.ndarray
-    buffer: np.ndarray
-    n: int
-    m: int
-    converged: bool = True
-    n_iter: int = 0
-
-    def __post_init__(self):
-        n, m = int(self.n), int(self.m)
-        D = 2 * n + m + 1
-        w = check_array("prior weights", self.weights, (None,))
-        C = w.shape[0]
-        if C < 1:
-            raise ShapeError("prior must have at least one component")
-        mu = check_array("prior means", self.means, (C, D))
-        S = check_array("prior covariances", self.covariances, (C, D, D))
-        buf = check_array("prior buffer", self.buffer, (None, D))
-        if np.any(w < 0) or abs(w.sum() - 1.0) > 1e-8:
-            raise ValueError(f"prior weights must be non-negative and sum to 1 (sum {w.sum():.6g})")
-        S = symmetrize(S)
-        for a in (w, mu, S, buf):
-            a.setflags(write=False)
-        object.__setattr__(self, "weights", w)
-        object.__setattr__(self, "means", mu)
-        object.__setattr__(self, "covariances", S)
-        object.__setattr__(self, "buffer", buf)
-        object.__setattr__(self, "n", n)
-        object.__setattr__(self, "m", m)
-
-    @property
-    def n_components(self) -> int:
-        return self.weights.shape[0]
-
-    @property
-    def dim(self) -> int:
-        return 2 * self.n + self.m + 1
-
-    def marginal(self, include_y: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(weights, means, covariances)`` of the mixture over ``(s, a, s')[, y]``.
-
-        Dropping ``y`` marginalises it out of every component exactly.
-        """
-        if include_y:
-            return self.weights, self.means, self.covariances
-        d = self.dim - 1
-        return self.weights, self.means[:, :d], self.covariances[:, :d, :d]
-
-    def responsibilities(self, X: np.ndarray, include_y: bool = True) -> np.ndarray:
-        """Posterior component probabilities ``(N, C)`` of points ``X (N, D)`` (or ``D-1`` without ``y``).
-
-        Computed from the stored point estimates (plug-in Gaussian densities), so
-        they apply equally to the marginal mixture without ``y``.
-        """
-        w, mu, S = self.marginal(include_y)
-        X = np.asarray(X, dtype=float)
-        logp = np.empty((X.shape[0], w.shape[0]))
-        with np.errstate(divide="ignore"):
-            logw = np.log(w)
-        for c in range(w.shape[0]):
-            L = np.linalg.cholesky(S[c])
-            r = scipy.linalg.solve_triangular(L, (X - mu[c]).T, lower=True)
-            logp[:, c] = logw[c] - 0.5 * np.sum(r * r, axis=0) - np.log(np.diag(L)).sum()
-        return np.exp(logp - logsumexp(logp, axis=1, keepdims=True))
-
-    def step_prior(self, X: np.ndarray, include_y: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Per-step NIW centre ``mu0 (T, d)`` and covariance ``S0 (T, d, d)`` from tuples ``X (M, T, d)``.
-
-        ``w_c^k`` is the mean responsibility of the ``M`` step-``k`` tuples;
-        ``S0_k`` is the mixture's second moment about ``mu0_k`` (SPEC §2 step 2).
-        """
-        Mr, T, d = X.shape
-        _, mu, S = self.marginal(include_y)
-        r = self.responsibilities(X.reshape(Mr * T, d), include_y).reshape(Mr, T, -1)
-        wk = r.mean(axis=0)  # (T, C)
-        mu0 = wk @ mu
-        diff = mu[None, :, :] - mu0[:, None, :]  # (T, C, d)
-        S0 = np.einsum("tc,cij->tij", wk, S) + np.einsum("tc,tci,tcj->tij", wk, diff, diff)
-        return mu0, symmetrize(S0)
-
-
 # --------------------------------------------------------------------------- data
 
 
@@ -283,26 +208,6 @@ def tuples(rollouts: Rollouts, include_y: bool = True) -> np.ndarray:
     return np.concatenate(parts, axis=-1)
 
 
-def _single_thread_blas():
-    """Limit BLAS to one thread (restored on exit).
-
-    The fit works on many small matrices (``D = 2n+m+1 <= ~60``); threaded
-    BLAS brings nothing there and, on a loaded 2-core machine, made the VB fit
-    about 20x slower (spin-waiting threads).
-    """
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=1, user_api="blas")
-
-
-def _rng(rng, config: FitConfig) -> np.random.Generator:
-    if rng is None:
-        return np.random.default_rng(config.seed)
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
-    return rng
-
-
 # --------------------------------------------------------------------------- prior
 
 
@@ -319,15 +224,28 @@ def update_prior(
     prior buffers the newest ``config.buffer_size`` of these tuples (old buffer
     first, then the new tuples rollout by rollout).  Fitting is done in
     standardised coordinates (per-column mean and standard deviation of the
-    fitted data; constant columns get scale 1) and mapped back.  Deterministic
-    given ``rng`` (sklearn's ``random_state`` is drawn from it; ``config.seed``
-    is used when ``rng`` is None).
+    fitted data; constant columns get scale 1) and mapped back.
+
+    **Warm start** (``config.prior_warm_start``, when ``prior`` carries a
+    :class:`VBState` of at most ``config.n_components`` components): VB starts
+    from the previous variational posterior of the components the previous fit
+    kept (weight ``>= min_weight``), re-expressed in the new standardised
+    coordinates, instead of from a k-means initialisation with
+    ``n_components`` components.  The fixed point is the same kind of VB
+    optimum, reached in far fewer iterations when the data change little
+    between iterations, and emptied components no longer cost anything (with
+    ``min_weight = 0`` all components are carried over).  ``prior`` itself is
+    not modified.
+
+    Deterministic given ``rng`` (sklearn's ``random_state`` is drawn from it,
+    also when warm-starting, so that the stream is consumed alike;
+    ``config.seed`` is used when ``rng`` is None).
     """
     from sklearn.exceptions import ConvergenceWarning
     from sklearn.mixture import BayesianGaussianMixture
 
     rollouts = _check_rollouts(rollouts, min_M=1)
-    rng = _rng(rng, config)
+    rng = as_generator(rng, config.seed)
     n, m = rollouts.n, rollouts.m
     D = 2 * n + m + 1
     X_new = tuples(rollouts).reshape(-1, D)
@@ -343,12 +261,14 @@ def update_prior(
         data = X_new
     buffer = data[data.shape[0] - min(config.buffer_size, data.shape[0]) :].copy()
 
-    center = data.mean(axis=0)
-    scale = data.std(axis=0)
-    scale = np.where(scale > 1e-12 * np.maximum(1.0, np.abs(center)), scale, 1.0)
+    center, scale = standardisation(data)
     Z = (data - center) / scale
 
     n_comp = max(1, min(config.n_components, Z.shape[0]))
+    vb = getattr(prior, "vb", None)  # checkpoints written before warm starts have no vb
+    warm = config.prior_warm_start and vb is not None and vb.means.shape[0] <= n_comp
+    if warm:
+        n_comp = vb.means.shape[0]
     bgm = BayesianGaussianMixture(
         n_components=n_comp,
         covariance_type="full",
@@ -358,27 +278,29 @@ def update_prior(
         max_iter=config.max_iter,
         tol=config.tol * Z.shape[0],
         random_state=int(rng.integers(2**31 - 1)),
+        warm_start=warm,
     )
-    with warnings.catch_warnings(), _single_thread_blas():
+    with warnings.catch_warnings(), single_thread_blas():
         warnings.simplefilter("ignore", ConvergenceWarning)
+        if warm:
+            vb.to_sklearn(bgm, center, scale)
         bgm.fit(Z)
 
     w = np.asarray(bgm.weights_, dtype=float)
     keep = w >= config.min_weight
     if not np.any(keep):
         keep = w == w.max()
-    w = w[keep] / w[keep].sum()
-    means = center + bgm.means_[keep] * scale
-    covs = bgm.covariances_[keep] * scale[None, :, None] * scale[None, None, :]
+    vb_new = VBState.from_sklearn(bgm, center, scale, keep)
     return MixturePrior(
-        weights=w,
-        means=means,
-        covariances=covs,
+        weights=w[keep] / w[keep].sum(),
+        means=vb_new.means,
+        covariances=vb_new.covariances,
         buffer=buffer,
         n=n,
         m=m,
         converged=bool(bgm.converged_),
         n_iter=int(bgm.n_iter_),
+        vb=vb_new,
     )
 
 
@@ -405,8 +327,8 @@ def joint_posterior(
     """
     Mr = X.shape[0]
     mu_emp = X.mean(axis=0)
-    Xc = X - mu_emp
-    L_emp = np.einsum("mti,mtj->tij", Xc, Xc) / Mr
+    Xc = np.swapaxes(X - mu_emp, 0, 1)  # (T, M, d)
+    L_emp = (_T(Xc) @ Xc) / Mr
     if prior is None:
         mu, Lam = mu_emp, L_emp
     else:
@@ -414,7 +336,7 @@ def joint_posterior(
         mu0, S0 = prior.step_prior(X, include_y)
         d = mu_emp - mu0
         mu = (k0 * mu0 + Mr * mu_emp) / (k0 + Mr)
-        Lam = (n0 * S0 + Mr * L_emp + (k0 * Mr / (k0 + Mr)) * np.einsum("ti,tj->tij", d, d)) / (Mr + n0)
+        Lam = (n0 * S0 + Mr * L_emp + (k0 * Mr / (k0 + Mr)) * (d[:, :, None] * d[:, None, :])) / (Mr + n0)
     Lam = symmetrize(Lam)
     lam = config.reg * _reg_scale(X, nz)
     idx = np.arange(nz)
@@ -422,39 +344,34 @@ def joint_posterior(
     return mu, Lam
 
 
-def _cho_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Solve ``(L L^T) X = B`` for stacks ``L (T, d, d)`` (lower), ``B (T, d, r)``."""
-    try:
-        return scipy.linalg.cho_solve((L, True), B)
-    except ValueError:  # SciPy without batched linalg
-        return np.stack([scipy.linalg.cho_solve((L[t], True), B[t]) for t in range(L.shape[0])])
-
-
 def _condition(mu: np.ndarray, Lam: np.ndarray, nz: int, min_eig: float):
-    """Condition ``N(mu, Lam)`` on its first ``nz`` coordinates -> ``(Ao, co, So)``."""
+    """Condition ``N(mu, Lam)`` on its first ``nz`` coordinates -> ``(Ao, co, So)`` (SPEC §2 step 4).
+
+    All ``T`` steps at once: one stacked Cholesky factorisation of the ``(s, a)`` blocks,
+    batched solves and products, one stacked eigendecomposition for the floor.
+    """
     Szz = Lam[:, :nz, :nz]
     Szy = Lam[:, :nz, nz:]
     Syy = Lam[:, nz:, nz:]
-    try:
-        L = np.linalg.cholesky(Szz)
-    except np.linalg.LinAlgError:
-        bad = [t for t in range(Szz.shape[0]) if np.linalg.eigvalsh(Szz[t])[0] <= 0]
-        raise NotPositiveDefiniteError(
-            f"joint covariance (s, a) block at step {bad[0] if bad else '?'} is not positive definite; "
-            "increase FitConfig.reg"
-        ) from None
-    X = _cho_solve(L, Szy)  # (T, nz, dy)
-    Ao = np.swapaxes(X, 1, 2)
+    L = chol(Szz, "joint covariance (s, a) block (increase FitConfig.reg)")
+    X = cho_solve(L, Szy)  # (T, nz, dy)
+    Ao = _T(X)
     co = mu[:, nz:] - np.einsum("tij,tj->ti", Ao, mu[:, :nz])
-    So = symmetrize(Syy - np.einsum("tji,tjk->tik", Szy, X))
-    # floor the eigenvalues where needed (only those steps are reconstructed)
+    So = symmetrize(Syy - _T(Szy) @ X)
+    # floor the eigenvalues where needed (only those steps are reconstructed); a Cholesky
+    # factorisation of So - floor I succeeding for every step shows there is nothing to floor
     dy = So.shape[-1]
     floor = np.maximum(min_eig * np.trace(Syy, axis1=1, axis2=2) / dy, _ABS_EIG_FLOOR)
+    try:
+        np.linalg.cholesky(So - floor[:, None, None] * np.eye(dy))
+        return Ao, co, So
+    except np.linalg.LinAlgError:
+        pass
     ev, V = np.linalg.eigh(So)
     low = ev[:, 0] < floor
     if np.any(low):
         evc = np.maximum(ev[low], floor[low, None])
-        So[low] = symmetrize(np.einsum("tij,tj,tkj->tik", V[low], evc, V[low]))
+        So[low] = symmetrize((V[low] * evc[:, None, :]) @ _T(V[low]))
     return Ao, co, So
 
 
@@ -473,7 +390,7 @@ def _fit(rollouts, config, prior, include_y, correct=None):
     use_prior = prior if config.prior == "mixture" else None
     nz = rollouts.n + rollouts.m
     X = tuples(rollouts, include_y)
-    with _single_thread_blas():
+    with single_thread_blas():
         mu, Lam = joint_posterior(X, nz, config, use_prior, include_y)
         if correct is not None:  # noise-aware fit (SPEC §10.1): moments of the true tuples
             mu, Lam = correct(mu, Lam)

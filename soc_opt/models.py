@@ -164,6 +164,26 @@ class LinearGaussianPolicy:
     def to_dict(self) -> dict:
         return {"K": np.array(self.K), "k": np.array(self.k), "cov": np.array(self.cov)}
 
+    def save(self, path) -> None:
+        """Write ``K``, ``k``, ``cov`` to the ``.npz`` file ``path`` (the format of a run directory's
+        ``policies/iter_XXX.npz`` and ``best_policy.npz``)."""
+        np.savez_compressed(path, **self.to_dict())
+
+    @classmethod
+    def load(cls, path, allow_singular: bool = False) -> "LinearGaussianPolicy":
+        """The policy in the ``.npz`` file ``path``: :meth:`save`'s output, or a run directory's
+        ``policies/iter_XXX.npz`` / ``best_policy.npz`` (their other arrays are ignored).
+
+        The arrays are checked like any policy's (shapes, symmetric positive definite ``cov``;
+        ``allow_singular`` for a deterministic policy).  A file without ``K``, ``k`` and ``cov``
+        raises :class:`ShapeError` naming what is missing.
+        """
+        with np.load(path, allow_pickle=False) as f:
+            missing = [key for key in ("K", "k", "cov") if key not in f.files]
+            if missing:
+                raise ShapeError(f"{path}: not a policy file (no {', '.join(missing)}; it holds {f.files})")
+            return cls(f["K"], f["k"], f["cov"], allow_singular=allow_singular)
+
 
 @dataclass(frozen=True)
 class AugmentedModel:

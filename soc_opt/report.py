@@ -7,8 +7,12 @@ and writes.  Figures (PNG):
   for both methods side by side;
 - ``ee_trajectories.png``: mean ± std over samples of the end-effector ``x, y, z`` of the final
   policies, dashed baseline vs solid DPSOC-EM;
-- ``actions.png``: box plots of the actions per joint over samples and time, final policies;
+- ``actions.png``: box plots of the actions per actuator (named) over samples and time, final policies;
 - ``min_hinge.png`` (door): the minimum hinge angle per iteration.
+
+Iterations are numbered from 0, as in ``metrics.csv`` and on the console.  Statistics over seeds
+are shown as ``mean ± std``; with a single seed there is no spread, so only the value and
+``n = 1`` are shown (:func:`mean_std`).
 
 :func:`format_table` formats rows of dicts as a plain-text table (the CLI's tables).
 """
@@ -23,7 +27,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-__all__ = ["plot_costs", "plot_ee", "plot_actions", "plot_metric", "claims_table", "write_markdown", "format_table"]
+__all__ = ["plot_costs", "plot_ee", "plot_actions", "plot_metric", "claims_table", "write_markdown", "format_table",
+           "mean_std", "over_seeds"]
 
 COLORS = {"lqr-flm": "tab:blue", "dpsoc-em": "tab:red"}
 LABELS = {"lqr-flm": "LQR-FLM (baseline)", "dpsoc-em": "DPSOC-EM"}
@@ -54,13 +59,13 @@ def plot_costs(costs: dict, path: Path, title: str, i_switch: int | None = None)
     width = 0.8 / len(methods)
     for j, meth in enumerate(methods):
         data = costs[meth]
-        pos = np.arange(len(data)) + 1 + (j - (len(methods) - 1) / 2) * width
+        pos = np.arange(len(data)) + (j - (len(methods) - 1) / 2) * width
         _boxes(ax, data, pos, width, COLORS.get(meth, "gray"))
         ax.plot(pos, [np.mean(d) for d in data], "o-", color=COLORS.get(meth, "gray"), ms=3, label=LABELS.get(meth, meth))
     if i_switch is not None:
-        ax.axvline(i_switch + 0.5, color="k", ls=":", lw=1, label=f"EM switch (after iteration {i_switch})")
+        ax.axvline(i_switch - 0.5, color="k", ls=":", lw=1, label=f"EM switch (after {i_switch} iterations)")
     n_it = max(len(d) for d in costs.values())
-    ax.set_xticks(np.arange(1, n_it + 1))
+    ax.set_xticks(np.arange(n_it))
     ax.set_xlabel("iteration")
     ax.set_ylabel("total cost per sample (true state)")
     ax.set_yscale("symlog" if min(np.min(np.concatenate(d)) for d in costs.values()) <= 0 else "log")
@@ -105,10 +110,10 @@ def plot_ee(points: dict, dt: float, path: Path, title: str, point_names=None, t
     return path
 
 
-def plot_actions(actions: dict, path: Path, title: str) -> Path:
-    """``actions[method]``: ``(S, T, m)``.
+def plot_actions(actions: dict, path: Path, title: str, names: list[str] | None = None) -> Path:
+    """``actions[method]``: ``(S, T, m)``; ``names``: the ``m`` action (actuator) names for the axis.
 
-    Left: box plots per joint of the actions over samples and time.  Right: the same for the
+    Left: box plots per actuator of the actions over samples and time.  Right: the same for the
     deviation of each action from the mean action at its time step, i.e. the spread over
     samples that the claims table measures.
     """
@@ -126,7 +131,8 @@ def plot_actions(actions: dict, path: Path, title: str) -> Path:
             _boxes(ax, [a[:, i] for i in range(m)], pos, width, COLORS.get(meth, "gray"))
             ax.plot([], [], "s", color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
         ax.set_xticks(np.arange(1, m + 1))
-        ax.set_xticklabels([f"joint {i + 1}" for i in range(m)], rotation=30 if m > 4 else 0)
+        labels = list(names) if names is not None and len(names) == m else [f"action {i}" for i in range(m)]
+        ax.set_xticklabels(labels, rotation=30 if m > 4 else 0)
         ax.set_ylabel("action - mean action at that step" if centred else "action")
         ax.set_title("spread over samples (centred per time step)" if centred else "actions over samples and time")
         ax.grid(alpha=0.3)
@@ -143,7 +149,7 @@ def plot_metric(values: dict, path: Path, title: str, ylabel: str) -> Path:
     fig, ax = plt.subplots(figsize=(8, 4))
     for meth, v in values.items():
         v = np.asarray(v, float)
-        it = np.arange(1, v.shape[1] + 1)
+        it = np.arange(v.shape[1])
         ls = "--" if meth == "lqr-flm" else "-"
         ax.plot(it, v.mean(0), ls + "o", ms=3, color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
         ax.fill_between(it, v.mean(0) - v.std(0), v.mean(0) + v.std(0), color=COLORS.get(meth, "gray"), alpha=0.2)
@@ -185,16 +191,34 @@ def _fmt(x: float) -> str:
     return f"{x:.4g}"
 
 
+def mean_std(values) -> str:
+    """``"mean ± std"`` of ``values`` over seeds; one value: ``"value (n = 1)"`` (no spread to show)."""
+    v = np.asarray(values, float).ravel()
+    if v.size == 1:
+        return f"{_fmt(v[0])} (n = 1)"
+    return f"{_fmt(v.mean())} ± {v.std():.3g}"
+
+
+def over_seeds(n: int) -> str:
+    """How a table's statistics are taken: ``"mean ± std over N seeds"``, or ``"one seed"``."""
+    return "one seed, no spread" if n == 1 else f"mean ± std over {n} seeds"
+
+
 def write_markdown(path: Path, *, title: str, setup: dict, claims: list[dict], figures: dict,
                    extra_tables: dict | None = None, notes: list[str] | None = None) -> Path:
     lines = [f"# {title}", "", "## Setup", ""]
     lines += [f"- **{k}**: {v}" for k, v in setup.items()]
-    lines += ["", "## Claims (SPEC §9.5), final policies, mean ± std over seeds", "",
+    n_seeds = claims[0]["seeds"] if claims else 0
+    lines += ["", f"## Claims (SPEC §9.5), final policies, {over_seeds(n_seeds)}", "",
               "| claim | LQR-FLM | DPSOC-EM | seeds where DPSOC-EM lower | held |", "|---|---|---|---|---|"]
+
+    def cell(mean, std, n):
+        return f"{_fmt(mean)} (n = 1)" if n == 1 else f"{_fmt(mean)} ± {_fmt(std)}"
+
     for r in claims:
         lines.append(
-            f"| {r['claim']} | {_fmt(r['baseline_mean'])} ± {_fmt(r['baseline_std'])} | "
-            f"{_fmt(r['dpsoc_mean'])} ± {_fmt(r['dpsoc_std'])} | {r['seeds_lower']}/{r['seeds']} | "
+            f"| {r['claim']} | {cell(r['baseline_mean'], r['baseline_std'], r['seeds'])} | "
+            f"{cell(r['dpsoc_mean'], r['dpsoc_std'], r['seeds'])} | {r['seeds_lower']}/{r['seeds']} | "
             f"{'yes' if r['held'] else '**no**'} |"
         )
     for name, (header, rows) in (extra_tables or {}).items():

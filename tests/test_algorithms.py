@@ -99,9 +99,16 @@ def test_unknown_method_is_rejected():
         run_algorithm(task, "ppo", DPSOCConfig(baseline=LQRFLMConfig(iterations=1, samples=2), i_switch=0))
 
 
-def test_config_rejects_switch_outside_the_run():
+def test_dpsoc_em_rejects_a_switch_outside_the_run_before_sampling():
+    cfg = DPSOCConfig(i_switch=14, baseline=LQRFLMConfig(iterations=14))
     with pytest.raises(ValueError, match="i_switch"):
-        DPSOCConfig(i_switch=14, baseline=LQRFLMConfig(iterations=14))
+        cfg.check_for("dpsoc-em")
+    cfg.check_for("lqr-flm")  # the baseline never switches
+    task = load_task("linear2d", overrides={"T": 5})
+    with pytest.raises(ValueError, match="i_switch"):
+        run_algorithm(task, "dpsoc-em", cfg.replace(baseline=LQRFLMConfig(iterations=1, samples=2)), seed=0)
+    with pytest.raises(ValueError, match="i_switch must be >= 0"):
+        DPSOCConfig(i_switch=-1)
 
 
 def test_em_records_keep_the_metrics_columns_in_their_order():

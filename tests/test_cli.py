@@ -48,10 +48,13 @@ def test_paper_flag_sets_the_paper_scale():
     assert cfg.baseline.init_var == load_run_config("peg").baseline.init_var
 
 
-def test_flags_override_the_paper_scale_and_lqr_flm_clamps_the_switch():
+def test_flags_override_the_paper_scale_and_lqr_flm_ignores_the_switch():
     cfg = load_run_config("linear2d", paper=True, overrides={"iterations": 3, "samples": None},
                           method="lqr-flm")
-    assert (cfg.baseline.iterations, cfg.baseline.samples, cfg.i_switch) == (3, 20, 2)
+    # i_switch (4) lies outside a 3-iteration run, which only DPSOC-EM would use it for
+    assert (cfg.baseline.iterations, cfg.baseline.samples, cfg.i_switch) == (3, 20, 4)
+    with pytest.raises(ConfigError, match="i_switch"):
+        load_run_config("linear2d", paper=True, overrides={"iterations": 3}, method="dpsoc-em")
 
 
 def test_config_doc_lists_every_field(capsys):
@@ -59,3 +62,157 @@ def test_config_doc_lists_every_field(capsys):
     out = capsys.readouterr().out
     for key in ("`[em.mstep]`", "`clarabel_tol`", "`[baseline.kl]`", "`seed_offset`", "`mu_restart`"):
         assert key in out
+
+
+# ----------------------------------------------------------------- issue 13: errors, iLQG, numbering
+
+SMALL = ["--iterations", "2", "--samples", "4"]
+
+
+def _one_error_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("soc-opt: error: "), err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.mark.parametrize("key,value", [("baseline", "kl_budget = nan"), ("baseline", "init_var = inf"),
+                                       ("em", "cov_floor_scale = -inf"), ("baseline.kl", "min_gap = nan")])
+def test_nan_or_inf_in_the_config_is_refused_before_anything_is_written(tmp_path, capsys, key, value):
+    p = tmp_path / "bad.toml"
+    p.write_text(f"i_switch = 0\n[{key}]\n{value}\n")
+    out = tmp_path / "o"
+    assert main(["run", "linear2d", "--config", str(p), "--out", str(out)] + SMALL) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert f"{key}.{value.split()[0]}" in line and "finite" in line
+    assert not out.exists()
+    p.write_text("i_switch = 0\n")  # the corrected rerun is not blocked by anything
+    assert main(["run", "linear2d", "--config", str(p), "--out", str(out)] + SMALL) == 0
+
+
+def test_a_run_directory_of_another_seed_or_method_is_one_error_line_saying_what_differs(tmp_path, capsys):
+    out = str(tmp_path / "o")
+    assert main(["run", "linear2d", "--method", "lqr-flm", "--seed", "0", "--out", out] + SMALL) == 0
+    capsys.readouterr()
+    assert main(["run", "linear2d", "--method", "lqr-flm", "--seed", "1", "--out", out] + SMALL) == 2
+    assert "seed: 0 -> 1" in _one_error_line(capsys.readouterr().err)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("i_switch = 1\n")
+    assert main(["run", "linear2d", "--method", "dpsoc-em", "--config", str(cfg), "--out", out] + SMALL) == 2
+    assert "method: 'lqr-flm' -> 'dpsoc-em'" in _one_error_line(capsys.readouterr().err)
+
+
+def test_lqr_flm_accepts_a_config_file_with_one_iteration(tmp_path, capsys):
+    p = tmp_path / "one.toml"
+    p.write_text("[baseline]\niterations = 1\nsamples = 4\n")  # i_switch keeps its default, 4
+    assert main(["run", "linear2d", "--method", "lqr-flm", "--config", str(p), "--out", str(tmp_path / "o")]) == 0
+    assert main(["run", "linear2d", "--method", "dpsoc-em", "--config", str(p), "--out", str(tmp_path / "e")]) == 2
+    assert "i_switch" in _one_error_line(capsys.readouterr().err)
+
+
+def test_ilqg_writes_a_resumable_run_directory_and_reads_the_shared_config(tmp_path, capsys):
+    import csv
+
+    shared = tmp_path / "shared.toml"
+    shared.write_text("i_switch = 1\n[baseline]\niterations = 3\nsamples = 4\n[em]\nn_em = 1\n"
+                      "[ilqg]\niterations = 5\nmu_init = 1e-6\n")
+    out = tmp_path / "o"
+    args = ["run", "linear2d", "--method", "ilqg", "--config", str(shared), "--out", str(out)]
+    assert main(args + ["--iterations", "1"]) == 0
+    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    assert [r["iteration"] for r in rows] == ["0"]  # --iterations overrides [ilqg] iterations = 5
+    assert "metric_min_distance" in rows[0] and float(rows[0]["cost_mean"]) > 0
+    for name in ("config.json", "task.json", "checkpoint.pkl", "best_policy.npz", "policies/iter_001.npz"):
+        assert (out / name).exists(), name
+    capsys.readouterr()
+    assert main(args + ["--iterations", "1"]) == 0
+    assert "already finished (1 iterations)" in capsys.readouterr().out
+    assert main(args + ["--iterations", "2"]) == 2  # a different run: refused, not overwritten
+    assert "ilqg.iterations: 1 -> 2" in _one_error_line(capsys.readouterr().err)
+    assert main(args + ["--samples", "3"]) == 2
+    assert "--samples does not apply to --method ilqg" in _one_error_line(capsys.readouterr().err)
+
+
+THREE_LINK = """
+<mujoco>
+  <option gravity="0 0 0"/>
+  <worldbody>
+    <body name="l1"><joint name="j1" type="hinge" axis="0 0 1"/><geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.03"/>
+      <body name="l2" pos="0.5 0 0"><joint name="j2" type="hinge" axis="0 0 1"/>
+        <geom type="capsule" fromto="0 0 0 0.4 0 0" size="0.03"/>
+        <body name="l3" pos="0.4 0 0"><joint name="wrist" type="hinge" axis="0 0 1"/>
+          <geom type="capsule" fromto="0 0 0 0.1 0 0" size="0.02"/></body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="j1"/><motor joint="j2"/></actuator>
+</mujoco>
+"""
+
+
+def test_ilqg_on_a_state_missing_joints_is_one_error_line_before_anything_is_written(tmp_path, capsys):
+    (tmp_path / "arm.xml").write_text(THREE_LINK)
+    (tmp_path / "task.toml").write_text('name = "arm"\nT = 5\nmodel = "arm.xml"\n[state]\njoints = ["j1", "j2"]\n'
+                                        '[[cost]]\ntype = "torque"\n')
+    out = tmp_path / "o"
+    assert main(["run", str(tmp_path / "task.toml"), "--method", "ilqg", "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "'wrist'" in line and "state.extra_joints" in line
+    assert not out.exists()
+
+
+def test_console_counts_iterations_like_metrics_csv_and_labels_times(tmp_path, capsys):
+    import csv
+    import re
+
+    out = tmp_path / "o"
+    assert main(["run", "linear2d", "--method", "lqr-flm", "--out", str(out)] + SMALL) == 0
+    console = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("[lqr-flm")]
+    printed = [int(re.search(r"iter\s+(\d+) ", ln).group(1)) for ln in console]
+    assert printed == [int(r["iteration"]) for r in csv.DictReader(open(out / "metrics.csv"))] == [0, 1]
+    for ln in console:  # every duration carries its label
+        assert re.findall(r"\d+(?:\.\d+)?s\b", ln) and all(
+            re.search(rf"(time|total) {re.escape(t)}", ln) for t in re.findall(r"\d+(?:\.\d+)?s\b", ln))
+
+
+def test_unexpected_errors_are_one_line_and_debug_shows_the_traceback(tmp_path, capsys, monkeypatch):
+    import soc_opt.experiment as experiment
+
+    def boom(*a, **k):
+        raise RuntimeError("deliberate\nfailure")
+
+    monkeypatch.setattr(experiment, "run_experiment", boom)
+    args = ["run", "linear2d", "--method", "lqr-flm", "--out", str(tmp_path / "o")] + SMALL
+    assert main(args) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "RuntimeError: deliberate failure" in line and "--debug" in line
+    with pytest.raises(RuntimeError):
+        main(["--debug"] + args)
+
+
+def test_a_second_run_on_a_directory_in_use_is_refused_naming_the_first(tmp_path, capsys):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "o"
+    args = ["run", "linear2d", "--method", "lqr-flm", "--iterations", "30", "--samples", "4", "--out", str(out)]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    first = subprocess.Popen([sys.executable, "-m", "soc_opt.cli"] + args + ["--progress", "lines"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        for line in first.stdout:  # wait until it is running
+            if line.startswith("[lqr-flm seed 0] iter"):
+                break
+        else:
+            raise AssertionError(first.stderr.read())
+        assert main(args) == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert f"in use by process {first.pid}" in line
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.communicate()

@@ -424,3 +424,14 @@ def test_closed_loop_rejects_mismatched_policy(small):
     model = small[0]
     with pytest.raises(ShapeError, match="policy action dimension m=3 does not match model action dimension m=2"):
         closed_loop(model, LinearGaussianPolicy.zeros(model.T, model.n, 3))
+
+
+def test_smooth_documents_every_argument_in_an_args_section():
+    import inspect
+    import re
+
+    doc = inspect.getdoc(smooth)
+    assert "Args:" in doc
+    args = doc.split("Args:", 1)[1]
+    for name in inspect.signature(smooth).parameters:
+        assert re.search(rf"^\s+{name}:", args, re.M), name

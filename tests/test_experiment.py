@@ -122,3 +122,147 @@ def test_best_policy_file_holds_the_best_sampled_policy(task, tmp_path):
     assert float(best["mean_cost"]) == min(costs) == state.best.mean_cost
     assert int(best["iteration"]) == int(np.argmin(costs)) == state.best.iteration
     np.testing.assert_array_equal(best["K"], state.best.policy.K)
+
+
+# ----------------------------------------------------------------- the run directory contract (issue 13)
+
+LINEAR2D_TOML = """
+name = "lin_file"
+kind = "linear"
+T = 12
+timestep = 0.1
+rho2 = 0.1
+init_var = 1.0
+[linear]
+system = "point_mass_2d"
+x0 = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+[[cost]]
+type = "quadratic"
+target = [20.0, 3.0, 0.0, 0.0, 0.0, 0.0]
+Qs = 1.0
+Qa = 1e-5
+[metric]
+type = "min_distance"
+indices = [0, 1]
+target = [20.0, 3.0]
+"""
+
+
+def _kill_at(iteration):
+    def cb(st):
+        if st.iteration == iteration:
+            raise _Kill
+
+    return cb
+
+
+def test_resume_refuses_an_edited_task_naming_the_changed_key(tmp_path):
+    path = tmp_path / "task.toml"
+    path.write_text(LINEAR2D_TOML)
+    cfg = _cfg(iterations=3, i_switch=0)
+    with pytest.raises(_Kill):
+        run_experiment(load_task(path), "lqr-flm", cfg, 0, tmp_path / "r", task_name=str(path), on_iteration=_kill_at(1))
+    path.write_text(LINEAR2D_TOML.replace("target = [20.0, 3.0, 0.0", "target = [10.0, 3.0, 0.0"))
+    with pytest.raises(ValueError, match=r"task\.cost\[0\]\.target: \[20\.0, 3\.0.*-> \[10\.0, 3\.0"):
+        run_experiment(load_task(path), "lqr-flm", cfg, 0, tmp_path / "r", task_name=str(path))
+    # comments and layout are not the experiment: an equivalent file resumes
+    path.write_text("# same task, reformatted\n" + LINEAR2D_TOML)
+    st = run_experiment(load_task(path), "lqr-flm", cfg, 0, tmp_path / "r", task_name=str(path))
+    assert st.iteration == 3
+
+
+def test_a_damaged_checkpoint_offers_the_previous_one_and_restart(task, tmp_path):
+    cfg = _cfg(iterations=3, i_switch=0)
+    full = run_experiment(task, "lqr-flm", cfg, seed=2, out=tmp_path / "full")
+    out = tmp_path / "r"
+    with pytest.raises(_Kill):
+        run_experiment(task, "lqr-flm", cfg, seed=2, out=out, on_iteration=_kill_at(2))
+    ckpt = out / "checkpoint.pkl"
+    for damage in (b"", ckpt.read_bytes()[:-100]):
+        ckpt.write_bytes(damage)
+        with pytest.raises(ValueError, match=r"--previous-checkpoint.*1 iterations done.*--restart"):
+            run_experiment(task, "lqr-flm", cfg, seed=2, out=out)
+    resumed = run_experiment(task, "lqr-flm", cfg, seed=2, out=out, previous_checkpoint=True)
+    np.testing.assert_array_equal(resumed.policy.K, full.policy.K)
+    assert [float(np.mean(r.cost)) for r in resumed.history] == [float(np.mean(r.cost)) for r in full.history]
+    ckpt.write_bytes(b"\x00" * 10)
+    restarted = run_experiment(task, "lqr-flm", cfg, seed=2, out=out, restart=True)
+    np.testing.assert_array_equal(restarted.policy.K, full.policy.K)
+
+
+def test_a_second_writer_is_refused_while_the_first_holds_the_directory(task, tmp_path):
+    import os
+
+    from soc_opt.experiment import RunDirectoryError, lock_directory
+
+    with lock_directory(tmp_path / "r"):
+        with pytest.raises(RunDirectoryError, match=f"in use by process {os.getpid()}"):
+            run_experiment(task, "lqr-flm", _cfg(iterations=1, i_switch=0), seed=0, out=tmp_path / "r")
+    assert not (tmp_path / "r" / "config.json").exists()
+    run_experiment(task, "lqr-flm", _cfg(iterations=1, i_switch=0), seed=0, out=tmp_path / "r")  # released
+
+
+def test_a_stale_lock_of_a_dead_process_is_taken_over(task, tmp_path):
+    import subprocess
+    import sys
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "lock").write_text(f"{dead.pid} somehost\n")
+    st = run_experiment(task, "lqr-flm", _cfg(iterations=1, i_switch=0), seed=0, out=tmp_path / "r")
+    assert st.iteration == 1
+
+
+def test_a_run_that_never_finished_an_iteration_does_not_block_a_corrected_rerun(task, tmp_path):
+    def fail_first(st):
+        raise _Kill
+
+    with pytest.raises(_Kill):
+        run_experiment(task, "lqr-flm", _cfg(iterations=2, i_switch=0), seed=0, out=tmp_path / "r",
+                       on_iteration=fail_first)
+    (tmp_path / "r" / "checkpoint.pkl").unlink()  # as if it had failed inside its first iteration
+    (tmp_path / "r" / "checkpoint.prev.pkl").unlink(missing_ok=True)
+    st = run_experiment(task, "lqr-flm", _cfg(iterations=1, i_switch=0), seed=0, out=tmp_path / "r")
+    assert st.iteration == 1
+
+
+def test_compare_report_with_one_seed_shows_n_instead_of_a_zero_spread(task, tmp_path):
+    from soc_opt.compare import compare
+
+    compare(task, _cfg(iterations=2, i_switch=1), seeds=[0], out=tmp_path / "cmp")
+    md = (tmp_path / "cmp" / "report.md").read_text()
+    assert "± 0" not in md and "(n = 1)" in md and "one seed" in md
+
+
+TWO_LINK = """<mujoco><option timestep="0.01" gravity="0 0 0"/><worldbody>
+  <body name="l1"><joint name="j1" type="hinge" axis="0 0 1" damping="0.1"/>
+    <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.03" mass="1"/>
+    <body name="l2" pos="0.5 0 0"><joint name="j2" type="hinge" axis="0 0 1" damping="0.1"/>
+      <geom type="capsule" fromto="0 0 0 0.4 0 0" size="0.03" mass="0.5"/><site name="tip" pos="0.4 0 0"/></body>
+  </body></worldbody>
+  <actuator><motor name="shoulder_motor" joint="j1"/><motor name="elbow_motor" joint="j2"/></actuator></mujoco>"""
+
+
+def test_compare_action_figure_names_the_actuators(monkeypatch, tmp_path):
+    import matplotlib.pyplot as plt
+
+    from soc_opt import report
+    from soc_opt.compare import compare
+    from soc_opt.tasks import build_task
+
+    arm = build_task({"name": "arm", "T": 5, "q0": [0.3, 0.5], "rho2": 0.01, "init_var": 0.1,
+                      "state": {"joints": ["j1", "j2"], "sites": ["tip"]},
+                      "cost": [{"type": "point", "sites": ["tip"], "target": [0.2, 0.6, 0.0]},
+                               {"type": "torque", "wu": 0.01}]}, xml=TWO_LINK)
+    figs = []
+    real_close = plt.close
+    monkeypatch.setattr(report.plt, "close", lambda fig: figs.append(fig))
+    compare(arm, _cfg(iterations=2, i_switch=1).replace(baseline=LQRFLMConfig(iterations=2, samples=3)),
+            seeds=[0], out=tmp_path / "cmp")
+    actions = [f for f in figs if "actions" in f.get_suptitle()]
+    assert len(actions) == 1
+    labels = [t.get_text() for t in actions[0].axes[0].get_xticklabels()]
+    for f in figs:
+        real_close(f)
+    assert labels == ["shoulder_motor", "elbow_motor"]

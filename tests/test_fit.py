@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.special import logsumexp
 from scipy.stats import multivariate_normal
 
 from soc_opt.bench.fit import (
@@ -28,6 +30,7 @@ from soc_opt.config import ConfigError
 from soc_opt.fit import (
     FitConfig,
     MixturePrior,
+    VBState,
     cost_observations,
     fit_augmented,
     fit_dynamics,
@@ -298,6 +301,200 @@ def test_prior_none_config_ignores_given_prior(data):
     np.testing.assert_array_equal(a.Ao, b.Ao)
 
 
+def _loop_fit(ro: Rollouts, prior: MixturePrior, cfg: FitConfig, include_y: bool = True):
+    """The NIW posterior + conditioning step by step and component by component (log densities,
+    scipy triangular/Cholesky solves): the reference for the batched implementation."""
+    X = tuples(ro, include_y)
+    M, Tn, D = X.shape
+    nz = ro.n + ro.m
+    lam = cfg.reg * X[..., :nz].reshape(-1, nz).var(axis=0).mean()
+    w, mus, Ss = prior.weights, prior.means[:, :D], prior.covariances[:, :D, :D]
+    out = {"mu0": [], "S0": [], "Ao": [], "co": [], "So": []}
+    for k in range(Tn):
+        Xk = X[:, k]
+        logp = np.empty((M, len(w)))
+        for c in range(len(w)):
+            L = np.linalg.cholesky(Ss[c])
+            r = solve_triangular(L, (Xk - mus[c]).T, lower=True)
+            logp[:, c] = np.log(w[c]) - 0.5 * (r * r).sum(0) - np.log(np.diag(L)).sum()
+        wk = np.exp(logp - logsumexp(logp, axis=1, keepdims=True)).mean(axis=0)
+        mu0 = np.zeros(D)
+        for c in range(len(w)):
+            mu0 += wk[c] * mus[c]
+        S0 = np.zeros((D, D))
+        for c in range(len(w)):
+            S0 += wk[c] * (Ss[c] + np.outer(mus[c] - mu0, mus[c] - mu0))
+        mue = Xk.mean(axis=0)
+        Le = (Xk - mue).T @ (Xk - mue) / M
+        mu_k = (cfg.k0 * mu0 + M * mue) / (cfg.k0 + M)
+        Lam = (cfg.n0 * S0 + M * Le + cfg.k0 * M / (cfg.k0 + M) * np.outer(mue - mu0, mue - mu0)) / (M + cfg.n0)
+        Lam = 0.5 * (Lam + Lam.T)
+        Lam[:nz, :nz] += lam * np.eye(nz)
+        A = cho_solve(cho_factor(Lam[:nz, :nz], lower=True), Lam[:nz, nz:]).T
+        So = Lam[nz:, nz:] - A @ Lam[:nz, nz:]
+        for key, v in (("mu0", mu0), ("S0", S0), ("Ao", A), ("co", mu_k[nz:] - A @ mu_k[:nz]),
+                       ("So", 0.5 * (So + So.T))):
+            out[key].append(v)
+    return {k: np.array(v) for k, v in out.items()}
+
+
+@pytest.fixture(scope="module")
+def prior6(data):
+    prior = update_prior(None, data, FitConfig(n_components=6), np.random.default_rng(0))
+    assert prior.n_components >= 2
+    return prior
+
+
+@pytest.mark.parametrize("include_y", [True, False])
+def test_batched_posterior_matches_per_step_loop_to_1e10(data, prior6, include_y):
+    cfg = FitConfig(n_components=6, k0=2.0, n0=1.5)
+    ro = _subset(data, slice(0, 5))  # M = 5 < n+m: the prior matters
+    prior = prior6
+    ref = _loop_fit(ro, prior, cfg, include_y)
+    mu0, S0 = prior.step_prior(tuples(ro, include_y), include_y)
+    if include_y:
+        model = fit_augmented(ro, cfg, prior)
+        Ao, co, So = model.Ao, model.co, model.So
+    else:
+        dyn = fit_dynamics(ro, cfg, prior)
+        Ao, co, So = np.concatenate([dyn.A, dyn.B], axis=2), dyn.c, dyn.cov
+    # no eigenvalue floor was active (else the comparison would test the floor, not the algebra)
+    assert np.linalg.eigvalsh(ref["So"])[:, 0].min() > 1e-6
+    for got, key in ((mu0, "mu0"), (S0, "S0"), (Ao, "Ao"), (co, "co"), (So, "So")):
+        scale = np.abs(ref[key]).max()
+        np.testing.assert_allclose(got, ref[key], rtol=1e-10, atol=1e-10 * scale, err_msg=key)
+
+
+def test_batched_responsibilities_match_per_component_densities(data, prior6):
+    prior = prior6
+    X = tuples(data).reshape(-1, prior.dim)[:300]
+    dens = np.stack([w * multivariate_normal(mu, S).pdf(X)
+                     for w, mu, S in zip(prior.weights, prior.means, prior.covariances)], axis=1)
+    np.testing.assert_allclose(prior.responsibilities(X), dens / dens.sum(1, keepdims=True), rtol=1e-8, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- warm start
+
+
+def _affine(ro: Rollouts, a: float, b: float) -> Rollouts:
+    """States mapped to ``a s + b`` (actions and ``y`` unchanged)."""
+    return Rollouts(x=a * ro.x + b, s=a * ro.s + b, a=np.array(ro.a), cost=np.array(ro.cost), y=np.array(ro.y))
+
+
+def _affine_prior(p: MixturePrior, a: float, b: float) -> MixturePrior:
+    """``p`` expressed in the units of :func:`_affine` (the ``s`` and ``s'`` columns of the tuples)."""
+    n, m = p.n, p.m
+    D = p.dim
+    f = np.ones(D)
+    f[:n] = f[n + m : 2 * n + m] = a
+    g = np.zeros(D)
+    g[:n] = g[n + m : 2 * n + m] = b
+    cov = lambda S: S * f[:, None] * f[None, :]  # noqa: E731
+    vb = p.vb._replace(means=p.vb.means * f + g, covariances=cov(p.vb.covariances))
+    return MixturePrior(p.weights, p.means * f + g, cov(p.covariances), p.buffer * f + g, n, m, vb=vb)
+
+
+def _close(x, y, rtol, name=""):
+    np.testing.assert_allclose(x, y, rtol=rtol, atol=rtol * np.abs(y).max(), err_msg=name)
+
+
+def test_warm_start_continues_the_same_vb_iteration(data):
+    """30 VB iterations, then 10 more warm-started, equal 40 iterations in one go (same
+    initialisation, same data): the stored posterior is the state of the iteration."""
+    ro = _affine(_subset(data, slice(0, 10)), 7.0, 3.0)  # standardisation far from the identity
+    # tol tiny: never "converged", so fixed iteration counts; min_weight 0: every component carried over
+    cfg = FitConfig(n_components=5, buffer_size=0, tol=1e-300, min_weight=0.0)
+    p30 = update_prior(None, ro, cfg.replace(max_iter=30), np.random.default_rng(0))
+    warm = update_prior(p30, ro, cfg.replace(max_iter=10), np.random.default_rng(1))
+    p40 = update_prior(None, ro, cfg.replace(max_iter=40), np.random.default_rng(0))
+    assert (p30.n_iter, warm.n_iter, p40.n_iter) == (30, 10, 40)
+    assert not np.allclose(p30.vb.means, p40.vb.means, rtol=1e-6)  # the 10 iterations did move it
+    for x, y, name in zip(warm.vb, p40.vb, VBState._fields):
+        _close(x, y, 1e-8, name)
+
+
+def test_warm_start_is_equivariant_to_rescaled_states(data):
+    """Warm-starting on states ``a s + b`` from the prior mapped to those units gives the mapped
+    result of warm-starting on ``s``: the stored posterior is in original units and is carried
+    through each fit's own standardisation."""
+    cfg = FitConfig(n_components=4, buffer_size=400)
+    r1, r2 = _subset(data, slice(0, 6)), _subset(data, slice(6, 12))
+    p1 = update_prior(None, r1, cfg, np.random.default_rng(0))
+    p2 = update_prior(p1, r2, cfg, np.random.default_rng(1))
+    ref = _affine_prior(p2, 5.0, -2.0)
+    got = update_prior(_affine_prior(p1, 5.0, -2.0), _affine(r2, 5.0, -2.0), cfg, np.random.default_rng(1))
+    assert got.n_iter == p2.n_iter
+    for x, y, name in zip(got.vb, ref.vb, VBState._fields):
+        _close(x, y, 1e-7, name)
+
+
+def test_warm_start_carries_over_only_the_kept_components(data):
+    cfg = FitConfig(n_components=12, min_weight=0.08)
+    r1, r2 = _subset(data, slice(0, 4)), _subset(data, slice(4, 8))
+    p1 = update_prior(None, r1, cfg, np.random.default_rng(0))
+    assert p1.n_components < 12  # VB emptied some components
+    assert p1.vb.means.shape[0] == p1.n_components
+    p2 = update_prior(p1, r2, cfg, np.random.default_rng(1))
+    assert p2.vb.means.shape[0] == p2.n_components <= p1.n_components
+
+
+def test_warm_start_flag_off_reproduces_cold_start(data):
+    cfg = FitConfig(n_components=4, buffer_size=200)
+    r1, r2 = _subset(data, slice(0, 4)), _subset(data, slice(4, 8))
+    p1 = update_prior(None, r1, cfg, np.random.default_rng(0))
+    assert p1.vb is not None and p1.vb.means.shape[0] == 4
+    no_vb = MixturePrior(p1.weights, p1.means, p1.covariances, p1.buffer, p1.n, p1.m)
+    cold = update_prior(p1, r2, cfg.replace(prior_warm_start=False), np.random.default_rng(5))
+    ref = update_prior(no_vb, r2, cfg, np.random.default_rng(5))  # nothing to warm-start from
+    warm = update_prior(p1, r2, cfg, np.random.default_rng(5))
+    for f in ("weights", "means", "covariances", "buffer"):
+        np.testing.assert_array_equal(getattr(cold, f), getattr(ref, f))
+    np.testing.assert_array_equal(warm.buffer, cold.buffer)
+    assert warm.n_iter != cold.n_iter or not np.array_equal(warm.vb.means, cold.vb.means)
+
+
+def test_warm_start_is_deterministic_and_leaves_previous_prior_unchanged(data):
+    cfg = FitConfig(n_components=4, buffer_size=200)
+    r1, r2 = _subset(data, slice(0, 4)), _subset(data, slice(4, 8))
+    p1 = update_prior(None, r1, cfg, np.random.default_rng(0))
+    before = [np.array(a) for a in p1.vb] + [np.array(p1.means)]
+    a = update_prior(p1, r2, cfg, np.random.default_rng(2))
+    b = update_prior(p1, r2, cfg, np.random.default_rng(2))
+    for x, y in zip(a.vb, b.vb):
+        np.testing.assert_array_equal(x, y)
+    for x, y in zip(before, list(p1.vb) + [p1.means]):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_warm_start_with_other_component_count_starts_cold(data):
+    r1, r2 = _subset(data, slice(0, 4)), _subset(data, slice(4, 8))
+    p1 = update_prior(None, r1, FitConfig(n_components=4), np.random.default_rng(0))
+    cfg = FitConfig(n_components=3)
+    a = update_prior(p1, r2, cfg, np.random.default_rng(1))
+    b = update_prior(p1, r2, cfg.replace(prior_warm_start=False), np.random.default_rng(1))
+    np.testing.assert_array_equal(a.means, b.means)
+    assert a.vb.means.shape[0] == 3
+
+
+def test_prior_with_vb_state_pickles_and_validates_shapes(data):
+    import pickle
+
+    p = update_prior(None, _subset(data, slice(0, 4)), FitConfig(n_components=3), np.random.default_rng(0))
+    q = pickle.loads(pickle.dumps(p))
+    for x, y in zip(p.vb, q.vb):
+        np.testing.assert_array_equal(x, y)
+    bad = p.vb._replace(means=p.vb.means[:, :-1])
+    with pytest.raises(ShapeError, match="vb means"):
+        MixturePrior(p.weights, p.means, p.covariances, p.buffer, p.n, p.m, vb=bad)
+    with pytest.raises(TypeError, match="VBState"):
+        MixturePrior(p.weights, p.means, p.covariances, p.buffer, p.n, p.m, vb=tuple(p.vb))
+    assert isinstance(q.vb, VBState)
+    # the stored posterior (original units) carries the pruned mixture's components
+    keep = p.vb.weight_concentration / p.vb.weight_concentration.sum() >= FitConfig().min_weight
+    np.testing.assert_allclose(p.vb.means[keep], p.means, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(p.vb.covariances[keep], p.covariances, rtol=1e-12, atol=1e-14)
+
+
 # --------------------------------------------------------------------------- prior object / buffer / determinism
 
 
@@ -405,9 +602,10 @@ def test_constant_state_component_is_regularised(data):
 
 def test_config_toml_and_validation(tmp_path):
     f = tmp_path / "fit.toml"
-    f.write_text('[fit]\nprior = "none"\nn_components = 5\nk0 = 2.0\n')
+    f.write_text('[fit]\nprior = "none"\nn_components = 5\nk0 = 2.0\nprior_warm_start = false\n')
     cfg = FitConfig.from_toml(f, table="fit")
     assert cfg.prior == "none" and cfg.n_components == 5 and cfg.k0 == 2.0 and cfg.n0 == 1.0
+    assert cfg.prior_warm_start is False
     assert FitConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ConfigError, match="prior"):
         FitConfig.from_dict({"prior": "gmm"})

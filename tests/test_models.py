@@ -103,3 +103,20 @@ def test_rollouts_reject_mismatched_shapes_naming_the_array():
     with pytest.raises(ShapeError, match="rollouts y"):
         Rollouts(np.zeros((M, T + 1, n)), np.zeros((M, T + 1, n)), np.zeros((M, T, m)), np.zeros((M, T)),
                  np.zeros((M, T + 1)))
+
+
+def test_policy_saved_and_loaded_through_npz_is_the_same_policy(tmp_path):
+    pol = _policy(T=4, n=3, m=2)
+    pol.save(tmp_path / "p.npz")
+    back = LinearGaussianPolicy.load(tmp_path / "p.npz")
+    for name in ("K", "k", "cov"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(pol, name))
+
+
+def test_loading_a_run_directorys_best_policy_ignores_its_extra_arrays(tmp_path):
+    pol = _policy()
+    np.savez_compressed(tmp_path / "best_policy.npz", **pol.to_dict(), mean_cost=1.5, iteration=3)
+    np.testing.assert_array_equal(LinearGaussianPolicy.load(tmp_path / "best_policy.npz").K, pol.K)
+    np.savez_compressed(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(ShapeError, match="not a policy file.*K, k, cov"):
+        LinearGaussianPolicy.load(tmp_path / "other.npz")

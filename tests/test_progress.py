@@ -49,14 +49,14 @@ def test_lines_mode_prints_one_line_per_iteration_with_cost_kl_and_metric(task, 
     state = run_experiment(task, "lqr-flm", _cfg(), 0, tmp_path / "run", progress=Progress("lines", print_line=lines.append))
     assert len(lines) == 3
     for i, (line, rec) in enumerate(zip(lines, state.history)):
-        assert line.startswith(f"[lqr-flm seed 0] iter  {i + 1}/3 cost")
+        assert line.startswith(f"[lqr-flm seed 0] iter  {i} ({i + 1}/3) cost")  # numbered like metrics.csv
         assert f"KL {rec.kl:.3g}/" in line and f"min_distance={rec.metrics['min_distance']:.4g}" in line
 
 
 def test_a_plain_callable_still_receives_the_lines(task):
     lines = []
     run_experiment(task, "lqr-flm", _cfg(2), 0, None, progress=lines.append)
-    assert [line[:30] for line in lines] == ["[lqr-flm seed 0] iter  1/2 cos", "[lqr-flm seed 0] iter  2/2 cos"]
+    assert [line[:30] for line in lines] == ["[lqr-flm seed 0] iter  0 (1/2)", "[lqr-flm seed 0] iter  1 (2/2)"]
 
 
 def test_bar_mode_shows_iterations_with_cost_kl_and_metric(task, tmp_path, capsys):

@@ -154,7 +154,7 @@ def test_door_can_be_hooked_and_pulled_open(door):
     """Feasibility of the door model: IK waypoints (hook tip down, into the gap behind the handle
     bar, then following the handle as the door turns) tracked by a joint PD policy open the door."""
     m, T = door.model, door.T
-    qa, hq = door._qadr[:6], door._qadr[6]
+    qa, hq = door.qpos_adr[:6], door.qpos_adr[6]
     jid = [m.joint(nm).id for nm in door.config.state.joints]
     lo = np.where(m.jnt_limited[jid], m.jnt_range[jid, 0], -np.pi)
     hi = np.where(m.jnt_limited[jid], m.jnt_range[jid, 1], np.pi)
@@ -184,7 +184,7 @@ def test_door_can_be_hooked_and_pulled_open(door):
     mujoco.mj_forward(m, d)
     Mf = np.zeros((m.nv, m.nv))
     mujoco.mj_fullM(m, d, Mf)
-    Md = np.diag(Mf)[door._dadr[:6]]
+    Md = np.diag(Mf)[door.dof_adr[:6]]
     Kp, Kd = 64.0 * Md, 2 * 0.8 * 8.0 * Md
     K = np.zeros((T, 6, door.n))
     j = np.arange(6)
@@ -220,7 +220,7 @@ def test_site_velocities_equal_finite_differences_of_positions(peg, door):
             x = r.x[0, k]
             q = t.qpos_from_state(x)
             qd = np.zeros(t.model.nv)
-            qd[t._dadr] = x[t._sqd]
+            qd[t.dof_adr] = x[t.state_qvel_idx]
             assert np.abs(qd).max() > 1e-2  # moving
             h = 1e-6
             pos = []
@@ -470,7 +470,7 @@ def test_divergence_raises_simulation_error_naming_sample_and_step():
 def _fd_step(task, x, u, h=1e-6):
     A = np.zeros((task.n, task.n))
     B = np.zeros((task.n, task.m))
-    joint_cols = np.r_[task._sq, task._sqd]
+    joint_cols = np.r_[task.state_qpos_idx, task.state_qvel_idx]
     for i in joint_cols:
         e = np.zeros(task.n)
         e[i] = h
@@ -487,8 +487,8 @@ def test_linearize_matches_finite_differences_of_step(name):
     task = load_task(name, overrides={"T": 2})
     rng = np.random.default_rng(3)
     x = task.x0.copy()
-    x[task._sq] += 0.05 * rng.normal(size=len(task._sq))
-    x[task._sqd] += 0.3 * rng.normal(size=len(task._sqd))
+    x[task.state_qpos_idx] += 0.05 * rng.normal(size=len(task.state_qpos_idx))
+    x[task.state_qvel_idx] += 0.3 * rng.normal(size=len(task.state_qvel_idx))
     x = task.step(x, np.zeros(task.m))  # consistent site components
     u = rng.normal(size=task.m)
     X = np.stack([x, x, x])
@@ -499,7 +499,7 @@ def test_linearize_matches_finite_differences_of_step(name):
     np.testing.assert_allclose(dyn.B[0], B_fd, atol=1e-5 * np.abs(B_fd).max())
     np.testing.assert_allclose(dyn.A[0] @ x + dyn.B[0] @ u + dyn.c[0], task.step(x, u), atol=1e-10)
     # site components of the state carry no information of their own
-    site_cols = np.setdiff1d(np.arange(task.n), np.r_[task._sq, task._sqd])
+    site_cols = np.setdiff1d(np.arange(task.n), np.r_[task.state_qpos_idx, task.state_qvel_idx])
     assert np.all(dyn.A[0][:, site_cols] == 0)
 
 
@@ -524,3 +524,154 @@ def test_render_filmstrip_offscreen(tmp_path, peg):
         from PIL import Image
 
         assert Image.open(tmp_path / "strip.png").size == (4 * 160, 120)
+
+
+# ----------------------------------------------------------------- bring-your-own MJCF (issue 13)
+
+
+def _random_joint_state(task, seed=3):
+    rng = np.random.default_rng(seed)
+    x = task.x0.copy()
+    x[task.state_qpos_idx] += 0.05 * rng.normal(size=len(task.state_qpos_idx))
+    x[task.state_qvel_idx] += 0.3 * rng.normal(size=len(task.state_qvel_idx))
+    return task.step(x, np.zeros(task.m)), rng.normal(size=task.m)
+
+
+@pytest.mark.parametrize("substeps", [1, 3])
+def test_rk4_model_linearises_by_finite_differences_of_the_whole_step(substeps):
+    """mjd_transitionFD rejects RK4; the linearisation then differences whole steps instead."""
+    xml = TWO_LINK.replace('gravity="0 0 0"', 'gravity="0 0 0" integrator="RK4"')
+    task = build_task(_two_link_config(T=2, substeps=substeps), xml=xml)
+    assert int(task.model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_RK4)
+    x, u = _random_joint_state(task)
+    dyn = task.linearize(np.stack([x, x, x]), np.stack([u, u]))
+    A_fd, B_fd = _fd_step(task, x, u)
+    np.testing.assert_allclose(dyn.A[0], A_fd, atol=1e-5 * np.abs(A_fd).max())
+    np.testing.assert_allclose(dyn.B[0], B_fd, atol=1e-5 * np.abs(B_fd).max())
+    np.testing.assert_allclose(dyn.A[0] @ x + dyn.B[0] @ u + dyn.c[0], task.step(x, u), atol=1e-10)
+
+
+def test_whole_step_differences_agree_with_mjd_transition_fd():
+    """Where both apply (Euler), the RK4 fallback computes what MuJoCo's own derivative does."""
+    from soc_opt.tasks.linearize import step_derivatives
+
+    m = mujoco.MjModel.from_xml_string(TWO_LINK)
+    d = mujoco.MjData(m)
+    d.qpos[:] = [0.3, -0.4]
+    d.qvel[:] = [0.5, 1.0]
+    d.ctrl[:] = [0.2, -0.1]
+    mujoco.mj_forward(m, d)
+    A_ref, B_ref = np.zeros((4, 4)), np.zeros((4, 2))
+    mujoco.mjd_transitionFD(m, d, 1e-6, True, A_ref, B_ref, None, None)
+    A, B = np.zeros((4, 4)), np.zeros((4, 2))
+    qpos = d.qpos.copy()
+    step_derivatives(m, d, 1e-6, A, B)
+    np.testing.assert_array_equal(d.qpos, qpos)  # d is left as it was
+    np.testing.assert_allclose(A, A_ref, atol=1e-6)
+    np.testing.assert_allclose(B, B_ref, atol=1e-6)
+
+
+def test_ilqg_lowers_the_cost_on_an_rk4_model():
+    from soc_opt.ilqg import ILQGConfig, ilqg
+
+    xml = TWO_LINK.replace('gravity="0 0 0"', 'gravity="0 0 0" integrator="RK4"')
+    task = build_task(_two_link_config(T=15, substeps=2), xml=xml)
+    _, costs = ilqg(task, cfg=ILQGConfig(iterations=2))
+    assert len(costs) >= 2 and all(b < a for a, b in zip(costs, costs[1:]))
+
+
+THREE_LINK = TWO_LINK.replace(
+    '<site name="tip" pos="0.4 0 0"/>',
+    '<body name="l3" pos="0.4 0 0"><joint name="wrist" type="hinge" axis="0 0 1" damping="0.1"/>'
+    '<geom type="capsule" fromto="0 0 0 0.1 0 0" size="0.02" mass="0.1"/></body>'
+    '<site name="tip" pos="0.4 0 0"/>',
+)
+
+
+def test_linearising_a_state_without_every_joint_names_them_and_the_fix():
+    task = build_task(_two_link_config(T=3), xml=THREE_LINK)  # 'wrist' is not in the state
+    x = np.stack([task.x0] * 4)
+    with pytest.raises(ConfigError, match=r"joints not in it: 'wrist'.*state\.extra_joints"):
+        task.linearize(x, np.zeros((3, task.m)))
+    fixed = build_task(_two_link_config(T=3, q0=[0.3, 0.5, 0.0], state={"joints": ["j1", "j2"], "sites": ["tip"],
+                                                                         "extra_joints": ["wrist"]}), xml=THREE_LINK)
+    assert fixed.linearize(np.stack([fixed.x0] * 4), np.zeros((3, fixed.m))).A.shape == (3, fixed.n, fixed.n)
+
+
+def test_a_free_joint_outside_the_state_is_named_as_unsupported():
+    xml = TWO_LINK.replace("</worldbody>", '<body name="ball" pos="2 0 0"><freejoint name="float"/>'
+                           '<geom type="sphere" size="0.05"/></body></worldbody>')
+    task = build_task(_two_link_config(T=3), xml=xml)
+    with pytest.raises(ConfigError, match=r"'float'.*free/ball joint"):
+        task.check_linearizable()
+
+
+BODY_POINT = TWO_LINK.replace('<site name="tip" pos="0.4 0 0"/>',
+                              '<site name="tip" pos="0.4 0 0"/><site name="l2_origin" pos="0 0 0"/>')
+
+
+def test_a_body_is_a_task_point_at_its_origin():
+    """A body name in state.sites and the cost/metric reads the body frame's origin: the same
+    numbers as a site placed at that origin."""
+    def config(point):
+        return _two_link_config(
+            T=8, state={"joints": ["j1", "j2"], "sites": [point]},
+            cost=[{"type": "point", "sites": [point], "target": [0.2, 0.6, 0.0]}, {"type": "torque", "wu": 0.01}],
+            metric={"type": "min_distance", "site": point, "target": [0.2, 0.6, 0.0]})
+
+    body = build_task(config("l2"), xml=BODY_POINT)
+    site = build_task(config("l2_origin"), xml=BODY_POINT)
+    pol = body.initial_policy()
+    rb = body.rollouts(pol, 3, np.random.default_rng(1))
+    rs = site.rollouts(pol, 3, np.random.default_rng(1))
+    np.testing.assert_allclose(rb.x, rs.x, atol=1e-12)
+    assert body.metrics(rb) == pytest.approx(site.metrics(rs), rel=1e-12)
+    x, u = _random_joint_state(body)
+    np.testing.assert_allclose(body.linearize(np.stack([x] * 9), np.stack([u] * 8)).A,
+                               site.linearize(np.stack([x] * 9), np.stack([u] * 8)).A, atol=1e-9)
+
+
+def _geom_spheres_in_view(model, Q, spec):
+    """Whether every geom of a moving body, in every configuration, is inside the camera's view cone."""
+    az, el = np.deg2rad(spec["azimuth"]), np.deg2rad(spec["elevation"])
+    forward = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    cam = np.asarray(spec["lookat"]) - spec["distance"] * forward
+    half = np.deg2rad(model.vis.global_.fovy) / 2
+    d = mujoco.MjData(model)
+    for q in Q:
+        d.qpos[:] = q
+        mujoco.mj_kinematics(model, d)
+        for g in range(model.ngeom):
+            if model.geom_bodyid[g] == 0:
+                continue
+            v = d.geom_xpos[g] - cam
+            dist = np.linalg.norm(v)
+            angle = np.arccos(np.clip(v @ forward / dist, -1, 1)) + np.arcsin(min(1.0, model.geom_rbound[g] / dist))
+            if angle > half:
+                return False
+    return True
+
+
+def test_filmstrip_without_a_named_camera_frames_the_whole_robot(tmp_path, monkeypatch):
+    """A long arm whose point is at its tip: the free camera must still see every link."""
+    import json
+    import subprocess
+
+    from soc_opt.tasks import render as render_mod
+
+    xml = TWO_LINK.replace('fromto="0 0 0 0.5 0 0"', 'fromto="0 0 0 2.5 0 0"').replace('body name="l2" pos="0.5 0 0"',
+                                                                                         'body name="l2" pos="2.5 0 0"')
+    task = build_task(_two_link_config(T=6), xml=xml)
+    seen = []
+
+    def fake_run(argv, **kw):  # capture the camera the worker would use; report a failed backend
+        seen.append(json.loads(open(os.path.join(argv[-1], "spec.json")).read()))
+        seen.append(np.load(os.path.join(argv[-1], "qpos.npy")))
+        return subprocess.CompletedProcess(argv, 1, "", "no GL here")
+
+    monkeypatch.setattr(render_mod.subprocess, "run", fake_run)
+    r = task.rollouts(task.initial_policy(), 1, np.random.default_rng(0))
+    render_filmstrip(task, r, tmp_path / "strip.png", frames=4, backends=("egl",))
+    spec, Q = seen
+    assert spec["camera"] is None
+    assert _geom_spheres_in_view(task.model, Q, spec)

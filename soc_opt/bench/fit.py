@@ -8,7 +8,11 @@ accuracy tables also asserted by ``tests/test_fit.py``:
   time-varying linear-Gaussian system as the number of rollouts grows;
 * ``few_sample_table``: held-out one-step prediction error of least squares vs
   the mixture prior with fewer rollouts than ``n + m`` (linear system);
-* ``pendulum_table``: the same comparison on a damped, torque-driven pendulum.
+* ``pendulum_table``: the same comparison on a damped, torque-driven pendulum;
+* ``settings_table``: fit time and held-out one-step prediction error of the
+  mixture-prior settings (warm start, buffer size, component count) on a
+  sequence of paper-scale LQR-FLM iterations on the ``peg`` task
+  (``peg_sequence``), relative to the pre-warm-start settings.
 
 Every function is pure (randomness from seeds); printing only under ``__main__``.
 """
@@ -30,6 +34,9 @@ __all__ = [
     "convergence_table",
     "few_sample_table",
     "pendulum_table",
+    "peg_sequence",
+    "SETTINGS",
+    "settings_table",
     "summarize",
     "format_table",
     "run",
@@ -241,6 +248,111 @@ def pendulum_table(
     return rows
 
 
+# The reference row (first) is the configuration before warm starts were introduced.
+_OLD = (False, 20, 10000, 100)
+_DEFAULT = (FitConfig().prior_warm_start, FitConfig().n_components, FitConfig().buffer_size, FitConfig().max_iter)
+SETTINGS: tuple[tuple[str, dict], ...] = tuple(
+    (f"{'warm' if w else 'cold'} C{c} buf{b} it{i}"
+     + {_OLD: " (old)", _DEFAULT: " (default)"}.get((w, c, b, i), ""),
+     {"prior_warm_start": w, "n_components": c, "buffer_size": b, "max_iter": i})
+    for w, c, b, i in (
+        _OLD,
+        (True, 20, 10000, 100),
+        (True, 20, 2000, 100),
+        (True, 20, 0, 100),
+        (True, 10, 2000, 20),
+        (True, 10, 2000, 10),
+        (True, 10, 0, 10),
+        (True, 5, 2000, 10),
+        (False, 10, 2000, 10),
+    )
+)
+
+# Fit used only to *generate* the peg policy sequence (any sensible fit; held fixed so that
+# every setting in the table is measured on the same rollouts).
+_GENERATOR_FIT = {"prior_warm_start": True, "n_components": 10, "buffer_size": 2000, "max_iter": 100}
+
+
+def peg_sequence(
+    iterations: int = 10, samples: int = 20, n_test: int = 20, seed: int = 0, task: str = "peg"
+) -> list[tuple[Rollouts, Rollouts]]:
+    """``(train, test)`` rollouts of ``iterations`` LQR-FLM iterations on ``task`` (paper scale).
+
+    LQR-FLM runs with the paper-scale settings of ``soc-opt --paper`` (``samples``
+    rollouts per iteration) and the fit ``_GENERATOR_FIT``; ``train`` are the
+    rollouts the iteration fitted on, ``test`` are ``n_test`` further rollouts of the
+    same policy (an independent stream, seed ``seed + 1``).
+    """
+    from ..algorithms import initial_state, lqr_flm_iteration
+    from ..cli import load_config
+    from ..tasks import load_task
+
+    t = load_task(task)
+    base = load_config(task, None, True, {"iterations": iterations, "samples": samples}).baseline
+    cfg = base.replace(fit=base.fit.replace(**_GENERATOR_FIT))
+    state = initial_state(t, cfg, seed)
+    test_rng = np.random.default_rng(seed + 1)
+    out = []
+    for _ in range(iterations):
+        policy = state.policy
+        state = lqr_flm_iteration(t, cfg, state)
+        out.append((state.last_rollouts, t.rollouts(policy, n_test, test_rng)))
+    return out
+
+
+def _replay(data: list[tuple[Rollouts, Rollouts]], cfg: FitConfig, seed: int) -> list[dict]:
+    """Per-iteration fit wall and CPU time, VB iterations, components and held-out error of ``cfg``."""
+    rng = np.random.default_rng(seed)
+    prior, out = None, []
+    for train, test in data:
+        t0, c0 = time.perf_counter(), time.process_time()
+        prior = update_prior(prior, train, cfg, rng)
+        dyn = fit_dynamics(train, cfg, prior)
+        dt, dc = time.perf_counter() - t0, time.process_time() - c0
+        out.append({"fit_s": dt, "fit_cpu_s": dc, "vb_iter": prior.n_iter, "components": prior.n_components,
+                    "mse": float(prediction_error(dyn, test).mean())})
+    return out
+
+
+def settings_table(
+    settings: tuple[tuple[str, dict], ...] = SETTINGS,
+    data: list[tuple[Rollouts, Rollouts]] | None = None,
+    seed: int = 0,
+    config: FitConfig = FitConfig(),
+) -> list[dict]:
+    """Fit time vs held-out one-step prediction error per mixture-prior setting (issue 10).
+
+    Every setting (``config`` with the given changes) replays the same sequence
+    ``data`` (default :func:`peg_sequence`): at each iteration the prior is updated
+    with that iteration's training rollouts (warm-started or not, keeping its
+    buffer) and the dynamics are fitted, as in LQR-FLM.  Columns: median and
+    maximum wall time of prior update + fit per iteration (the first iteration is
+    always a cold start), the median CPU time (less sensitive to other load on a
+    shared machine; BLAS runs single-threaded), the total wall time over all
+    iterations, median VB iterations, final component count, mean held-out MSE over
+    iterations, and ``err_ratio`` = mean over iterations of the MSE relative to the
+    first (reference) setting, ``worst_ratio`` its maximum.
+    """
+    import sklearn.mixture  # noqa: F401  (its import, ~0.5 s, is not part of any setting's time)
+
+    data = peg_sequence(seed=seed) if data is None else data
+    runs = [(name, _replay(data, config.replace(**changes), seed)) for name, changes in settings]
+    ref = np.array([r["mse"] for r in runs[0][1]])
+    rows = []
+    for name, rs in runs:
+        mse = np.array([r["mse"] for r in rs])
+        t = np.array([r["fit_s"] for r in rs])
+        rows.append({
+            "table": "settings", "setting": name, "iterations": len(rs),
+            "fit_median_s": float(np.median(t)), "fit_max_s": float(t.max()),
+            "fit_cpu_median_s": float(np.median([r["fit_cpu_s"] for r in rs])), "fit_total_s": float(t.sum()),
+            "vb_iter_median": float(np.median([r["vb_iter"] for r in rs])),
+            "components": rs[-1]["components"], "heldout_mse": float(mse.mean()),
+            "err_ratio": float(np.mean(mse / ref)), "worst_ratio": float(np.max(mse / ref)),
+        })
+    return rows
+
+
 def summarize(rows: list[dict], keys: tuple, group: tuple) -> list[dict]:
     """Mean of ``keys`` over rows sharing the ``group`` fields (order preserved)."""
     out: dict = {}
@@ -279,7 +391,14 @@ def _timed(f, *args, repeats: int = 1, **kw):
 
 
 def run(
-    M: int = 20, T: int = 100, n: int = 26, m: int = 7, seed: int = 0, tables: bool = True, repeats: int = 3
+    M: int = 20,
+    T: int = 100,
+    n: int = 26,
+    m: int = 7,
+    seed: int = 0,
+    tables: bool = True,
+    repeats: int = 3,
+    settings: bool = True,
 ) -> list[dict]:
     """Fit times with/without the mixture prior on a synthetic system of size ``(n, m, T)``, plus the tables.
 
@@ -288,7 +407,10 @@ def run(
     augmented model and the dynamics; the prediction error on 20 held-out
     rollouts is reported alongside.  Times are the best of ``repeats`` runs
     (the fits are deterministic).  With ``tables`` the (seed-averaged)
-    convergence, few-sample and pendulum tables follow as rows.
+    convergence, few-sample and pendulum tables follow as rows, and with
+    ``settings`` the peg settings table (:func:`settings_table`; ~15 minutes on the
+    shared 2-core machine at load ~6, almost all of it the reference setting, which
+    refits from scratch every iteration).
     """
     rng = np.random.default_rng(seed)
     system = random_ltv_system(rng, n, m, T)
@@ -316,12 +438,14 @@ def run(
         mse = ("mse_ls", "mse_prior", "mse_ref", "mse_y_ls", "mse_y_prior")
         rows += summarize(few_sample_table(), mse, ("table", "M"))
         rows += summarize(pendulum_table(), mse, ("table", "M"))
+    if settings:
+        rows += settings_table(seed=seed)
     return rows
 
 
 if __name__ == "__main__":
     out = run()
-    for name in ("timing", "convergence", "few_sample", "pendulum"):
+    for name in ("timing", "convergence", "few_sample", "pendulum", "settings"):
         sel = [r for r in out if r["table"] == name]
         if sel:
             print(f"\n[{name}]")

@@ -51,7 +51,7 @@ def run(task: str = "peg", M: int = 20, T: int = 100, seed: int = 0, repeats: in
     data = mujoco.MjData(model)
     q0 = t.qpos_from_state(t.x0)
     actions = t.rollouts(policy, M, np.random.default_rng(seed)).a
-    act = t._act
+    act = t.actuator_ids
 
     def raw():
         step = mujoco.mj_step

@@ -1,4 +1,5 @@
-"""Tasks: ``linear2d`` and MuJoCo tasks built from an MJCF file plus a TOML config (SPEC §0, §8).
+"""Tasks: ``linear2d``, MuJoCo tasks built from an MJCF file plus a TOML config, and Gymnasium
+MuJoCo environments (``gym:<EnvId>``) (SPEC §0, §8).
 
 A task owns the simulator, the state definition, the cost and the metrics.  Every
 built-in task is a TOML file under ``problems/`` loaded through the same
@@ -11,6 +12,7 @@ Modules:
 * :mod:`.linear`: :class:`LinearTask` (``kind = "linear"``) and its step-by-step :class:`LinearSimulator`.
 * :mod:`.mujoco`: :class:`MujocoTask` (state layout, rollouts, finite-difference linearisation)
   and its step-by-step :class:`MujocoSimulator`.
+* :mod:`.gym`: :class:`GymMujocoTask`, a Gymnasium MuJoCo environment as a task (``gym:<EnvId>``).
 * :mod:`.loading`: :data:`BUILTIN_TASKS`, :func:`build_task`, :func:`load_task`.
 * :mod:`.render`: :func:`render_filmstrip` (offscreen frames in :mod:`.render_worker`, matplotlib fallback).
 """
@@ -19,8 +21,10 @@ from __future__ import annotations
 
 from .base import RolloutNoise, SimulationError, Task
 from .config import (
+    GYM_PREFIX,
     TERM_TYPES,
     FloatOrList,
+    GymConfig,
     LinearConfig,
     MetricConfig,
     PointTermConfig,
@@ -31,6 +35,7 @@ from .config import (
     TaskConfig,
     TorqueTermConfig,
 )
+from .gym import GymMujocoTask
 from .linear import LinearSimulator, LinearTask
 from .loading import BUILTIN_TASKS, build_task, load_task
 from .mujoco import MujocoSimulator, MujocoTask
@@ -43,6 +48,8 @@ __all__ = [
     "StateConfig",
     "MetricConfig",
     "LinearConfig",
+    "GymConfig",
+    "GYM_PREFIX",
     "PointTermConfig",
     "TorqueTermConfig",
     "StateTermConfig",
@@ -52,6 +59,7 @@ __all__ = [
     "LinearSimulator",
     "MujocoTask",
     "MujocoSimulator",
+    "GymMujocoTask",
     "BUILTIN_TASKS",
     "load_task",
     "build_task",

@@ -22,8 +22,13 @@ __all__ = [
     "TERM_TYPES",
     "MetricConfig",
     "LinearConfig",
+    "GymConfig",
+    "GYM_PREFIX",
     "TaskConfig",
 ]
+
+#: Prefix of a task name or ``model`` naming a Gymnasium environment (``gym:<EnvId>``; docs/gym.md).
+GYM_PREFIX = "gym:"
 
 Ramp = Literal["constant", "linear", "quadratic", "final_only"]
 FloatOrList = float | tuple[float, ...]
@@ -154,8 +159,34 @@ class LinearConfig(Config):
 
 
 @dataclass(frozen=True)
+class GymConfig(Config):
+    """``[gym]``: options of a task whose ``model`` is ``"gym:<EnvId>"`` (docs/gym.md).
+
+    reset_seed: the initial state ``x_0`` is the environment's state after
+                ``env.reset(seed=reset_seed + condition)`` (its own initial distribution,
+                e.g. Reacher's random goal), fixed for the whole run.
+    kwargs:     keyword arguments of ``gymnasium.make`` (e.g. ``{ctrl_cost_weight = 0.2}``).
+    fd_step:    relative step ``h_i = fd_step * max(1, |z_i|)`` of the finite-difference
+                expansion of ``-reward`` (when no ``cost`` terms override it).
+    """
+
+    reset_seed: int = 0
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    fd_step: float = 1e-4
+
+    def __post_init__(self):
+        if not self.fd_step > 0:
+            raise ConfigError(f"gym.fd_step: must be positive, got {self.fd_step!r}")
+        if "render_mode" in self.kwargs:
+            raise ConfigError("gym.kwargs: 'render_mode' is not allowed (soc_opt renders with render_filmstrip)")
+
+
+@dataclass(frozen=True)
 class TaskConfig(Config):
     """A task: model, horizon, state definition, cost terms, noise, metric (see ``docs/tasks.md``).
+
+    ``model``: an MJCF file relative to the config, or ``"gym:<EnvId>"`` for a Gymnasium
+    MuJoCo environment (options in ``[gym]``; ``docs/gym.md``).
 
     ``cost`` is a list of tables, each with a ``type`` key selecting
     :class:`PointTermConfig`, :class:`TorqueTermConfig`, :class:`StateTermConfig`
@@ -179,6 +210,7 @@ class TaskConfig(Config):
     y_scale: float = 1.0
     metric: MetricConfig = field(default_factory=MetricConfig)
     linear: LinearConfig = field(default_factory=LinearConfig)
+    gym: GymConfig = field(default_factory=GymConfig)
     camera: str | None = None
 
     def __post_init__(self):

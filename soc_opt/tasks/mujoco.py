@@ -3,8 +3,12 @@
 State of a MuJoCo task (``x`` true, ``s = x + eps`` measured, SPEC §0)::
 
     [ qpos(state.joints), qvel(state.joints),
-      site positions (3 per state.sites), site velocities (3 per site, world frame),
+      point positions (3 per state.sites), point velocities (3 per point, world frame),
       qpos(state.extra_joints), qvel(state.extra_joints) ]
+
+A point named in ``state.sites`` (and in the cost terms' ``sites``/``target_sites`` and the
+metric's ``site``) is a site of the model, or, if no site has that name, the origin of the body
+of that name.
 
 Rollouts: from ``x_0`` (``q0`` + condition offset, zero velocity) the action
 ``a_k = K_k s_k + k_k + L_k w_k`` is computed from the *measured* state and held
@@ -13,8 +17,8 @@ All noise (``eps`` then ``w``) is drawn from the Generator before simulating,
 so results do not depend on ``workers``.  The stage cost ``Y_k`` is evaluated on
 the measured ``s_k`` (SPEC §0) and ``y_k = exp(-y_scale * Y_k)``.
 
-Also here: the finite-difference linearisation in task coordinates
-(:meth:`MujocoTask.linearize`).
+The finite-difference linearisation in task coordinates (:meth:`MujocoTask.linearize`) is in
+:mod:`soc_opt.tasks.linearize`.
 """
 
 from __future__ import annotations
@@ -24,14 +28,15 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..config import ConfigError
-from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts, ShapeError, check_array
+from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
+from . import linearize as _linearize
 from .base import SimulationError, TaskBase, _rng
 from .config import StateConfig, TaskConfig
 
 __all__ = ["MujocoTask", "MujocoSimulator"]
 
 
-def _mujoco():
+def import_mujoco():
     import mujoco
 
     return mujoco
@@ -45,6 +50,9 @@ def _as_index(idx) -> slice | np.ndarray:
     return idx
 
 
+#: Degrees of freedom per joint type (free, ball, slide, hinge).
+_JOINT_DOFS = {0: 6, 1: 3, 2: 1, 3: 1}
+
 _BAD_WARNINGS = ("mjWARN_CONTACTFULL", "mjWARN_CNSTRFULL", "mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC", "mjWARN_BADCTRL")
 
 
@@ -54,7 +62,7 @@ class MujocoTask(TaskBase):
     kind = "mujoco"
 
     def __init__(self, config: TaskConfig, model, *, condition: int = 0, source: str = "<model>"):
-        mj = _mujoco()
+        mj = import_mujoco()
         self.config = config
         self.model = model
         self.source = source
@@ -70,21 +78,22 @@ class MujocoTask(TaskBase):
         self._setup_reader()
 
         data = mj.MjData(model)
-        self._reset(data, None)
+        self.reset_data(data, None)
         mj.mj_forward(model, data)
         x0 = np.empty(self.n)
-        self._read(data, x0, np.empty(6))
+        self.read_state(data, x0, np.empty(6))
         self.x0 = x0
         self._setup_common()
 
     # -- construction steps (in this order: each uses what the previous ones set)
     def _setup_state(self, sc: StateConfig):
         """Look up and check the state joints and sites; state layout, labels and index maps."""
-        mj = _mujoco()
+        mj = import_mujoco()
         model = self.model
         self._joint_ids = [self._find(mj.mjtObj.mjOBJ_JOINT, j, "state.joints") for j in sc.joints]
         self._extra_ids = [self._find(mj.mjtObj.mjOBJ_JOINT, j, "state.extra_joints") for j in sc.extra_joints]
-        self._site_ids = [self._find(mj.mjtObj.mjOBJ_SITE, s, "state.sites") for s in sc.sites]
+        self.point_refs = [self._find_point(s, "state.sites") for s in sc.sites]
+        self._site_ids = [pid for kind, pid in self.point_refs if kind == "site"]
         alljoints = list(sc.joints) + list(sc.extra_joints)
         dup = {j for j in alljoints if alljoints.count(j) > 1} | {s for s in sc.sites if sc.sites.count(s) > 1}
         if dup:
@@ -109,36 +118,36 @@ class MujocoTask(TaskBase):
             "extra_qvel": slice(o_e + ne, o_e + 2 * ne),
         }
         jids = self._joint_ids + self._extra_ids
-        self._qadr = np.array([model.jnt_qposadr[j] for j in jids], dtype=int)
-        self._dadr = np.array([model.jnt_dofadr[j] for j in jids], dtype=int)
-        self._sq = np.r_[np.arange(nj), o_e + np.arange(ne)].astype(int)
-        self._sqd = np.r_[nj + np.arange(nj), o_e + ne + np.arange(ne)].astype(int)
+        self.qpos_adr = np.array([model.jnt_qposadr[j] for j in jids], dtype=int)
+        self.dof_adr = np.array([model.jnt_dofadr[j] for j in jids], dtype=int)
+        self.state_qpos_idx = np.r_[np.arange(nj), o_e + np.arange(ne)].astype(int)
+        self.state_qvel_idx = np.r_[nj + np.arange(nj), o_e + ne + np.arange(ne)].astype(int)
         labels = [""] * self.n
-        for nm, i in zip(alljoints, self._sq):
+        for nm, i in zip(alljoints, self.state_qpos_idx):
             labels[i] = f"q:{nm}"
-        for nm, i in zip(alljoints, self._sqd):
+        for nm, i in zip(alljoints, self.state_qvel_idx):
             labels[i] = f"qd:{nm}"
         for j, nm in enumerate(sc.sites):
             for c, ax in enumerate("xyz"):
                 labels[o_p + 3 * j + c] = f"{nm}.{ax}"
                 labels[o_v + 3 * j + c] = f"{nm}.v{ax}"
         self.state_labels = labels
-        self._joint_state_index = {nm: int(i) for nm, i in zip(alljoints, self._sq)}
+        self._joint_state_index = {nm: int(i) for nm, i in zip(alljoints, self.state_qpos_idx)}
         self._site_state_index = {nm: o_p + 3 * j for j, nm in enumerate(sc.sites)}
-        self._all_dofs_in_state = sorted(self._dadr.tolist()) == list(range(model.nv))
+        self._all_dofs_in_state = sorted(self.dof_adr.tolist()) == list(range(model.nv))
 
     def _setup_actuators(self, actuated):
-        """The controlled actuators ``_act (m,)`` (all of the model's if ``actuated`` is empty)."""
+        """The controlled actuators ``actuator_ids (m,)`` (all of the model's if ``actuated`` is empty)."""
         model = self.model
         if actuated:
-            self._act = np.array([self._actuator_for(a) for a in actuated], dtype=int)
+            self.actuator_ids = np.array([self._actuator_for(a) for a in actuated], dtype=int)
             self.actuated = list(actuated)
         else:
-            self._act = np.arange(model.nu)
+            self.actuator_ids = np.arange(model.nu)
             self.actuated = [model.actuator(i).name for i in range(model.nu)]
-        if len(set(self._act.tolist())) != len(self._act):
+        if len(set(self.actuator_ids.tolist())) != len(self.actuator_ids):
             raise ConfigError("actuated: an actuator is listed twice")
-        self.m = len(self._act)
+        self.m = len(self.actuator_ids)
         if self.m == 0:
             raise ConfigError(f"actuated: model {self.source} has no actuators")
 
@@ -158,29 +167,31 @@ class MujocoTask(TaskBase):
                 if not 0 <= condition < len(config.offsets):
                     raise ConfigError(f"condition {condition} out of range: {len(config.offsets)} offsets given")
                 q0 = q0 + np.array(config.offsets[condition], dtype=float)
-            qinit[self._qadr] = q0
+            qinit[self.qpos_adr] = q0
         self.condition = condition
         self.n_conditions = max(1, len(config.offsets))
         self._qinit = qinit
 
     def _setup_reader(self):
         """Copy plans for the fast state reader, integrator split and divergence warnings."""
-        mj = _mujoco()
+        mj = import_mujoco()
         model = self.model
         o_v = self.layout["site_vel"].start
-        ns = len(self._site_ids)
-        self._q_src, self._q_dst = self._split_plan(self._qadr, self._sq)
-        self._qd_src, self._qd_dst = self._split_plan(self._dadr, self._sqd)
+        ns = len(self.point_refs)
+        self._q_src, self._q_dst = self._split_plan(self.qpos_adr, self.state_qpos_idx)
+        self._qd_src, self._qd_dst = self._split_plan(self.dof_adr, self.state_qvel_idx)
         self._site_arr = np.array(self._site_ids, dtype=int)
         self._site_pos_sl = self.layout["site_pos"]
         self._site_vel_slices = [slice(o_v + 3 * j, o_v + 3 * j + 3) for j in range(ns)]
         self._split_step = int(model.opt.integrator) != int(mj.mjtIntegrator.mjINT_RK4)
         self._bad_warn = np.array([int(getattr(mj.mjtWarning, w)) for w in _BAD_WARNINGS])
         self._obj_site = mj.mjtObj.mjOBJ_SITE
+        self._obj_of = {"site": mj.mjtObj.mjOBJ_SITE, "body": mj.mjtObj.mjOBJ_XBODY}
+        self._all_sites = all(kind == "site" for kind, _ in self.point_refs)
 
     # -- lookups
     def _find(self, objtype, name, key) -> int:
-        mj = _mujoco()
+        mj = import_mujoco()
         i = mj.mj_name2id(self.model, objtype, name)
         if i < 0:
             kind = {mj.mjtObj.mjOBJ_JOINT: "joint", mj.mjtObj.mjOBJ_SITE: "site"}.get(objtype, "object")
@@ -189,8 +200,22 @@ class MujocoTask(TaskBase):
             raise ConfigError(f"{key}: {kind} {name!r} not found in model {self.source}; {kind}s: {names}")
         return i
 
+    def _find_point(self, name, key) -> tuple[str, int]:
+        """``("site", id)`` for a site named ``name``, else ``("body", id)`` for a body (its origin)."""
+        mj = import_mujoco()
+        i = mj.mj_name2id(self.model, mj.mjtObj.mjOBJ_SITE, name)
+        if i >= 0:
+            return "site", i
+        i = mj.mj_name2id(self.model, mj.mjtObj.mjOBJ_BODY, name)
+        if i >= 0:
+            return "body", i
+        sites = [mj.mj_id2name(self.model, mj.mjtObj.mjOBJ_SITE, k) for k in range(self.model.nsite)]
+        bodies = [mj.mj_id2name(self.model, mj.mjtObj.mjOBJ_BODY, k) for k in range(self.model.nbody)]
+        raise ConfigError(f"{key}: site {name!r} not found in model {self.source}, nor a body of that name; "
+                          f"sites: {sites}; bodies: {bodies}")
+
     def _actuator_for(self, name) -> int:
-        mj = _mujoco()
+        mj = import_mujoco()
         m = self.model
         j = mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, name)
         if j >= 0:
@@ -229,14 +254,14 @@ class MujocoTask(TaskBase):
         return plan_src, plan_dst
 
     # -- simulator state <-> task state
-    def _reset(self, d, x0):
-        mj = _mujoco()
+    def reset_data(self, d, x0):
+        mj = import_mujoco()
         mj.mj_resetData(self.model, d)
         d.qpos[:] = self._qinit
         if x0 is not None:
             x0 = np.asarray(x0, dtype=float)
-            d.qpos[self._qadr] = x0[self._sq]
-            d.qvel[self._dadr] = x0[self._sqd]
+            d.qpos[self.qpos_adr] = x0[self.state_qpos_idx]
+            d.qvel[self.dof_adr] = x0[self.state_qvel_idx]
 
     def _reader(self, d):
         """A function ``read(out)`` writing the task state of ``d`` into ``out (n,)``.
@@ -244,14 +269,19 @@ class MujocoTask(TaskBase):
         Needs positions and velocities computed (after ``mj_step1`` or ``mj_forward``).  The
         array views of ``d`` and the copy plan are bound once: this runs every control step.
         """
-        ov = _mujoco().mj_objectVelocity
-        m, obj = self.model, self._obj_site
+        ov = import_mujoco().mj_objectVelocity
+        m = self.model
         qpos, qvel, site_xpos = d.qpos, d.qvel, d.site_xpos
         qplan = list(zip(self._q_src, self._q_dst))
         qdplan = list(zip(self._qd_src, self._qd_dst))
         sites = self._site_arr
         pos_sl = self._site_pos_sl
-        vplan = list(zip(self._site_ids, self._site_vel_slices))
+        vplan = [(self._obj_of[kind], pid, sl) for (kind, pid), sl in zip(self.point_refs, self._site_vel_slices)]
+        # positions: one fancy-index copy when every point is a site, else one copy per point
+        o_p = pos_sl.start
+        pplan = [((site_xpos if kind == "site" else d.xpos), pid, slice(o_p + 3 * j, o_p + 3 * j + 3))
+                 for j, (kind, pid) in enumerate(self.point_refs)]
+        all_sites = self._all_sites
         res = np.empty(6)
         lin = res[3:]
 
@@ -261,52 +291,56 @@ class MujocoTask(TaskBase):
             for src, dst in qdplan:
                 out[dst] = qvel[src]
             if vplan:
-                out[pos_sl] = site_xpos[sites].ravel()
-                for sid, sl in vplan:
-                    ov(m, d, obj, sid, res, 0)
+                if all_sites:
+                    out[pos_sl] = site_xpos[sites].ravel()
+                else:
+                    for arr, pid, sl in pplan:
+                        out[sl] = arr[pid]
+                for obj, pid, sl in vplan:
+                    ov(m, d, obj, pid, res, 0)
                     out[sl] = lin
 
         return read
 
-    def _read(self, d, out, res=None):
+    def read_state(self, d, out, res=None):
         self._reader(d)(out)
 
     def state_from_qpos(self, qpos, qvel=None) -> np.ndarray:
         """Task state for a full ``qpos (nq,)`` (and ``qvel``, default zero), via ``mj_forward``."""
-        mj = _mujoco()
+        mj = import_mujoco()
         d = mj.MjData(self.model)
         d.qpos[:] = qpos
         if qvel is not None:
             d.qvel[:] = qvel
         mj.mj_forward(self.model, d)
         out = np.empty(self.n)
-        self._read(d, out, np.empty(6))
+        self.read_state(d, out, np.empty(6))
         return out
 
     def qpos_from_state(self, x) -> np.ndarray:
         """``(..., nq)`` full configurations: state joints from ``x``, other joints at their initial values."""
         x = np.asarray(x, dtype=float)
         q = np.broadcast_to(self._qinit, x.shape[:-1] + (self.model.nq,)).copy()
-        q[..., self._qadr] = x[..., self._sq]
+        q[..., self.qpos_adr] = x[..., self.state_qpos_idx]
         return q
 
     # -- rollouts (hot path)
     def _run_samples(self, samples, K, offs, eps, x, s, a, x0, filtered=None):
-        mj = _mujoco()
+        mj = import_mujoco()
         m = self.model
         d = mj.MjData(m)
         step1, step2, step, forward = mj.mj_step1, mj.mj_step2, mj.mj_step, mj.mj_forward
         nsub = self.substeps
         split = self._split_step
         ctrl = d.ctrl
-        act = _as_index(self._act)
+        act = _as_index(self.actuator_ids)
         warn = d.warning.number
         bad = self._bad_warn
         read = self._reader(d)
         dot = np.dot
         T = self.T
         for i in samples:
-            self._reset(d, x0)
+            self.reset_data(d, x0)
             xi, si, ai, ei, oi = x[i], s[i], a[i], eps[i], offs[i]
             for k in range(T):
                 if split:
@@ -340,7 +374,7 @@ class MujocoTask(TaskBase):
                 raise SimulationError(f"sample {i} diverged at control step {kk}: non-finite state or action")
 
     def _diverged(self, i, k, d, warn, bad):
-        mj = _mujoco()
+        mj = import_mujoco()
         names = [mj.mjtWarning(w).name for w in np.flatnonzero(warn) if w in bad]
         if not names:  # harmless warning (e.g. inertia): clear it and continue
             warn[:] = 0
@@ -407,109 +441,42 @@ class MujocoTask(TaskBase):
         """A step-by-step simulator with its own ``MjData`` (what :class:`soc_opt.envs.SocOptEnv` steps)."""
         return MujocoSimulator(self)
 
-    def _output_jacobian(self, d) -> np.ndarray:
-        """``H = d s / d (dq, dv)`` at the state in ``d`` (positions computed): ``(n, 2 nv)``.
+    def check_linearizable(self) -> None:
+        """Raise :class:`ConfigError` unless every degree of freedom of the model is in the state.
 
-        Joint rows are selections; site positions use ``mj_jacSite``; site
-        velocities ``v = J(q) qdot`` use ``J`` for ``d v / d qdot`` and central
-        differences of ``J(q) qdot`` in ``q`` (hinge/slide joints only).
+        Model-based iLQG (:meth:`linearize`) needs it; the message names the joints that are
+        missing and where to add them (``state.extra_joints``), or says why they cannot be added.
         """
-        mj = _mujoco()
+        if self._all_dofs_in_state:
+            return
+        mj = import_mujoco()
         m = self.model
-        nv = m.nv
-        H = np.zeros((self.n, 2 * nv))
-        H[self._sq, self._dadr] = 1.0
-        H[self._sqd, nv + self._dadr] = 1.0
-        if not self._site_ids:
-            return H
-        jac = np.zeros((3, nv))
-        o_p = self.layout["site_pos"].start
-        o_v = self.layout["site_vel"].start
-        qd = d.qvel.copy()
-        for j, sid in enumerate(self._site_ids):
-            mj.mj_jacSite(m, d, jac, None, sid)
-            H[o_p + 3 * j : o_p + 3 * j + 3, :nv] = jac
-            H[o_v + 3 * j : o_v + 3 * j + 3, nv:] = jac
-        h = 1e-6
-        q = d.qpos.copy()
-        d2 = mj.MjData(m)
-        for dof in range(nv):
-            jnt = m.dof_jntid[dof]
-            adr = m.jnt_qposadr[jnt]
-            vs = []
-            for sign in (1.0, -1.0):
-                d2.qpos[:] = q
-                d2.qpos[adr] += sign * h
-                mj.mj_kinematics(m, d2)
-                mj.mj_comPos(m, d2)
-                v = []
-                for sid in self._site_ids:
-                    mj.mj_jacSite(m, d2, jac, None, sid)
-                    v.append(jac @ qd)
-                vs.append(np.concatenate(v))
-            H[o_v : o_v + 3 * len(self._site_ids), dof] = (vs[0] - vs[1]) / (2 * h)
-        return H
+        in_state = set(self.dof_adr.tolist())
+        missing = [j for j in range(m.njnt) if any(
+            dof not in in_state for dof in range(m.jnt_dofadr[j], m.jnt_dofadr[j] + _JOINT_DOFS[int(m.jnt_type[j])]))]
+        names = [mj.mj_id2name(m, mj.mjtObj.mjOBJ_JOINT, j) or f"<joint {j}>" for j in missing]
+        unsupported = [nm for nm, j in zip(names, missing)
+                       if int(m.jnt_type[j]) not in (int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE))]
+        msg = (f"task {self.name!r}: model-based iLQG needs every degree of freedom of model {self.source} "
+               f"in the state; joints not in it: {', '.join(map(repr, names))}")
+        if unsupported:
+            raise ConfigError(msg + f"; {', '.join(map(repr, unsupported))} {'is a' if len(unsupported) == 1 else 'are'}"
+                              " free/ball joint(s), which the state cannot hold, so iLQG cannot run on this model")
+        raise ConfigError(msg + f"; add them to state.extra_joints in the task TOML, e.g. "
+                          f"extra_joints = [{', '.join(repr(n) for n in names)}]".replace("'", '"'))
 
     def linearize(self, x, u, cov=0.0, eps: float = 1e-6) -> LinearGaussianDynamics:
-        """Local linear model ``s_{k+1} ~ A_k s_k + B_k a_k + c_k`` around ``(x_k, u_k)`` in task coordinates.
+        """Local linear model in task coordinates (:func:`soc_opt.tasks.linearize.linearize`)."""
+        return _linearize.linearize(self, x, u, cov, eps)
 
-        Per control step: ``mjd_transitionFD`` (centred, ``eps``) at each of the
-        ``substeps`` physics steps along the nominal substep trajectory, chained
-        (``A = A_S...A_1``, ``B = sum_j A_S...A_{j+1} B_j``, ctrl held), then mapped
-        to task coordinates: ``A_k = H_{k+1} A G``, ``B_k = H_{k+1} B`` with ``G``
-        picking ``(q, qdot)`` from the task state (site components are functions of
-        them, so their columns are zero) and ``H`` the output Jacobian (site
-        Jacobians).  ``c_k = step(x_k, u_k) - A_k x_k - B_k u_k``.  ``cov``: process
-        noise (scalar times identity, or ``(n, n)``).  Needs every degree of freedom
-        of the model in the state.
-        """
-        mj = _mujoco()
-        if not self._all_dofs_in_state:
-            raise ValueError(
-                f"linearize: task {self.name!r} does not have every degree of freedom of the model in its state"
-            )
-        T = self.T
-        x = check_array("linearize x", x, (None, self.n))
-        u = check_array("linearize u", u, (None, self.m))
-        if x.shape[0] not in (T, T + 1) or u.shape[0] != T:
-            raise ShapeError(f"linearize needs x ({T + 1}, {self.n}) and u ({T}, {self.m}), got {x.shape}, {u.shape}")
-        m = self.model
-        nv = m.nv
-        d = mj.MjData(m)
-        G = np.zeros((2 * nv, self.n))
-        G[self._dadr, self._sq] = 1.0
-        G[nv + self._dadr, self._sqd] = 1.0
-        Aj = np.zeros((2 * nv, 2 * nv))
-        Bj = np.zeros((2 * nv, m.nu))
-        A = np.zeros((T, self.n, self.n))
-        B = np.zeros((T, self.n, self.m))
-        c = np.zeros((T, self.n))
-        nxt = np.empty(self.n)
-        res = np.empty(6)
-        for k in range(T):
-            self._reset(d, x[k])
-            d.ctrl[self._act] = u[k]
-            Atot = np.eye(2 * nv)
-            Btot = np.zeros((2 * nv, m.nu))
-            for _ in range(self.substeps):
-                mj.mjd_transitionFD(m, d, eps, True, Aj, Bj, None, None)
-                Atot = Aj @ Atot
-                Btot = Aj @ Btot + Bj
-                mj.mj_step(m, d)
-            mj.mj_forward(m, d)
-            self._read(d, nxt, res)
-            H = self._output_jacobian(d)
-            A[k] = H @ Atot @ G
-            B[k] = H @ Btot[:, self._act]
-            c[k] = nxt - A[k] @ x[k] - B[k] @ u[k]
-        W = np.asarray(cov, dtype=float)
-        W = W * np.eye(self.n) if W.ndim == 0 else W
-        return LinearGaussianDynamics(A, B, c, np.broadcast_to(W, (T, self.n, self.n)).copy())
+    def _output_jacobian(self, d) -> np.ndarray:
+        """``H = d s / d (dq, dv)`` (:func:`soc_opt.tasks.linearize.output_jacobian`)."""
+        return _linearize.output_jacobian(self, d)
 
     def ee_points(self, x) -> np.ndarray:
-        """``(..., P, 3)`` positions of the state sites (for figures)."""
+        """``(..., P, 3)`` positions of the state points (for figures)."""
         x = np.asarray(x, dtype=float)
-        return x[..., self.layout["site_pos"]].reshape(x.shape[:-1] + (len(self._site_ids), 3))
+        return x[..., self.layout["site_pos"]].reshape(x.shape[:-1] + (len(self.point_refs), 3))
 
 
 class MujocoSimulator:
@@ -522,21 +489,21 @@ class MujocoSimulator:
     """
 
     def __init__(self, task: MujocoTask):
-        mj = _mujoco()
+        mj = import_mujoco()
         self.task = task
         self.data = mj.MjData(task.model)
-        self._read = task._reader(self.data)
-        self._act = _as_index(task._act)
+        self.read_state = task._reader(self.data)
+        self.actuator_ids = _as_index(task.actuator_ids)
         self.x = np.empty(task.n)
         self.k = 0
         self.reset()
 
     def reset(self, x0=None) -> np.ndarray:
         """Back to ``x0`` (task coordinates; default the task's ``x_0``); returns a copy of the state."""
-        mj = _mujoco()
-        self.task._reset(self.data, x0)
+        mj = import_mujoco()
+        self.task.reset_data(self.data, x0)
         mj.mj_forward(self.task.model, self.data)
-        self._read(self.x)
+        self.read_state(self.x)
         self.k = 0
         return self.x.copy()
 
@@ -547,15 +514,15 @@ class MujocoSimulator:
         """
         if xi is not None:
             raise ValueError(f"task {self.task.name!r}: MuJoCo tasks have no process noise (xi must be None)")
-        mj = _mujoco()
+        mj = import_mujoco()
         task, d = self.task, self.data
-        d.ctrl[self._act] = u
+        d.ctrl[self.actuator_ids] = u
         mj.mj_step(task.model, d, task.substeps)
         warn = d.warning.number
         if warn.any():
             task._diverged(0, self.k, d, warn, task._bad_warn)
         mj.mj_forward(task.model, d)
-        self._read(self.x)
+        self.read_state(self.x)
         self.k += 1
         if not np.isfinite(self.x).all():
             raise SimulationError(f"task {task.name!r} diverged at control step {self.k - 1}: non-finite state")

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from ..models import Rollouts
-from .mujoco import MujocoTask, _mujoco
+from .mujoco import MujocoTask, import_mujoco
 
-__all__ = ["RenderResult", "render_filmstrip"]
+__all__ = ["RenderResult", "render_filmstrip", "frame_scene"]
 
 _WORKER = "soc_opt.tasks.render_worker"
 
@@ -49,13 +49,60 @@ def _trajectory(traj) -> np.ndarray:
     return x[None] if x.ndim == 2 else x
 
 
+def _geom_spheres(task, Q) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding spheres ``(centres (G, 3), radii (G,))`` of the geoms to frame, over configurations ``Q``.
+
+    The geoms of every body but the world body (the world usually holds the floor); planes are
+    infinite and never framed.  If that leaves nothing, every non-plane geom.
+    """
+    mj = import_mujoco()
+    m = task.model
+    d = mj.MjData(m)
+    plane = int(mj.mjtGeom.mjGEOM_PLANE)
+    finite = np.asarray(m.geom_type) != plane
+    use = finite & (np.asarray(m.geom_bodyid) != 0)
+    if not use.any():
+        use = finite
+    centres, radii = [], []
+    for q in Q:
+        d.qpos[:] = q
+        mj.mj_kinematics(m, d)
+        centres.append(np.array(d.geom_xpos[use]))
+        radii.append(np.asarray(m.geom_rbound)[use])
+    return np.concatenate(centres), np.concatenate(radii)
+
+
+def frame_scene(task, Q, azimuth: float = 135.0, elevation: float = -25.0, margin: float = 1.1) -> dict:
+    """A free camera (``lookat``, ``distance``, ``azimuth``, ``elevation``) that sees the whole robot.
+
+    Used when the task names no ``camera``: the bounding spheres of the geoms (see
+    :func:`_geom_spheres`) in every configuration of ``Q (F, nq)`` are enclosed in one sphere
+    around the centre of their bounding box, and the camera is placed far enough that this
+    sphere fits in the vertical field of view ``vis.global.fovy`` (times ``margin``), whatever the
+    viewing angles.  Without geoms, the model's ``stat.center``/``stat.extent``.
+    """
+    m = task.model
+    c, r = _geom_spheres(task, Q)
+    if c.size == 0:
+        lookat, radius = np.asarray(m.stat.center, float), float(m.stat.extent)
+    else:
+        lo, hi = (c - r[:, None]).min(axis=0), (c + r[:, None]).max(axis=0)
+        lookat = (lo + hi) / 2
+        radius = float(np.max(np.linalg.norm(c - lookat, axis=1) + r))
+    half = np.deg2rad(float(m.vis.global_.fovy)) / 2
+    distance = margin * max(radius, 1e-3) / np.sin(half)
+    return {"lookat": [float(v) for v in lookat], "distance": float(distance),
+            "azimuth": float(azimuth), "elevation": float(elevation)}
+
+
 def render_filmstrip(task, traj, path, frames: int = 8, width: int = 320, height: int = 240,
                      backends: tuple[str, ...] | None = None, timeout: float = 120.0) -> RenderResult:
     """A PNG filmstrip of a trajectory (``Rollouts``: sample 0's true states; or ``x (T+1, n)``).
 
     MuJoCo tasks are rendered offscreen with ``mujoco.Renderer`` in a subprocess
     (so a broken GL driver cannot take the caller down), trying ``MUJOCO_GL`` =
-    ``egl`` then ``osmesa`` (a user-set ``MUJOCO_GL`` first).  If no backend works,
+    ``egl`` then ``osmesa`` (a user-set ``MUJOCO_GL`` first), from the task's ``camera`` or, if it
+    names none, from a free camera framing the whole robot (:func:`frame_scene`).  If no backend works,
     or the task has no MuJoCo model, a matplotlib 3-D plot of the end-effector
     points of all samples is written instead and ``message`` says why.
     """
@@ -69,17 +116,12 @@ def render_filmstrip(task, traj, path, frames: int = 8, width: int = 320, height
         x = X[0]
         idx = np.unique(np.linspace(0, x.shape[0] - 1, max(1, frames)).round().astype(int))
         Q = task.qpos_from_state(x[idx])
-        mj = _mujoco()
+        mj = import_mujoco()
         m = task.model
         width = min(width, int(m.vis.global_.offwidth))
         height = min(height, int(m.vis.global_.offheight))
-        pts = task.ee_points(x)
-        center = pts.reshape(-1, 3).mean(axis=0) if pts.size else np.asarray(m.stat.center)
-        spec = {
-            "path": os.path.abspath(path), "width": width, "height": height, "camera": task.config.camera,
-            "lookat": [float(v) for v in center], "distance": float(1.5 * max(m.stat.extent, 0.3)),
-            "azimuth": 135.0, "elevation": -25.0,
-        }
+        spec = {"path": os.path.abspath(path), "width": width, "height": height, "camera": task.config.camera,
+                **frame_scene(task, Q)}
         with tempfile.TemporaryDirectory() as work:
             mj.mj_saveModel(m, os.path.join(work, "model.mjb"), None)
             np.save(os.path.join(work, "qpos.npy"), Q)

@@ -1,0 +1,397 @@
+"""Run directories on disk: the contract of a run, its lock, its files and verified checkpoints.
+
+A run directory (``soc-opt run|compare --out DIR``) holds
+
+- ``config.json``: method, seed and the resolved algorithm configuration of the run;
+- ``task.json``: the resolved task (its configuration after overrides, the task TOML's path,
+  text and SHA-256, and the SHA-256 of every MJCF file the model reads);
+- ``metrics.csv`` and ``metrics.json``: one row per iteration (``IterationRecord.summary``);
+  iterations are numbered from 0, here and on the console;
+- ``policies/iter_XXX.npz``: the policy after ``XXX`` iterations (``K, k, cov``; load it with
+  :meth:`soc_opt.models.LinearGaussianPolicy.load`);
+- ``samples/iter_XXX.npz``: the rollouts of iteration ``XXX`` (``x, s, a, cost, y``);
+- ``best_policy.npz``: the best policy sampled so far (plus ``mean_cost`` and ``iteration``);
+- ``checkpoint.pkl`` and ``checkpoint.prev.pkl``: the full run state after the last and the
+  one-before-last finished iteration, each with a SHA-256 checksum verified on load;
+- ``lock``: the lock file, naming the process that runs in the directory.
+
+**Contract.**  ``config.json`` and ``task.json`` are the contract of the run: a run started
+again on the directory resumes only if the method, seed, the configuration sections that method
+reads (:data:`soc_opt.algorithms.RUN_SECTIONS`), the resolved task configuration and the MJCF
+files are the same; otherwise :class:`RunDirectoryError` lists what differs.  A directory with no
+finished iteration (no checkpoint) holds nothing to protect: its contract is replaced.
+
+**Lock.**  While a run writes to the directory it holds an exclusive ``flock`` on ``lock``, and
+the file names its pid and host.  The kernel drops the lock when the holder exits, even when it is
+killed, so a lock file left behind by a dead process is stale and simply taken over; a live
+holder makes a second writer fail at once with a message naming it.
+
+**Writes.**  Every file is written to a temporary name and renamed into place (atomic); the
+checkpoint is written last, after the iteration's other files, and the previous one is kept as
+``checkpoint.prev.pkl``.  A corrupt checkpoint is reported with the choice of resuming from the
+previous one or starting again (:class:`CheckpointError`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import hashlib
+import io
+import json
+import os
+import pickle
+import shutil
+import socket
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from .config import ConfigError
+
+try:  # POSIX advisory locks; elsewhere a pid check stands in (see _PidLock)
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None
+
+__all__ = ["RunDirectoryError", "CheckpointError", "RunDirectory", "lock_directory", "differences",
+           "atomic_write_bytes", "encode_checkpoint", "decode_checkpoint", "CHECKPOINT", "PREVIOUS_CHECKPOINT", "LOCK"]
+
+CHECKPOINT = "checkpoint.pkl"
+PREVIOUS_CHECKPOINT = "checkpoint.prev.pkl"
+LOCK = "lock"
+_MAGIC = b"soc_opt checkpoint v1\n"
+_TMP = ".tmp-"
+#: Files a run writes at the top of its directory (removed by ``RunDirectory.clear``).
+RUN_FILES = ("config.json", "task.json", "metrics.csv", "metrics.json", "costs.npz", "best_policy.npz",
+             CHECKPOINT, PREVIOUS_CHECKPOINT, "policy.npz", "final_eval.npz", "cost_per_iteration.png",
+             "ee_trajectories.png", "filmstrip.png")
+
+
+class RunDirectoryError(ConfigError):
+    """A run directory cannot be used as asked (different run, locked, corrupt); the message says why
+    and what to do."""
+
+
+class CheckpointError(RunDirectoryError):
+    """A checkpoint file is empty, truncated, fails its checksum or cannot be unpickled."""
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to a temporary file next to ``path``, flush it to disk, rename it to ``path``."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}{_TMP}")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def _npz_bytes(**arrays) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
+def _jsonable(v):
+    if isinstance(v, (np.floating, np.integer, np.bool_)):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return v
+
+
+def _short(v: Any) -> str:
+    text = json.dumps(v, sort_keys=True) if not isinstance(v, str) else repr(v)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def differences(old: Any, new: Any, prefix: str = "") -> list[str]:
+    """``"key: old -> new"`` for every setting recorded in ``old`` whose value differs in ``new``.
+
+    Keys only in ``new`` are options added by a later version of soc_opt after the run was started;
+    they do not make the run a different one.  Lists of tables are compared entry by entry.
+    """
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k, v in old.items():
+            key = f"{prefix}.{k}" if prefix else str(k)
+            out += differences(v, new[k], key) if k in new else [f"{key}: {_short(v)} -> (unset)"]
+        return out
+    if (isinstance(old, list) and isinstance(new, list) and len(old) == len(new)
+            and any(isinstance(v, dict) for v in old)):
+        return [d for i, (a, b) in enumerate(zip(old, new)) for d in differences(a, b, f"{prefix}[{i}]")]
+    return [] if old == new else [f"{prefix}: {_short(old)} -> {_short(new)}"]
+
+
+def _task_settings(record: dict) -> dict:
+    """The compared part of a ``task.json``: the resolved task configuration and its condition."""
+    out = dict(record.get("config", {}))
+    if "condition" in record:
+        out["condition"] = record["condition"]
+    return out
+
+
+def _file_differences(old: dict, new: dict) -> list[str]:
+    out = []
+    for name in sorted(set(old) | set(new)):
+        if name not in new:
+            out.append(f"model file {name} no longer read")
+        elif name not in old:
+            out.append(f"model file {name} added")
+        elif old[name] != new[name]:
+            out.append(f"model file {name} changed (sha256 {old[name][:10]}... -> {new[name][:10]}...)")
+    return out
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _holder(path: Path) -> str:
+    try:
+        text = path.read_text().split()
+    except OSError:
+        text = []
+    if not text:
+        return "another process"
+    host = f" on {text[1]}" if len(text) > 1 else ""
+    return f"process {text[0]}{host}"
+
+
+@contextlib.contextmanager
+def lock_directory(path: str | Path) -> Iterator[Path]:
+    """Hold the exclusive lock of the directory ``path`` (created if needed) for the ``with`` block.
+
+    Raises :class:`RunDirectoryError` naming the holder if another live process holds it.  A lock
+    file whose holder is gone is stale and taken over (module docstring, "Lock").
+    """
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    lp = path / LOCK
+    if fcntl is None:  # pragma: no cover - Windows
+        with _pid_lock(lp):
+            yield lp
+        return
+    fd = os.open(lp, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise RunDirectoryError(
+                f"run directory {str(path)!r} is in use by {_holder(lp)} (lock file {str(lp)!r}); "
+                "wait for that run to finish or use another --out"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
+        try:
+            yield lp
+        finally:
+            os.ftruncate(fd, 0)  # released: the file stays (unlinking it would race a waiting opener)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def _pid_lock(lp: Path):  # pragma: no cover - only where fcntl is missing
+    try:
+        fd = os.open(lp, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+    except FileExistsError:
+        text = lp.read_text().split()
+        if text and text[0].isdigit() and _pid_alive(int(text[0])):
+            raise RunDirectoryError(f"run directory {str(lp.parent)!r} is in use by {_holder(lp)} "
+                                    f"(lock file {str(lp)!r})") from None
+        os.unlink(lp)  # stale: its holder is gone
+        fd = os.open(lp, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+    os.write(fd, f"{os.getpid()} {socket.gethostname()}\n".encode())
+    os.close(fd)
+    try:
+        yield
+    finally:
+        os.unlink(lp)
+
+
+def encode_checkpoint(state) -> bytes:
+    """The bytes of a checkpoint file: header, SHA-256 of the pickled ``state``, the pickle."""
+    payload = pickle.dumps(state)
+    return _MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n" + payload
+
+
+def decode_checkpoint(path: Path):
+    """The state in checkpoint file ``path``; :class:`CheckpointError` saying what is wrong."""
+    data = path.read_bytes()
+    if not data:
+        raise CheckpointError(f"{path.name} is empty")
+    if data.startswith(_MAGIC):
+        head, sep, payload = data[len(_MAGIC):].partition(b"\n")
+        if not sep or hashlib.sha256(payload).hexdigest().encode() != head:
+            raise CheckpointError(f"{path.name} is truncated or damaged (checksum mismatch)")
+    else:  # written before checksums were added: a bare pickle
+        payload = data
+    try:
+        return pickle.loads(payload)
+    except Exception as e:
+        raise CheckpointError(f"{path.name} cannot be read ({type(e).__name__}: {e})") from e
+
+
+@dataclass(frozen=True)
+class RunDirectory:
+    """Files of one run (module docstring)."""
+
+    path: Path
+
+    def __post_init__(self):
+        object.__setattr__(self, "path", Path(self.path))
+
+    def lock(self):
+        """Context manager holding the directory's lock (:func:`lock_directory`)."""
+        return lock_directory(self.path)
+
+    def has_checkpoint(self) -> bool:
+        return (self.path / CHECKPOINT).exists() or (self.path / PREVIOUS_CHECKPOINT).exists()
+
+    def prepare(self, meta: dict, task: dict | None = None,
+                contract: Callable[[dict], dict] | None = None) -> None:
+        """Check the run's contract against the directory's, or record it (module docstring).
+
+        ``meta``: the content of ``config.json`` (method, seed, config); ``task``: of ``task.json``;
+        ``contract(meta)``: the part of a ``config.json`` that must match (default: all of it).
+        Call with the lock held.
+        """
+        for sub in ("policies", "samples"):
+            (self.path / sub).mkdir(parents=True, exist_ok=True)
+        self._remove_temporaries()
+        meta = json.loads(json.dumps(meta))
+        contract = contract or (lambda m: m)
+        meta_path, task_path = self.path / "config.json", self.path / "task.json"
+        if self.has_checkpoint() and meta_path.exists():
+            diffs = differences(contract(json.loads(meta_path.read_text())), contract(meta))
+            if task is not None and task_path.exists():
+                old = json.loads(task_path.read_text())
+                diffs += differences(_task_settings(old), _task_settings(task), "task")
+                diffs += _file_differences(old.get("model_files", {}), task.get("model_files", {}))
+            if diffs:
+                more = f" (and {len(diffs) - 8} more)" if len(diffs) > 8 else ""
+                raise RunDirectoryError(
+                    f"run directory {str(self.path)!r} holds a run with a different configuration: "
+                    f"{'; '.join(diffs[:8])}{more}; use another --out, or --restart to discard that run"
+                )
+            if task is not None and not task_path.exists():  # a directory from before task.json
+                atomic_write_bytes(task_path, json.dumps(task, indent=2, sort_keys=True).encode())
+            return
+        atomic_write_bytes(meta_path, json.dumps(meta, indent=2, sort_keys=True).encode())
+        if task is not None:
+            atomic_write_bytes(task_path, json.dumps(task, indent=2, sort_keys=True).encode())
+
+    def _remove_temporaries(self) -> None:
+        """Temporary files of writes interrupted by a kill (never renamed into place)."""
+        for d in (self.path, self.path / "policies", self.path / "samples"):
+            for p in d.glob(f".*{_TMP}*"):
+                with contextlib.suppress(OSError):
+                    p.unlink()
+
+    def clear(self) -> None:
+        """Remove the files of a previous run (``--restart``); other files are left alone."""
+        for name in RUN_FILES:
+            with contextlib.suppress(FileNotFoundError):
+                (self.path / name).unlink()
+        for sub in ("policies", "samples"):
+            for p in (self.path / sub).glob("iter_*.npz"):
+                p.unlink()
+        self._remove_temporaries()
+
+    def load_checkpoint(self, previous: bool = False):
+        """The saved run state, or None if the run has not finished an iteration yet.
+
+        ``previous``: load ``checkpoint.prev.pkl`` (the iteration before the last) instead.  A
+        damaged checkpoint raises :class:`CheckpointError` saying how to go on.
+        """
+        main, prev = self.path / CHECKPOINT, self.path / PREVIOUS_CHECKPOINT
+        if previous:
+            if not prev.exists():
+                raise CheckpointError(f"run directory {str(self.path)!r} has no previous checkpoint; "
+                                      "rerun without --previous-checkpoint, or with --restart")
+            try:
+                return decode_checkpoint(prev)
+            except CheckpointError as e:
+                raise CheckpointError(f"run directory {str(self.path)!r}: {e}; rerun with --restart to "
+                                      "start from scratch") from e
+        if not main.exists():
+            return decode_checkpoint(prev) if prev.exists() else None
+        try:
+            return decode_checkpoint(main)
+        except CheckpointError as e:
+            raise CheckpointError(f"run directory {str(self.path)!r}: {e}; {self._previous_hint()}") from e
+
+    def _previous_hint(self) -> str:
+        prev = self.path / PREVIOUS_CHECKPOINT
+        try:
+            st = decode_checkpoint(prev) if prev.exists() else None
+        except CheckpointError:
+            st = None
+        if st is None:
+            return "there is no intact previous checkpoint: rerun with --restart to start from scratch"
+        return (f"rerun with --previous-checkpoint to resume from the previous checkpoint ({st.iteration} "
+                "iterations done; later iterations are recomputed identically), or with --restart to "
+                "start from scratch")
+
+    def save(self, state) -> None:
+        """Write the iteration's files, then the checkpoint (atomically, last; the previous one kept).
+
+        ``state`` is a :class:`~soc_opt.algorithms.RunState` or :class:`~soc_opt.ilqg.ILQGState`
+        (``iteration``, ``policy``, ``history``, ``best``, ``last_rollouts``).
+        """
+        it = state.iteration
+        atomic_write_bytes(self.path / "policies" / f"iter_{it:03d}.npz", _npz_bytes(**state.policy.to_dict()))
+        if state.last_rollouts is not None:
+            atomic_write_bytes(self.path / "samples" / f"iter_{it - 1:03d}.npz",
+                               _npz_bytes(**state.last_rollouts.to_dict()))
+        rows = [r.summary() for r in state.history]
+        atomic_write_bytes(self.path / "metrics.json", json.dumps(
+            [{k: _jsonable(v) for k, v in r.items()} for r in rows], indent=1).encode())
+        keys = list(dict.fromkeys(k for r in rows for k in r))
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=keys, lineterminator="\r\n")
+        w.writeheader()
+        w.writerows(rows)
+        atomic_write_bytes(self.path / "metrics.csv", buf.getvalue().encode())
+        costs = [r.cost for r in state.history]
+        atomic_write_bytes(self.path / "costs.npz", _npz_bytes(
+            iteration=np.array([r.iteration for r in state.history]),
+            phase=np.array([r.phase for r in state.history]),
+            **{f"cost_{i:03d}": np.asarray(c, float) for i, c in enumerate(costs)},
+        ))
+        best = state.best
+        if best is not None:
+            atomic_write_bytes(self.path / "best_policy.npz", _npz_bytes(
+                **best.policy.to_dict(), mean_cost=best.mean_cost, iteration=best.iteration))
+        self._keep_previous_checkpoint()
+        atomic_write_bytes(self.path / CHECKPOINT, encode_checkpoint(state))
+
+    def _keep_previous_checkpoint(self) -> None:
+        main = self.path / CHECKPOINT
+        if not main.exists():
+            return
+        tmp = self.path / f".{PREVIOUS_CHECKPOINT}{_TMP}{os.getpid()}"
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        try:
+            os.link(main, tmp)
+        except OSError:  # no hard links on this file system
+            shutil.copyfile(main, tmp)
+        os.replace(tmp, self.path / PREVIOUS_CHECKPOINT)

@@ -1,0 +1,548 @@
+"""Sweeps: a grid of trials (tasks x settings x methods x seeds) from one strict TOML file.
+
+This module is the pure part of ``soc-opt sweep`` (docs/sweeps.md): reading and validating a
+sweep file, expanding it into :class:`TrialSpec` objects, and running *one* trial in its own
+run directory (:func:`run_trial`, called inside a Ray worker by :mod:`soc_opt.sweep_runner`,
+but an ordinary function).  Nothing here imports Ray.
+
+A sweep file (every key optional except ``tasks``, ``methods`` and ``seeds``)::
+
+    name = "linear2d_small"          # label of the report (default: the file's stem)
+    tasks = ["linear2d"]             # built-in names or task TOML paths (relative to this file)
+    methods = ["lqr-flm", "dpsoc-em"]
+    seeds = [0, 1]                   # a list, or N for 0..N-1
+    config = "algo.toml"             # algorithm TOML replacing each task's default file
+    paper = false                    # paper scale first (14 iterations, 20 samples, switch at 4)
+    eval_samples = 10                # rollouts evaluating each final policy (default: samples)
+
+    [common]                         # overrides for every trial: algorithm layout + [common.task]
+    i_switch = 1
+    baseline = { iterations = 3, samples = 5 }
+    task = { T = 20 }
+
+    [grid]                           # cartesian product; each leaf is the list of values
+    task.rho2 = [0.1, 0.01]
+    em.y_mode = ["model", "measured"]
+
+    [[settings]]                     # explicit settings, crossed with the grid
+    name = "entropy-floor"
+    em = { entropy_floor = true }
+
+Override keys follow the algorithm TOML (``i_switch``, ``[baseline]``, ``[baseline.fit]``,
+``[baseline.kl]``, ``[em]``; docs/configuration.md) plus ``task`` for the task config's keys
+(docs/tasks.md).  Precedence: the task's default algorithm file (or ``config``), ``paper``,
+``[common]``, then the setting (``[[settings]]`` entry and grid values; the two may not set the
+same key).  Every trial's task and configuration is built, and so validated, by
+:func:`load_sweep` before anything runs; an unknown key, value or task raises
+:class:`SweepError` naming it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import math
+import os
+import re
+import socket
+import tempfile
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .algorithms import DPSOCConfig, RunState
+from .config import ConfigError, read_toml
+
+__all__ = [
+    "METHODS",
+    "SweepError",
+    "TrialDiverged",
+    "Setting",
+    "TrialSpec",
+    "SweepSpec",
+    "load_sweep",
+    "sweep_from_dict",
+    "run_trial",
+    "check_finite",
+    "read_json",
+    "as_json",
+    "write_json",
+]
+
+METHODS = ("lqr-flm", "dpsoc-em")
+TOP_KEYS = ("name", "tasks", "methods", "seeds", "config", "paper", "eval_samples", "common", "grid", "settings")
+OVERRIDE_KEYS = ("i_switch", "baseline", "em", "task")
+RESULT = "result.json"
+PROGRESS = "progress.json"
+ERROR = "error.txt"
+TRIAL = "trial.json"
+
+
+class SweepError(ConfigError):
+    """A sweep file is invalid; the message names the file and the bad key, value or task."""
+
+
+class TrialDiverged(RuntimeError):
+    """A trial's sampled costs became non-finite (a diverging simulation)."""
+
+
+# --------------------------------------------------------------------------- small helpers
+
+
+def write_json(path: Path, data) -> None:
+    """Write ``data`` as JSON atomically (a reader never sees a half-written file)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".")
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=1, default=_jsonable)
+    os.replace(tmp, path)
+
+
+def as_json(data):
+    """``data`` after a JSON round trip (tuples become lists, numpy scalars numbers)."""
+    return json.loads(json.dumps(data, default=_jsonable))
+
+
+def read_json(path: Path):
+    """The JSON content of ``path``, or ``None`` when it is missing or unreadable."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _jsonable(v):
+    if isinstance(v, (np.floating, np.integer, np.bool_)):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, Path):
+        return str(v)
+    raise TypeError(f"not JSON serialisable: {type(v).__name__}")
+
+
+def _merge(base: dict, over: dict) -> dict:
+    """``base`` with ``over`` merged in recursively (tables merge, other values replace)."""
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def _nest(path: tuple[str, ...], value) -> dict:
+    d = value
+    for k in reversed(path):
+        d = {k: d}
+    return d
+
+
+def _fmt_value(v) -> str:
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, float):
+        return f"{v:g}"
+    if isinstance(v, (list, tuple)):
+        return "-".join(_fmt_value(x) for x in v)
+    if isinstance(v, dict):
+        return "+".join(f"{k}-{_fmt_value(x)}" for k, x in v.items())
+    return str(v)
+
+
+def _safe_name(text: str) -> str:
+    """A directory-safe version of a setting name."""
+    return re.sub(r"[^A-Za-z0-9._=,+-]", "_", text) or "_"
+
+
+# --------------------------------------------------------------------------- specs
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One point of the settings grid.
+
+    name:      directory-safe label (``"default"`` when there are no settings).
+    overrides: nested override table: algorithm keys (``i_switch``, ``baseline``, ``em``) and
+               ``task`` (task config keys).
+    """
+
+    name: str
+    overrides: dict
+
+
+@dataclass(frozen=True)
+class TrialSpec:
+    """One trial: one method on one task, setting and seed (an ordinary run directory).
+
+    task:           built-in task name, or the absolute path of a task TOML file.
+    task_label:     short task name used in paths and tables.
+    task_overrides: top-level task config keys replacing the file's (tables already merged).
+    config:         the full algorithm configuration of the run.
+    eval_samples:   rollouts evaluating the final policy (evaluation seed ``10000 + seed``, as in
+                    ``soc-opt compare``).
+    """
+
+    task: str
+    task_label: str
+    task_overrides: dict
+    method: str
+    seed: int
+    setting: str
+    config: DPSOCConfig
+    eval_samples: int
+
+    @property
+    def id(self) -> str:
+        return f"{self.task_label}/{self.setting}/{self.method}/seed_{self.seed}"
+
+    @property
+    def relpath(self) -> Path:
+        """The trial's run directory relative to the sweep's output directory."""
+        return Path("trials", self.task_label, self.setting, self.method, f"seed_{self.seed}")
+
+    def to_dict(self) -> dict:
+        return {"task": self.task, "task_label": self.task_label, "task_overrides": self.task_overrides,
+                "method": self.method, "seed": self.seed, "setting": self.setting,
+                "config": self.config.to_dict(), "eval_samples": self.eval_samples}
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """A validated sweep: ``trials`` is the full grid, in task, setting, method, seed order."""
+
+    name: str
+    source: str | None
+    tasks: tuple[str, ...]
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    settings: tuple[Setting, ...]
+    trials: tuple[TrialSpec, ...]
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "source": self.source, "tasks": list(self.tasks),
+                "methods": list(self.methods), "seeds": list(self.seeds),
+                "settings": [{"name": s.name, "overrides": s.overrides} for s in self.settings],
+                "trials": [t.id for t in self.trials]}
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+def load_sweep(path: str | Path) -> SweepSpec:
+    """Read and validate a sweep file (module docstring); :class:`SweepError` names what is wrong."""
+    path = Path(path)
+    try:
+        data = read_toml(path)
+    except ConfigError as e:
+        raise SweepError(str(e)) from e
+    return sweep_from_dict(data, base_dir=path.parent, source=str(path), default_name=path.stem)
+
+
+def sweep_from_dict(data: dict, *, base_dir: str | Path = ".", source: str | None = None,
+                    default_name: str = "sweep") -> SweepSpec:
+    """Validate a sweep table and expand it into its trials (nothing is run)."""
+    where = f"sweep file {source!r}" if source else "sweep"
+    try:
+        spec = _expand(data, Path(base_dir), default_name)
+    except ConfigError as e:
+        raise SweepError(f"{where}: {e}") from e
+    return dataclasses.replace(spec, source=source)
+
+
+def _check_keys(table: dict, allowed, what: str) -> None:
+    unknown = sorted(set(table) - set(allowed))
+    if unknown:
+        raise ConfigError(f"unknown key{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))} "
+                          f"in {what}; allowed: {', '.join(allowed)}")
+
+
+def _str_list(data: dict, key: str) -> list[str]:
+    v = data.get(key)
+    if not isinstance(v, list) or not v or not all(isinstance(x, str) for x in v):
+        raise ConfigError(f"{key}: expected a non-empty list of strings, got {v!r}")
+    if len(set(v)) != len(v):
+        raise ConfigError(f"{key}: duplicate entries in {v!r}")
+    return v
+
+
+def _seeds(v) -> tuple[int, ...]:
+    if isinstance(v, int) and not isinstance(v, bool):
+        if v < 1:
+            raise ConfigError(f"seeds: expected a positive count, got {v}")
+        return tuple(range(v))
+    if (not isinstance(v, list) or not v
+            or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in v)):
+        raise ConfigError(f"seeds: expected a count or a non-empty list of non-negative integers, got {v!r}")
+    if len(set(v)) != len(v):
+        raise ConfigError(f"seeds: duplicate entries in {v!r}")
+    return tuple(v)
+
+
+def _resolve_task(ref: str, base_dir: Path, i: int) -> tuple[str, str, Path]:
+    """``(task reference passed to workers, label, task TOML path)``."""
+    from .tasks.loading import BUILTIN_TASKS, problems_dir
+
+    if ref in BUILTIN_TASKS:
+        return ref, ref, problems_dir() / BUILTIN_TASKS[ref]
+    p = Path(ref)
+    for cand in ([p] if p.is_absolute() else [base_dir / p, p]):
+        if cand.is_file():
+            return str(cand.resolve()), cand.stem, cand.resolve()
+    raise ConfigError(f"tasks[{i}]: unknown task {ref!r}: not a built-in task ({', '.join(BUILTIN_TASKS)}) "
+                      f"and no task file {str(base_dir / p)!r}")
+
+
+def _check_overrides(table, what: str) -> dict:
+    if not isinstance(table, dict):
+        raise ConfigError(f"{what}: expected a table, got {table!r}")
+    _check_keys(table, OVERRIDE_KEYS, what)
+    if "task" in table and not isinstance(table["task"], dict):
+        raise ConfigError(f"{what}.task: expected a table of task config keys, got {table['task']!r}")
+    return table
+
+
+def _grid_leaves(table: dict, prefix: tuple[str, ...] = ()) -> list[tuple[tuple[str, ...], list]]:
+    leaves = []
+    for k, v in table.items():
+        path = prefix + (k,)
+        if isinstance(v, dict):
+            leaves += _grid_leaves(v, path)
+        elif isinstance(v, list) and v:
+            leaves.append((path, v))
+        else:
+            raise ConfigError(f"grid.{'.'.join(path)}: expected a non-empty list of values, got {v!r}")
+    return leaves
+
+
+def _settings(data: dict) -> tuple[Setting, ...]:
+    """The explicit ``[[settings]]`` (or one empty setting) crossed with the grid."""
+    entries = data.get("settings", [])
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise ConfigError("settings: expected an array of tables ([[settings]])")
+    explicit = []
+    for i, e in enumerate(entries):
+        e = dict(e)
+        name = e.pop("name", None)
+        if name is not None and (not isinstance(name, str) or not name):
+            raise ConfigError(f"settings[{i}].name: expected a non-empty string, got {name!r}")
+        explicit.append((name, _check_overrides(e, f"settings[{i}]"), i))
+    explicit = explicit or [(None, {}, None)]
+    grid = data.get("grid", {})
+    _check_overrides(grid, "grid")
+    leaves = _grid_leaves(grid)
+    short = [p[-1] for p, _ in leaves]
+    labels = [p[-1] if short.count(p[-1]) == 1 else ".".join(p) for p, _ in leaves]
+    out = []
+    for name, over, i in explicit:
+        for combo in itertools.product(*[vals for _, vals in leaves]):
+            merged = dict(over)
+            for (path, _), value in zip(leaves, combo):
+                if _lookup(over, path) is not _MISSING:
+                    raise ConfigError(f"settings[{i}] and grid both set {'.'.join(path)}")
+                merged = _merge(merged, _nest(path, value))
+            parts = ([name or f"settings{i}"] if (name or len(explicit) > 1) else []) + [
+                f"{lab}={_fmt_value(v)}" for lab, v in zip(labels, combo)]
+            out.append(Setting(_safe_name(",".join(parts)) if parts else "default", merged))
+    names = [s.name for s in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"settings: duplicate setting names {dup}; give each [[settings]] entry a distinct name")
+    return tuple(out)
+
+
+_MISSING = object()
+
+
+def _lookup(table: dict, path: tuple[str, ...]):
+    for k in path:
+        if not isinstance(table, dict) or k not in table:
+            return _MISSING
+        table = table[k]
+    return table
+
+
+def _config(task_ref, cfg_file, paper, common, setting, method) -> DPSOCConfig:
+    from .experiment import load_run_config as load_config
+
+    base = load_config(task_ref, cfg_file, paper=paper, method="dpsoc-em").to_dict()
+    d = _merge(_merge(base, common), setting)
+    if method == "lqr-flm":  # the switch point is unused by the baseline (as in `soc-opt run`)
+        it = _lookup(d, ("baseline", "iterations"))
+        if isinstance(d.get("i_switch"), int) and isinstance(it, int) and it >= 1:
+            d["i_switch"] = min(d["i_switch"], it - 1)
+    cfg = DPSOCConfig.from_dict(d)
+    cfg.check_for(method)  # method-specific rules (i_switch < iterations for DPSOC-EM), before any trial
+    return cfg
+
+
+def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
+    from .tasks import load_task
+
+    if not isinstance(data, dict):
+        raise ConfigError("expected a table")
+    _check_keys(data, TOP_KEYS, "the sweep file")
+    for key in ("tasks", "methods", "seeds"):
+        if key not in data:
+            raise ConfigError(f"missing key {key!r}")
+    name = data.get("name", default_name)
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"name: expected a non-empty string, got {name!r}")
+    methods = _str_list(data, "methods")
+    for m in methods:
+        if m not in METHODS:
+            raise ConfigError(f"methods: unknown method {m!r}; use {list(METHODS)}")
+    seeds = _seeds(data["seeds"])
+    tasks = [_resolve_task(ref, base_dir, i) for i, ref in enumerate(_str_list(data, "tasks"))]
+    labels = [lab for _, lab, _ in tasks]
+    if len(set(labels)) != len(labels):
+        raise ConfigError(f"tasks: two tasks share a name {labels}; rename a task file")
+    cfg_file = data.get("config")
+    if cfg_file is not None:
+        if not isinstance(cfg_file, str):
+            raise ConfigError(f"config: expected a file path, got {cfg_file!r}")
+        cfg_file = str(base_dir / cfg_file) if not Path(cfg_file).is_absolute() else cfg_file
+    paper = data.get("paper", False)
+    if not isinstance(paper, bool):
+        raise ConfigError(f"paper: expected true/false, got {paper!r}")
+    eval_samples = data.get("eval_samples")
+    if eval_samples is not None and (isinstance(eval_samples, bool) or not isinstance(eval_samples, int)
+                                     or eval_samples < 1):
+        raise ConfigError(f"eval_samples: expected a positive integer, got {eval_samples!r}")
+    common = dict(_check_overrides(data.get("common", {}), "common"))
+    common_task = common.pop("task", {})
+    settings = _settings(data)
+    trials = []
+    for ref, label, task_file in tasks:
+        file_table = read_toml(task_file)
+        for s in settings:
+            over = dict(s.overrides)
+            task_over = _merge(common_task, over.pop("task", {}))
+            top = {k: _merge(file_table[k], v) if isinstance(v, dict) and isinstance(file_table.get(k), dict) else v
+                   for k, v in task_over.items()}
+            ctx = f"task {label!r}, setting {s.name!r}"
+            try:
+                load_task(ref, overrides=top)  # validates the task keys (and its model) now
+            except ConfigError as e:
+                raise ConfigError(f"{ctx}, task keys: {e}") from e
+            try:
+                cfgs = {m: _config(ref, cfg_file, paper, common, over, m) for m in methods}
+            except ConfigError as e:
+                raise ConfigError(f"{ctx}, algorithm keys: {e}") from e
+            for m in methods:
+                cfg = cfgs[m]
+                for seed in seeds:
+                    trials.append(TrialSpec(ref, label, top, m, seed, s.name, cfg,
+                                            eval_samples or cfg.baseline.samples))
+    return SweepSpec(name, None, tuple(labels), tuple(methods), seeds, settings, tuple(trials))
+
+
+# --------------------------------------------------------------------------- one trial
+
+
+def check_finite(state: RunState) -> None:
+    """Raise :class:`TrialDiverged` when the last iteration's sampled costs are not all finite."""
+    rec = state.history[-1] if state.history else None
+    if rec is not None and not np.all(np.isfinite(np.asarray(rec.cost, float))):
+        raise TrialDiverged(f"diverging simulation: non-finite sampled cost at iteration {rec.iteration + 1} "
+                            f"({rec.phase} phase)")
+
+
+def _result(spec: TrialSpec, task, state: RunState, trial_dir: Path) -> dict:
+    from .compare import evaluate_policy as _evaluate, spreads as _spreads
+
+    ro = _evaluate(task, state.policy, spec.eval_samples, spec.seed, spec.config.baseline.workers)
+    np.savez_compressed(trial_dir / "final_eval.npz", **ro.to_dict())
+    final = _spreads(task, ro)
+    if not math.isfinite(final["cost"]):
+        raise TrialDiverged("diverging simulation: non-finite cost of the final policy")
+    base = [r for r in state.history if r.phase == "baseline"]
+    return {
+        "final_cost": final["cost"],
+        "state_spread": final["state_spread"],
+        "action_spread": final["action_spread"],
+        "metrics": {k: float(v) for k, v in task.metrics(ro).items()},
+        "best_cost": float(state.best[0]) if state.best else float("nan"),
+        "best_iteration": int(state.best[2]) if state.best else -1,
+        "iterations": state.iteration,
+        "cost_per_iteration": [float(np.mean(r.cost)) for r in base],
+    }
+
+
+def run_trial(spec: TrialSpec, trial_dir: str | Path,
+              on_iteration: Callable[[str, RunState, Path], None] | None = None) -> dict:
+    """Run (or resume) one trial in ``trial_dir``; return its status record.
+
+    An ordinary run directory (soc_opt.experiment) plus ``trial.json`` (the spec),
+    ``progress.json`` (state, attempt, iteration, pid), ``final_eval.npz`` and ``result.json``
+    (written last: its presence marks the trial finished), or ``error.txt`` (the traceback) when
+    the trial failed.  Exceptions of the trial (including :class:`TrialDiverged`) are recorded,
+    not raised.  ``on_iteration(trial_id, state, trial_dir)`` runs after each checkpoint.
+    """
+    from .experiment import run_experiment
+    from .tasks import load_task
+
+    d = Path(trial_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    (d / ERROR).unlink(missing_ok=True)
+    prev = read_json(d / PROGRESS) or {}
+    attempt = int(prev.get("attempt", 0)) + 1
+    t0 = time.time()
+    prog = {"state": "running", "attempt": attempt, "pid": os.getpid(), "host": socket.gethostname(),
+            "iteration": None, "iterations": spec.config.baseline.iterations, "started": t0}
+    write_json(d / PROGRESS, prog)
+    ran = [0]
+
+    def cb(st: RunState):
+        ran[0] += 1
+        check_finite(st)
+        write_json(d / PROGRESS, {**prog, "iteration": st.iteration})
+        if on_iteration is not None:
+            on_iteration(spec.id, st, d)
+
+    try:
+        task = load_task(spec.task, overrides=spec.task_overrides)
+        state = run_experiment(task, spec.method, spec.config, spec.seed, d, task_name=spec.task_label,
+                               on_iteration=cb)
+        res = {"trial": spec.id, "status": "done", **_result(spec, task, state, d),
+               "attempt": attempt, "resumed_from": state.iteration - ran[0], "wall_time": time.time() - t0}
+        write_json(d / RESULT, res)
+        write_json(d / PROGRESS, {**prog, "state": "done", "iteration": state.iteration})
+        return res
+    except Exception as e:  # noqa: BLE001 - a failed trial is recorded, the sweep goes on
+        msg = f"{type(e).__name__}: {e}"
+        (d / ERROR).write_text(f"{spec.id} (attempt {attempt})\n{traceback.format_exc()}")
+        write_json(d / PROGRESS, {**prog, "state": "failed", "error": msg})
+        return {"trial": spec.id, "status": "failed", "error": msg, "attempt": attempt,
+                "wall_time": time.time() - t0}
+
+
+def describe(spec: SweepSpec) -> str:
+    """One line: the grid's shape."""
+    return (f"{len(spec.trials)} trials = {len(spec.tasks)} task(s) x {len(spec.settings)} setting(s) x "
+            f"{len(spec.methods)} method(s) x {len(spec.seeds)} seed(s)")
+
+
+def setting_table(spec: SweepSpec) -> list[tuple[str, str]]:
+    """``(setting name, its overrides as dotted key = value)`` for the report."""
+    rows = []
+    for s in spec.settings:
+        flat = _flatten(s.overrides)
+        rows.append((s.name, ", ".join(f"{k} = {_fmt_value(v)}" for k, v in flat.items()) or "(none)"))
+    return rows
+
+
+def _flatten(table: dict, prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for k, v in table.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out

@@ -1,0 +1,200 @@
+"""The aggregated report of a sweep: tables (CSV + Markdown) and figures (PNG).
+
+Written beside the trial directories in the sweep's output directory:
+
+- ``trials.csv``: one row per trial (state, final-policy statistics, error);
+- ``summary.csv``: one row per (task, setting, method): seeds finished/failed and, for each
+  quantity, its mean and standard deviation over the finished seeds;
+- ``report.md``: the setup, the settings, one table per task (mean ± std over seeds), the failed
+  trials, and the figures;
+- ``final_<task>.png``: final cost and task metrics per setting and method (bars: mean over seeds,
+  error bars: std over seeds);
+- ``cost_<task>.png``: mean sampled cost per iteration, mean ± std over seeds, one panel per setting.
+
+Quantities are those of ``soc-opt compare``: ``final_cost`` (mean true total cost of the final
+policy on ``eval_samples`` fresh rollouts, evaluation seed ``10000 + seed``), ``state_spread``,
+``action_spread``, the task metrics of those rollouts (``metric_*``) and ``best_cost`` (the best
+mean sampled cost of the run).  Standard deviations are over seeds with ``ddof = 0`` (as in
+``soc-opt compare``).
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .report import COLORS, LABELS  # noqa: E402
+from .sweep import RESULT, SweepSpec, describe, read_json, setting_table  # noqa: E402
+
+__all__ = ["write_report", "aggregate", "QUANTITIES"]
+
+QUANTITIES = ("final_cost", "state_spread", "action_spread", "best_cost")
+
+
+def _flat_result(res: dict) -> dict:
+    row = {q: res.get(q) for q in QUANTITIES}
+    row.update({f"metric_{k}": v for k, v in (res.get("metrics") or {}).items()})
+    return row
+
+
+def aggregate(spec: SweepSpec, results: dict[str, dict]) -> list[dict]:
+    """One row per (task, setting, method): seeds done/failed, mean and std of each quantity.
+
+    ``results[trial_id]`` is the trial's ``result.json`` (finished trials only).
+    """
+    rows = []
+    for task in spec.tasks:
+        for s in spec.settings:
+            for m in spec.methods:
+                trials = [t for t in spec.trials if (t.task_label, t.setting, t.method) == (task, s.name, m)]
+                done = [_flat_result(results[t.id]) for t in trials if t.id in results]
+                row = {"task": task, "setting": s.name, "method": m, "seeds_done": len(done),
+                       "seeds_failed": len(trials) - len(done)}
+                keys = list(dict.fromkeys(k for r in done for k in r))
+                for k in keys:
+                    vals = np.array([r[k] for r in done if r.get(k) is not None], float)
+                    row[f"{k}_mean"] = float(vals.mean()) if vals.size else float("nan")
+                    row[f"{k}_std"] = float(vals.std()) if vals.size else float("nan")
+                rows.append(row)
+    return rows
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+
+
+def _fmt(x) -> str:
+    if x is None or (isinstance(x, float) and not np.isfinite(x)):
+        return "—"
+    return f"{x:.4g}"
+
+
+def _quantity_keys(rows: list[dict]) -> list[str]:
+    keys = [k[: -len("_mean")] for r in rows for k in r if k.endswith("_mean")]
+    return list(dict.fromkeys(keys))
+
+
+def _plot_final(task: str, spec: SweepSpec, rows: list[dict], path: Path) -> Path | None:
+    keys = [k for k in _quantity_keys(rows) if k == "final_cost" or k.startswith("metric_")]
+    if not keys:
+        return None
+    settings = [s.name for s in spec.settings]
+    fig, axes = plt.subplots(len(keys), 1, figsize=(max(6.0, 1.2 * len(settings) + 3), 3.2 * len(keys)),
+                             squeeze=False)
+    width = 0.8 / len(spec.methods)
+    x = np.arange(len(settings))
+    for ax, key in zip(axes[:, 0], keys):
+        for j, m in enumerate(spec.methods):
+            by = {r["setting"]: r for r in rows if r["method"] == m}
+            mean = [by[s].get(f"{key}_mean", np.nan) for s in settings]
+            std = [by[s].get(f"{key}_std", np.nan) for s in settings]
+            ax.bar(x + (j - (len(spec.methods) - 1) / 2) * width, mean, width * 0.9, yerr=std, capsize=3,
+                   color=COLORS.get(m, "gray"), alpha=0.7, label=LABELS.get(m, m))
+        ax.set_xticks(x, settings, rotation=20 if len(settings) > 3 else 0, ha="right" if len(settings) > 3 else "center")
+        ax.set_ylabel(key.replace("metric_", ""))
+        ax.grid(alpha=0.3, axis="y")
+    axes[0, 0].legend(fontsize=8, loc="lower right")
+    axes[0, 0].set_title(f"{task}: final policies, mean ± std over seeds")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _plot_costs(task: str, spec: SweepSpec, results: dict[str, dict], path: Path) -> Path | None:
+    settings = [s.name for s in spec.settings]
+    ncol = min(3, len(settings))
+    nrow = -(-len(settings) // ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.5 * ncol, 3.3 * nrow), squeeze=False)
+    drawn = False
+    for ax, s in zip(axes.ravel(), settings):
+        for m in spec.methods:
+            curves = [results[t.id]["cost_per_iteration"] for t in spec.trials
+                      if (t.task_label, t.setting, t.method) == (task, s, m) and t.id in results]
+            if not curves:
+                continue
+            n = min(len(c) for c in curves)
+            c = np.array([cv[:n] for cv in curves], float)
+            it = np.arange(1, n + 1)
+            ax.plot(it, c.mean(0), "o-", ms=3, color=COLORS.get(m, "gray"), label=LABELS.get(m, m))
+            ax.fill_between(it, c.mean(0) - c.std(0), c.mean(0) + c.std(0), color=COLORS.get(m, "gray"), alpha=0.2)
+            drawn = True
+        ax.set_title(s, fontsize=9)
+        ax.set_xlabel("iteration")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.grid(alpha=0.3)
+    for ax in axes.ravel()[len(settings):]:
+        ax.set_visible(False)
+    if not drawn:
+        plt.close(fig)
+        return None
+    axes[0, 0].set_ylabel("mean sampled cost")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"{task}: cost per iteration, mean ± std over seeds")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_report(spec: SweepSpec, out: str | Path, status: dict[str, dict]) -> Path:
+    """Write the tables and figures (module docstring) under ``out``; return ``report.md``."""
+    out = Path(out)
+    results = {}
+    trial_rows = []
+    for t in spec.trials:
+        st = status.get(t.id, {})
+        res = read_json(out / t.relpath / RESULT) if st.get("state") == "done" else None
+        if res:
+            results[t.id] = res
+        trial_rows.append({"task": t.task_label, "setting": t.setting, "method": t.method, "seed": t.seed,
+                           "state": st.get("state", "pending"), **(_flat_result(res) if res else {}),
+                           "iterations": res.get("iterations") if res else None,
+                           "wall_time": res.get("wall_time") if res else None,
+                           "attempt": res.get("attempt") if res else None,
+                           "error": st.get("error", ""), "dir": str(t.relpath)})
+    _write_csv(out / "trials.csv", trial_rows)
+    rows = aggregate(spec, results)
+    _write_csv(out / "summary.csv", rows)
+    lines = [f"# Sweep {spec.name}", "", "## Setup", "",
+             f"- **sweep file**: {spec.source or '(in memory)'}",
+             f"- **grid**: {describe(spec)}",
+             f"- **tasks**: {', '.join(spec.tasks)}; **methods**: {', '.join(spec.methods)}; "
+             f"**seeds**: {', '.join(map(str, spec.seeds))}",
+             f"- **trials**: {sum(1 for r in trial_rows if r['state'] == 'done')} done, "
+             f"{sum(1 for r in trial_rows if r['state'] == 'failed')} failed, "
+             f"{sum(1 for r in trial_rows if r['state'] not in ('done', 'failed'))} not finished",
+             "", "## Settings", "", "| setting | overrides |", "|---|---|"]
+    lines += [f"| {name} | {desc} |" for name, desc in setting_table(spec)]
+    for task in spec.tasks:
+        trows = [r for r in rows if r["task"] == task]
+        keys = _quantity_keys(trows)
+        lines += ["", f"## {task}: final policies (mean ± std over seeds)", "",
+                  "| setting | method | seeds | " + " | ".join(keys) + " |", "|---|---|---|" + "---|" * len(keys)]
+        for r in trows:
+            seeds = f"{r['seeds_done']}" + (f" (+{r['seeds_failed']} failed)" if r["seeds_failed"] else "")
+            cells = [f"{_fmt(r.get(k + '_mean'))} ± {_fmt(r.get(k + '_std'))}" for k in keys]
+            lines.append(f"| {r['setting']} | {r['method']} | {seeds} | " + " | ".join(cells) + " |")
+        for fig in (_plot_final(task, spec, trows, out / f"final_{task}.png"),
+                    _plot_costs(task, spec, results, out / f"cost_{task}.png")):
+            if fig is not None:
+                lines += ["", f"![{fig.stem}]({fig.name})"]
+    failed = [r for r in trial_rows if r["state"] == "failed"]
+    if failed:
+        lines += ["", "## Failed trials", "", "| trial | error | traceback |", "|---|---|---|"]
+        lines += [f"| {r['dir']} | {r['error'].replace('|', '/')} | {r['dir']}/error.txt |" for r in failed]
+    lines += ["", "Per-trial rows: `trials.csv`; aggregated rows: `summary.csv`; trial states: `status.json`.", ""]
+    path = out / "report.md"
+    path.write_text("\n".join(lines))
+    return path

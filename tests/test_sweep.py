@@ -1,0 +1,294 @@
+"""Tests for soc_opt/sweep.py, soc_opt/sweep_runner.py and soc_opt/sweep_report.py.
+
+Oracles: the grid is compared with ``itertools.product`` of its axes; each trial's files with an
+ordinary ``run_experiment`` run in this process; interrupted sweeps with an uninterrupted one;
+the aggregated means and standard deviations with numpy on the per-trial results.
+"""
+
+import csv
+import io
+import itertools
+import json
+import logging
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from soc_opt.algorithms import IterationRecord, RunState
+from soc_opt.cli import main
+from soc_opt.experiment import run_experiment
+from soc_opt.linalg import single_thread_blas
+from soc_opt.sweep import TrialDiverged, check_finite, load_sweep, sweep_from_dict
+from soc_opt.sweep_runner import ProgressBoard, run_sweep
+from soc_opt.tasks import BUILTIN_TASKS, load_task
+from soc_opt.tasks.loading import problems_dir
+
+SMALL = {
+    "name": "small",
+    "tasks": ["linear2d"],
+    "methods": ["lqr-flm", "dpsoc-em"],
+    "seeds": [0, 1],
+    "common": {"i_switch": 1, "baseline": {"iterations": 3, "samples": 5}, "task": {"T": 15}},
+}
+
+
+def _quiet_board(n):
+    return ProgressBoard(n, stream=io.StringIO(), live=False)
+
+
+# --------------------------------------------------------------------------- grid expansion
+
+
+def test_grid_is_the_product_of_tasks_settings_methods_and_seeds(tmp_path):
+    own = tmp_path / "mytask.toml"
+    src = (problems_dir() / BUILTIN_TASKS["linear2d"]).read_text()
+    own.write_text(src.replace('name = "linear2d"', 'name = "mytask"'))
+    data = {
+        "tasks": ["linear2d", "mytask.toml"],
+        "methods": ["lqr-flm", "dpsoc-em"],
+        "seeds": 3,
+        "common": {"i_switch": 1, "baseline": {"iterations": 3, "samples": 5}},
+        "grid": {"task": {"rho2": [0.1, 0.01]}, "em": {"y_mode": ["model", "measured"]}},
+    }
+    spec = sweep_from_dict(data, base_dir=tmp_path, source="s.toml")
+    settings = [f"rho2={r},y_mode={y}" for r, y in itertools.product(["0.1", "0.01"], ["model", "measured"])]
+    expected = list(itertools.product(["linear2d", "mytask"], settings, ["lqr-flm", "dpsoc-em"], [0, 1, 2]))
+    assert [(t.task_label, t.setting, t.method, t.seed) for t in spec.trials] == expected
+    assert len({t.relpath for t in spec.trials}) == 48
+    for t in spec.trials:
+        rho2, y_mode = t.setting.split(",")
+        assert t.task_overrides == {"rho2": float(rho2.split("=")[1])}
+        assert t.config.em.y_mode == y_mode.split("=")[1]
+        assert (t.config.baseline.iterations, t.config.baseline.samples, t.config.i_switch) == (3, 5, 1)
+        # precedence: the task's default algorithm file (problems/experiments/linear2d.toml sets
+        # init_var = 10) below [common]; a task without a default file gets the class defaults
+        assert t.config.baseline.init_var == (10.0 if t.task_label == "linear2d" else 1.0)
+        assert t.eval_samples == 5
+    assert spec.trials[-1].task.endswith("mytask.toml") and os.path.isabs(spec.trials[-1].task)
+
+
+def test_settings_entries_cross_the_grid_and_may_not_repeat_its_keys():
+    data = dict(SMALL, settings=[{"name": "a", "em": {"n_em": 2}}, {"name": "b"}],
+                grid={"task": {"rho2": [0.1, 0.01]}})
+    spec = sweep_from_dict(data)
+    assert [s.name for s in spec.settings] == ["a,rho2=0.1", "a,rho2=0.01", "b,rho2=0.1", "b,rho2=0.01"]
+    n_em = {t.setting: t.config.em.n_em for t in spec.trials}
+    assert n_em == {"a,rho2=0.1": 2, "a,rho2=0.01": 2, "b,rho2=0.1": 1, "b,rho2=0.01": 1}
+    # [common] and the setting's task tables are merged (T from common, rho2 from the grid)
+    assert {tuple(sorted(t.task_overrides.items())) for t in spec.trials} == {(("T", 15), ("rho2", 0.1)),
+                                                                               (("T", 15), ("rho2", 0.01))}
+    bad = dict(SMALL, settings=[{"name": "a", "task": {"rho2": 0.5}}], grid={"task": {"rho2": [0.1]}})
+    with pytest.raises(ValueError, match="task.rho2"):
+        sweep_from_dict(bad)
+
+
+def test_baseline_trials_clamp_the_unused_switch_point_and_dpsoc_trials_reject_it():
+    data = dict(SMALL, common={"baseline": {"iterations": 2}})  # default i_switch is 4
+    spec = sweep_from_dict(dict(data, methods=["lqr-flm"]))
+    assert {t.config.i_switch for t in spec.trials} == {1}
+    with pytest.raises(ValueError, match="i_switch"):
+        sweep_from_dict(data)
+
+
+@pytest.mark.parametrize("text, named", [
+    ('seed = [0]\n', "'seed'"),
+    ('[grid]\nem.y_mod = ["model"]\n', "y_mod"),
+    ('[common.baseline]\niteratons = 3\n', "iteratons"),
+    ('[common.task]\nrhoo = 0.1\n', "rhoo"),
+    ('[[settings]]\nname = "x"\nbaseline = { fit = { priorr = "none" } }\n', "priorr"),
+    ('[grid]\ntask.rho2 = 0.1\n', "grid.task.rho2"),
+    ('[common]\nem = { n_em = "two" }\n', "em.n_em"),
+    ('[common]\niterations = 3\n', "'iterations'"),
+])
+def test_sweep_file_with_an_unknown_key_is_rejected_before_any_trial_starts(tmp_path, capsys, text, named):
+    f = tmp_path / "bad.toml"
+    f.write_text('tasks = ["linear2d"]\nmethods = ["lqr-flm"]\nseeds = [0]\n' + text)
+    out = tmp_path / "out"
+    assert main(["sweep", str(f), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert named in err and "bad.toml" in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("tasks, methods, named", [
+    ('["linear2d", "linear3d"]', '["lqr-flm"]', "linear3d"),
+    ('["linear2d"]', '["lqr-flm", "ilqg"]', "ilqg"),
+])
+def test_sweep_file_with_an_unknown_task_or_method_is_rejected_naming_it(tmp_path, capsys, tasks, methods, named):
+    f = tmp_path / "bad.toml"
+    f.write_text(f"tasks = {tasks}\nmethods = {methods}\nseeds = 2\n")
+    out = tmp_path / "out"
+    assert main(["sweep", str(f), "--out", str(out)]) == 2
+    assert named in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_the_example_sweep_file_is_valid():
+    spec = load_sweep(os.path.join(os.path.dirname(__file__), "..", "problems", "sweeps", "linear2d_small.toml"))
+    assert len(spec.trials) == len(spec.settings) * 2 * 2 and spec.name == "linear2d_small"
+
+
+def test_non_finite_sampled_cost_is_a_diverging_trial():
+    def state(cost):
+        rec = IterationRecord(iteration=2, phase="baseline", cost=np.array(cost), cost_measured=np.array(cost),
+                              kl=0.0, nu=0.0, mult=1.0, metrics={}, timings={})
+        return RunState(iteration=3, policy=None, mult=1.0, prior=None, rng_state={}, history=(rec,))
+
+    check_finite(state([1.0, 2.0]))
+    with pytest.raises(TrialDiverged, match="iteration 3"):
+        check_finite(state([1.0, np.inf]))
+    with pytest.raises(TrialDiverged):
+        check_finite(state([np.nan, 1.0]))
+
+
+# --------------------------------------------------------------------------- on a local Ray
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def reference(local_ray, tmp_path_factory):
+    """The small sweep, uninterrupted."""
+    out = tmp_path_factory.mktemp("sweep") / "ref"
+    spec = sweep_from_dict(SMALL)
+    stream = io.StringIO()
+    res = run_sweep(spec, out, board=ProgressBoard(len(spec.trials), stream=stream, live=False))
+    return spec, out, res, stream.getvalue()
+
+
+def _metrics(path):
+    with open(path / "metrics.csv") as f:
+        return [{k: v for k, v in row.items() if not k.startswith("time_")} for row in csv.DictReader(f)]
+
+
+def _same_metrics(spec, out_a, out_b):
+    for t in spec.trials:
+        a, b = _metrics(out_a / t.relpath), _metrics(out_b / t.relpath)
+        assert a == b, t.id
+        ra = json.loads((out_a / t.relpath / "result.json").read_text())
+        rb = json.loads((out_b / t.relpath / "result.json").read_text())
+        assert (ra["final_cost"], ra["metrics"]) == (rb["final_cost"], rb["metrics"]), t.id
+
+
+def test_small_sweep_trials_are_ordinary_runs_of_each_method(reference, tmp_path):
+    spec, out, res, log = reference
+    assert res["counts"] == {"pending": 0, "running": 0, "done": 4, "failed": 0}
+    status = json.loads((out / "status.json").read_text())
+    assert {v["state"] for v in status["trials"].values()} == {"done"}
+    for t in spec.trials:
+        assert f"[done] {t.id}" in log
+        task = load_task(t.task, overrides=t.task_overrides)
+        with single_thread_blas():
+            run_experiment(task, t.method, t.config, t.seed, tmp_path / t.id)
+        assert _metrics(out / t.relpath) == _metrics(tmp_path / t.id), t.id
+        assert json.loads((out / t.relpath / "config.json").read_text()) == json.loads(
+            (tmp_path / t.id / "config.json").read_text())
+    assert "4/4 finished" in log
+
+
+def test_sweep_report_holds_mean_and_std_over_seeds(reference):
+    spec, out, res, _ = reference
+    for name in ("report.md", "summary.csv", "trials.csv", "final_linear2d.png", "cost_linear2d.png"):
+        assert (out / name).stat().st_size > 0, name
+    with open(out / "summary.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["setting"], r["method"]) for r in rows] == [("default", "lqr-flm"), ("default", "dpsoc-em")]
+    for r in rows:
+        vals = [json.loads((out / t.relpath / "result.json").read_text())["final_cost"]
+                for t in spec.trials if t.method == r["method"]]
+        assert len(vals) == 2 == int(r["seeds_done"])
+        assert float(r["final_cost_mean"]) == pytest.approx(np.mean(vals), rel=1e-12)
+        assert float(r["final_cost_std"]) == pytest.approx(np.std(vals), rel=1e-12)
+    md = (out / "report.md").read_text()
+    assert "| default | dpsoc-em | 2 |" in md and "final_linear2d.png" in md
+
+
+def test_rerunning_a_finished_sweep_skips_every_trial(reference):
+    spec, out, _, _ = reference
+    before = {t.id: (out / t.relpath / "result.json").stat().st_mtime_ns for t in spec.trials}
+    stream = io.StringIO()
+    res = run_sweep(spec, out, board=ProgressBoard(len(spec.trials), stream=stream, live=False))
+    assert res["counts"]["done"] == 4
+    assert {t.id: (out / t.relpath / "result.json").stat().st_mtime_ns for t in spec.trials} == before
+    assert "finished earlier" in stream.getvalue()
+
+
+def test_failed_trial_is_recorded_and_the_sweep_goes_on(local_ray, tmp_path):
+    # init_var = 1e300: the first rollouts explode and the KL step cannot reach its budget
+    data = dict(SMALL, methods=["lqr-flm"], seeds=[0],
+                settings=[{"name": "ok"}, {"name": "wild", "baseline": {"init_var": 1e300}}])
+    spec = sweep_from_dict(data)
+    res = run_sweep(spec, tmp_path, board=_quiet_board(2))
+    states = {tid: v["state"] for tid, v in res["status"].items()}
+    assert states == {"linear2d/ok/lqr-flm/seed_0": "done", "linear2d/wild/lqr-flm/seed_0": "failed"}
+    err = res["status"]["linear2d/wild/lqr-flm/seed_0"]["error"]
+    assert "SolverError" in err
+    assert "Traceback" in (tmp_path / "trials/linear2d/wild/lqr-flm/seed_0/error.txt").read_text()
+    assert "## Failed trials" in (tmp_path / "report.md").read_text()
+
+
+def _killer(target, marker):
+    def hook(trial_id, state, trial_dir):
+        if trial_id == target and state.iteration == 2 and not os.path.exists(marker):
+            with open(marker + ".tmp", "w") as f:
+                f.write(str(os.getpid()))
+            os.replace(marker + ".tmp", marker)
+            time.sleep(120)  # the test kills this worker process here
+    return hook
+
+
+def _kill_when_marked(marker, killed):
+    t0 = time.time()
+    while not os.path.exists(marker):
+        if time.time() - t0 > 120:
+            return
+        time.sleep(0.05)
+    os.kill(int(open(marker).read()), signal.SIGKILL)
+    killed.append(True)
+
+
+def _sweep_with_a_kill(spec, out, target, max_retries):
+    marker = str(out) + ".pid"
+    killed = []
+    watcher = threading.Thread(target=_kill_when_marked, args=(marker, killed), daemon=True)
+    watcher.start()
+    res = run_sweep(spec, out, max_retries=max_retries, on_iteration=_killer(target, marker),
+                    board=_quiet_board(len(spec.trials)))
+    watcher.join(timeout=5)
+    assert killed == [True]
+    return res
+
+
+def test_worker_killed_mid_trial_is_retried_from_its_checkpoint(reference, tmp_path):
+    spec, ref_out, _, _ = reference
+    target = "linear2d/default/dpsoc-em/seed_1"
+    res = _sweep_with_a_kill(spec, tmp_path / "k", target, max_retries=3)
+    assert res["counts"]["done"] == 4
+    result = json.loads((tmp_path / "k" / spec.trials[3].relpath / "result.json").read_text())
+    assert spec.trials[3].id == target
+    assert (result["attempt"], result["resumed_from"]) == (2, 2)
+    _same_metrics(spec, ref_out, tmp_path / "k")
+
+
+def test_worker_killed_past_its_retries_fails_and_a_rerun_resumes_it(reference, tmp_path):
+    spec, ref_out, _, _ = reference
+    target = "linear2d/default/lqr-flm/seed_0"
+    res = _sweep_with_a_kill(spec, tmp_path / "k", target, max_retries=0)
+    assert res["status"][target]["state"] == "failed" and res["counts"]["done"] == 3
+    assert (tmp_path / "k" / spec.trials[0].relpath / "error.txt").exists()
+    res = run_sweep(spec, tmp_path / "k", board=_quiet_board(len(spec.trials)))
+    assert res["counts"]["done"] == 4
+    result = json.loads((tmp_path / "k" / spec.trials[0].relpath / "result.json").read_text())
+    assert result["resumed_from"] == 2
+    _same_metrics(spec, ref_out, tmp_path / "k")
