@@ -304,7 +304,7 @@ class TaskBase:
         return gains, filtered
 
 
-def _rng(rng) -> np.random.Generator:
+def as_rng(rng) -> np.random.Generator:
     """``rng`` itself if it is a Generator, else ``default_rng(rng)`` (a seed, ``None`` or a SeedSequence).
 
     Not :func:`soc_opt.linalg.as_generator`, which rejects seeds: ``Task.rollouts`` accepts them.

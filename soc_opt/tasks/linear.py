@@ -9,7 +9,7 @@ import scipy.linalg
 
 from ..config import ConfigError
 from ..models import LinearGaussianDynamics, Rollouts
-from .base import RolloutNoise, TaskBase, _rng
+from .base import RolloutNoise, TaskBase, as_rng
 from .config import TaskConfig
 
 __all__ = ["LinearTask", "LinearSimulator"]
@@ -81,7 +81,7 @@ class LinearTask(TaskBase):
         same as for a plain policy.
         """
         policy, filtered = self._check_policy(policy)
-        rng = _rng(rng)
+        rng = as_rng(rng)
         T, n, m = self.T, self.n, self.m
         if noise:
             draws = self.draw_noise(M, rng)

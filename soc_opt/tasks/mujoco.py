@@ -30,7 +30,7 @@ import numpy as np
 from ..config import ConfigError
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
 from . import linearize as _linearize
-from .base import SimulationError, TaskBase, _rng
+from .base import SimulationError, TaskBase, as_rng
 from .config import StateConfig, TaskConfig
 
 __all__ = ["MujocoTask", "MujocoSimulator"]
@@ -399,7 +399,7 @@ class MujocoTask(TaskBase):
         (SPEC §10.2); the draws are the same as for a plain policy.
         """
         policy, filtered = self._check_policy(policy)
-        rng = _rng(rng)
+        rng = as_rng(rng)
         M = int(M)
         T, n, m = self.T, self.n, self.m
         if noise:
