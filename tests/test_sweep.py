@@ -163,6 +163,13 @@ def test_the_example_sweep_file_is_valid():
     assert len(spec.trials) == len(spec.settings) * 2 * 2 and spec.name == "linear2d_small"
 
 
+def test_the_paper_scale_peg_sweep_has_the_trials_of_the_paper_comparison():
+    spec = load_sweep(os.path.join(os.path.dirname(__file__), "..", "problems", "sweeps", "peg_paper.toml"))
+    assert [(t.method, t.seed) for t in spec.trials] == [(m, s) for m in ("lqr-flm", "dpsoc-em") for s in range(5)]
+    for t in spec.trials:
+        assert (t.config.baseline.iterations, t.config.baseline.samples, t.config.i_switch) == (14, 20, 4)
+
+
 @pytest.mark.parametrize("task", ["peg", "door"])
 def test_the_noise_sweep_files_cross_both_variants_with_four_noise_levels(task):
     spec = load_sweep(os.path.join(os.path.dirname(__file__), "..", "problems", "sweeps", f"noise_{task}.toml"))
