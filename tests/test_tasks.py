@@ -186,7 +186,7 @@ def test_door_can_be_hooked_and_pulled_open(door):
     mujoco.mj_fullM(m, d, Mf)
     Md = np.diag(Mf)[door.dof_adr[:6]]
     Kp, Kd = 64.0 * Md, 2 * 0.8 * 8.0 * Md
-    gear = m.actuator_gear[door._act, 0]  # the PD torques in action units (torque = gear * action)
+    gear = m.actuator_gear[door.actuator_ids, 0]  # the PD torques in action units (torque = gear * action)
     K = np.zeros((T, 6, door.n))
     j = np.arange(6)
     K[:, j, j] = -Kp / gear
