@@ -18,6 +18,11 @@ DPSOC-EM replaces the reference at iteration ``i_switch`` by the EM policy:
 ``n_em`` recursions of {sample, fit augmented model, generate ``Y``, E-step,
 DP M-step}; the LQG step of that iteration then uses the EM policy as its KL
 reference and as the sampling policy (paper eq. constrainObjective).
+
+Noise-aware variants (SPEC §10, ``[baseline.noise]``, :mod:`soc_opt.noise_aware`): a
+bias-corrected fit in step 2, and with ``estimator = "kalman"`` policies that act on a Kalman
+filter estimate (:class:`~soc_opt.estimator.FilteredPolicy`), steps 4–5 and the EM phase on the
+innovation form.  The defaults are the paper's methods.
 """
 
 from __future__ import annotations
@@ -29,10 +34,12 @@ from typing import TYPE_CHECKING, Callable, Literal, NamedTuple
 
 import numpy as np
 
-from . import estep, fit, lqg, mstep
+from . import estep, fit, lqg, mstep, noise_aware
 from .config import Config, ConfigError
+from .estimator import FilteredPolicy
 from .ilqg import ILQGConfig, ilqg
 from .models import LinearGaussianPolicy, Rollouts
+from .noise_aware import NoiseConfig
 
 if TYPE_CHECKING:
     from .tasks import Task
@@ -105,6 +112,8 @@ class LQRFLMConfig(Config):
     fit:         dynamics-fitting configuration (SPEC §2).
     kl:          KL-step solver and step-adaptation configuration (SPEC §6), the loop's
                  :class:`LoopKLStepConfig` (dual solved to ``kl_rtol = 1e-6``).
+    noise:       noise-aware variants (SPEC §10: corrected fit, estimator in the loop); the
+                 defaults are the paper's method (:class:`soc_opt.noise_aware.NoiseConfig`).
     """
 
     iterations: int = PAPER.iterations
@@ -117,6 +126,7 @@ class LQRFLMConfig(Config):
     workers: int = 1
     fit: fit.FitConfig = field(default_factory=fit.FitConfig)
     kl: LoopKLStepConfig = field(default_factory=LoopKLStepConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
 
     def __post_init__(self):
         if self.iterations < 1:
@@ -254,15 +264,16 @@ class BestPolicy(NamedTuple):
     """The best policy sampled so far in a run."""
 
     mean_cost: float  # mean true-state total cost of its samples
-    policy: LinearGaussianPolicy
+    policy: LinearGaussianPolicy | FilteredPolicy
     iteration: int  # the (0-based) iteration in which it was sampled
 
 
 class PreviousStep(NamedTuple):
     """The previous KL step, for the step-size adaptation (SPEC §6)."""
 
-    model: lqg.LocalModel  # fitted dynamics, cost expansion and initial distribution
-    reference: LinearGaussianPolicy  # the KL reference of that step
+    model: lqg.LocalModel  # fitted dynamics, cost expansion and initial distribution (innovation form
+    #                        with the estimator)
+    reference: LinearGaussianPolicy  # the KL reference of that step (its gains, on xhat with the estimator)
 
 
 @dataclass(frozen=True)
@@ -334,7 +345,7 @@ class RunState:
     """Everything needed to continue a run (checkpointed after each iteration).
 
     iteration:     number of finished baseline iterations.
-    policy:        the current policy ``p_i`` (sampled next).
+    policy:        the current policy ``p_i`` (sampled next); a FilteredPolicy with the estimator.
     mult:          KL budget multiplier (step-size adaptation).
     prior:         mixture prior of the dynamics fit, or None.
     rng_state:     ``numpy`` bit-generator state (JSON-able dict).
@@ -346,7 +357,7 @@ class RunState:
     """
 
     iteration: int
-    policy: LinearGaussianPolicy
+    policy: LinearGaussianPolicy | FilteredPolicy
     mult: float
     prior: fit.MixturePrior | None
     rng_state: dict
@@ -413,8 +424,26 @@ def _record(iteration, phase, task, rollouts, *, kl=0.0, nu=0.0, mult=1.0, timin
     )
 
 
+def _local_model(task: Task, cfg: LQRFLMConfig, dyn, cost, iteration: int):
+    """The KL step's model and the new policy's filter: the fit as is (the paper), or its
+    innovation form with the filter of ``dyn`` (``noise.estimator = "kalman"``, SPEC §10.2)."""
+    if cfg.noise.estimator == "none":
+        mu0, P0 = _initial_distribution(task)
+        return lqg.LocalModel(dyn, cost, mu0, P0), None
+    kf = noise_aware.loop_filter(dyn, noise_aware.noise_model(task), cfg.noise, f" (iteration {iteration})")
+    return noise_aware.innovation_local_model(kf, cost), kf
+
+
+def _fit_dynamics(task: Task, cfg: LQRFLMConfig, rollouts: Rollouts, prior, sampler):
+    """Step 2: the paper's fit, or the noise-aware one (``noise.fit_correction``, SPEC §10.1)."""
+    if cfg.noise.fit_correction == "none":
+        return fit.fit_dynamics(rollouts, cfg.fit, prior)
+    return noise_aware.fit_local(rollouts, cfg.fit, prior, cfg.noise, noise_aware.noise_model(task), sampler)
+
+
 def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
-                      reference: LinearGaussianPolicy | None = None, phase: str = "baseline") -> RunState:
+                      reference: LinearGaussianPolicy | FilteredPolicy | None = None,
+                      phase: str = "baseline") -> RunState:
     """One LQR-FLM iteration (module docstring, steps 1–5). Pure: returns a new state."""
     rng = _rng(state)
     timings = {}
@@ -424,24 +453,24 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
 
     t0 = time.perf_counter()
     prior = fit.update_prior(state.prior, rollouts, cfg.fit, rng) if cfg.fit.prior == "mixture" else None
-    dyn = fit.fit_dynamics(rollouts, cfg.fit, prior)
+    dyn = _fit_dynamics(task, cfg, rollouts, prior, state.policy)
     timings["fit"] = time.perf_counter() - t0
 
-    mu0, P0 = _initial_distribution(task)
     s_bar = rollouts.s.mean(axis=0)
     a_bar = rollouts.a.mean(axis=0)
     cost = task.cost_expansion(s_bar, a_bar)
-    ref = state.policy if reference is None else reference
+    local, kf = _local_model(task, cfg, dyn, cost, state.iteration)
+    ref = noise_aware.gains(state.policy if reference is None else reference)
 
     mult = state.mult
     if cfg.adapt_step and state.prev is not None:
-        predicted, actual = lqg.laplace_improvements(state.prev.reference, state.policy, state.prev.model,
-                                                     lqg.LocalModel(dyn, cost, mu0, P0))
+        predicted, actual = lqg.laplace_improvements(state.prev.reference, noise_aware.gains(state.policy),
+                                                     state.prev.model, local)
         mult = lqg.adapt_step(mult, predicted, actual, cfg.kl)
 
     t0 = time.perf_counter()
     nu = _budget(cfg, task.T, mult)
-    res = lqg.kl_step(dyn, cost, ref, nu, mu0, P0, method=cfg.kl_method, config=cfg.kl)
+    res = lqg.kl_step(local.dynamics, local.cost, ref, nu, local.mu0, local.P0, method=cfg.kl_method, config=cfg.kl)
     timings["lqg"] = time.perf_counter() - t0
 
     record = _record(
@@ -452,12 +481,12 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     return dataclasses.replace(
         state,
         iteration=state.iteration + 1,
-        policy=res.policy,
+        policy=res.policy if kf is None else FilteredPolicy(res.policy, kf),
         mult=mult,
         prior=prior,
         rng_state=rng.bit_generator.state,
         history=state.history + (record,),
-        prev=PreviousStep(lqg.LocalModel(dyn, cost, mu0, P0), ref),
+        prev=PreviousStep(local, ref),
         best=_improved(state.best, float(np.mean(record.cost)), state.policy, state.iteration),
         last_rollouts=rollouts,
     )
@@ -474,19 +503,41 @@ def _mstep_constraints(em: EMConfig, policy: LinearGaussianPolicy) -> mstep.MSte
     return cons
 
 
-def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy, rollouts: Rollouts,
+def _em_model(task: Task, cfg: DPSOCConfig, rollouts: Rollouts, prior, policy, recursion: int):
+    """The EM recursion's augmented model, initial distribution and filter (``None`` for the paper).
+
+    With ``noise.estimator = "kalman"`` the model is the augmented model in ``xhat``
+    (``docs/noise.md`` §6) and the EM policy acts on the filter of this fit.
+    """
+    base = cfg.baseline
+    if base.noise.paper:
+        model = fit.fit_augmented(rollouts, base.fit, prior)
+    else:
+        model = noise_aware.fit_local(rollouts, base.fit, prior, base.noise, noise_aware.noise_model(task), policy,
+                                      include_y=True)
+    if base.noise.estimator == "none":
+        mu0, P0 = _initial_distribution(task)
+        return model, mu0, P0, None
+    model, kf, mu0, P0 = noise_aware.filtered_em_model(model, noise_aware.noise_model(task), base.noise,
+                                                       f" (EM recursion {recursion})")
+    return model, mu0, P0, kf
+
+
+def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | FilteredPolicy, rollouts: Rollouts,
               prior: fit.MixturePrior | None, rng: np.random.Generator,
-              recursion: int = 0) -> tuple[LinearGaussianPolicy, EMDiagnostics]:
+              recursion: int = 0) -> tuple[LinearGaussianPolicy | FilteredPolicy, EMDiagnostics]:
     """One EM recursion (paper Algorithm 1): fit augmented model, generate ``Y``, E-step, DP M-step.
 
     ``rollouts`` are samples of ``policy``.  Returns the EM policy and the recursion's
-    :class:`EMDiagnostics` (surrogate and ``log p(Y)`` before/after, timings).
+    :class:`EMDiagnostics` (surrogate and ``log p(Y)`` before/after, timings).  With the
+    estimator (SPEC §10.2) the E-/M-step run on the augmented model in ``xhat``, ``policy``'s gains
+    read as acting on the new filter's estimate, and the EM policy is returned with that filter.
     """
     em = cfg.em
     t0 = time.perf_counter()
-    model = fit.fit_augmented(rollouts, cfg.baseline.fit, prior)
+    model, mu0, P0, kf = _em_model(task, cfg, rollouts, prior, policy, recursion)
     t_fit = time.perf_counter() - t0
-    mu0, P0 = _initial_distribution(task)
+    policy = noise_aware.gains(policy)
     Y = fit.cost_observations(em.y_mode, rollouts, model, policy, mu0, P0, rng, n_samples=em.y_samples)
 
     t0 = time.perf_counter()
@@ -510,7 +561,7 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy, rollou
         time_estep=t_estep,
         time_mstep=t_mstep,
     )
-    return new, diag
+    return (new if kf is None else FilteredPolicy(new, kf)), diag
 
 
 def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:

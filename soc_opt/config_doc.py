@@ -28,7 +28,8 @@ LIBRARY = (
 )
 
 
-def _resolve(path: str) -> type:
+def resolve_config_class(path: str) -> type:
+    """The class named by a dotted path such as ``"soc_opt.lqg.KLStepConfig"``."""
     module, _, name = path.rpartition(".")
     return getattr(importlib.import_module(module), name)
 
@@ -189,5 +190,5 @@ def render() -> str:
         where = f"`[{table}]`" if table else "top level of an algorithm TOML (`--config`)"
         sections.append(describe(cls, where))
     for path, where in LIBRARY:
-        sections.append(describe(_resolve(path), where))
+        sections.append(describe(resolve_config_class(path), where))
     return "\n".join(sections)

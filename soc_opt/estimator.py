@@ -316,6 +316,14 @@ class FilteredPolicy:
     def T(self) -> int:
         return self.policy.T
 
+    @property
+    def n(self) -> int:
+        return self.policy.n
+
+    @property
+    def m(self) -> int:
+        return self.policy.m
+
     def estimate(self, k: int, s_k, xhat_prev=None, a_prev=None) -> np.ndarray:
         """:func:`filter_step` with this policy's filter."""
         return filter_step(self.filter, k, s_k, xhat_prev, a_prev)
@@ -325,7 +333,21 @@ class FilteredPolicy:
         return self.policy.sample_action(k, xhat_k, rng)
 
     def to_dict(self) -> dict:
-        return {"policy": self.policy.to_dict(), "filter": self.filter.to_dict()}
+        """Flat arrays: the policy's ``K, k, cov`` and the filter's fields as ``filter_<name>``.
+
+        Flat so that ``numpy.savez(**d)`` stores plain arrays, and a reader that only knows
+        ``K, k, cov`` (a plain policy file) still finds them.
+        """
+        return {**self.policy.to_dict(), **{f"filter_{k}": v for k, v in self.filter.to_dict().items()}}
+
+    @staticmethod
+    def from_dict(d) -> "FilteredPolicy":
+        """Rebuild from :meth:`to_dict` output (or an ``npz`` file opened with ``numpy.load``)."""
+        cov = np.asarray(d["cov"], dtype=float)
+        singular = bool(cov.size) and bool(np.any(np.linalg.eigvalsh(cov)[..., 0] <= 0.0))
+        pol = LinearGaussianPolicy(d["K"], d["k"], cov, allow_singular=singular)
+        filt = KalmanFilter.from_dict({k: d[f"filter_{k}"] for k in ("A", "B", "c", "W", "R", "mu0", "P0")})
+        return FilteredPolicy(pol, filt)
 
 
 # --------------------------------------------------------------------------- innovation form

@@ -375,7 +375,7 @@ def _condition(mu: np.ndarray, Lam: np.ndarray, nz: int, min_eig: float):
     return Ao, co, So
 
 
-def _fit(rollouts, config, prior, include_y):
+def _fit(rollouts, config, prior, include_y, correct=None):
     rollouts = _check_rollouts(rollouts)
     if not isinstance(config, FitConfig):
         raise TypeError(f"config must be a FitConfig, got {type(config).__name__}")
@@ -392,29 +392,35 @@ def _fit(rollouts, config, prior, include_y):
     X = tuples(rollouts, include_y)
     with single_thread_blas():
         mu, Lam = joint_posterior(X, nz, config, use_prior, include_y)
+        if correct is not None:  # noise-aware fit (SPEC §10.1): moments of the true tuples
+            mu, Lam = correct(mu, Lam)
         return _condition(mu, Lam, nz, config.min_eig)
 
 
 def fit_augmented(
-    rollouts: Rollouts, config: FitConfig = FitConfig(), prior: MixturePrior | None = None
+    rollouts: Rollouts, config: FitConfig = FitConfig(), prior: MixturePrior | None = None, *, correct=None
 ) -> AugmentedModel:
     """Fit ``zeta_k = (s_{k+1}, y_k) | (s_k, a_k)`` per time step (SPEC §1, §2).
 
     Uses the NIW posterior built from ``prior`` when ``config.prior == "mixture"``
     and a prior is given; otherwise per-step regularised least squares.
+    ``correct(mu (T, d), Lam (T, d, d)) -> (mu, Lam)``, if given, maps the per-step joint
+    moments (after the ridge) before conditioning: the hook of the bias-corrected fit
+    (SPEC §10.1, :func:`soc_opt.noise_aware.moment_correction`).
     """
-    Ao, co, So = _fit(rollouts, config, prior, include_y=True)
+    Ao, co, So = _fit(rollouts, config, prior, include_y=True, correct=correct)
     return AugmentedModel(Ao, co, So, rollouts.n)
 
 
 def fit_dynamics(
-    rollouts: Rollouts, config: FitConfig = FitConfig(), prior: MixturePrior | None = None
+    rollouts: Rollouts, config: FitConfig = FitConfig(), prior: MixturePrior | None = None, *, correct=None
 ) -> LinearGaussianDynamics:
     """Fit ``s_{k+1} | (s_k, a_k) ~ N(A s + B a + c, W)`` per step (the ``y`` column dropped; SPEC §2, §6).
 
-    With a mixture prior, ``y`` is marginalised out of the mixture.
+    With a mixture prior, ``y`` is marginalised out of the mixture.  ``correct``: as in
+    :func:`fit_augmented`.
     """
-    Ao, co, So = _fit(rollouts, config, prior, include_y=False)
+    Ao, co, So = _fit(rollouts, config, prior, include_y=False, correct=correct)
     n = rollouts.n
     return LinearGaussianDynamics(Ao[:, :, :n], Ao[:, :, n:], co, So)
 

@@ -171,10 +171,14 @@ class Setting:
     name:      directory-safe label (``"default"`` when there are no settings).
     overrides: nested override table: algorithm keys (``i_switch``, ``baseline``, ``em``) and
                ``task`` (task config keys).
+    group:     the ``[[settings]]`` entry it comes from (its name, ``""`` without entries).
+    grid:      the grid values of this point, ``((label, value), ...)`` in grid order.
     """
 
     name: str
     overrides: dict
+    group: str = ""
+    grid: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -349,7 +353,9 @@ def _settings(data: dict) -> tuple[Setting, ...]:
                 merged = _merge(merged, _nest(path, value))
             parts = ([name or f"settings{i}"] if (name or len(explicit) > 1) else []) + [
                 f"{lab}={_fmt_value(v)}" for lab, v in zip(labels, combo)]
-            out.append(Setting(_safe_name(",".join(parts)) if parts else "default", merged))
+            out.append(Setting(_safe_name(",".join(parts)) if parts else "default", merged,
+                               group=name or (f"settings{i}" if len(explicit) > 1 else ""),
+                               grid=tuple(zip(labels, combo))))
     names = [s.name for s in out]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:

@@ -9,7 +9,10 @@ Written beside the trial directories in the sweep's output directory:
   trials, and the figures;
 - ``final_<task>.png``: final cost and task metrics per setting and method (bars: mean over seeds,
   error bars: std over seeds);
-- ``cost_<task>.png``: mean sampled cost per iteration, mean ± std over seeds, one panel per setting.
+- ``cost_<task>.png``: mean sampled cost per iteration, mean ± std over seeds, one panel per setting;
+- ``versus_<key>_<task>.png`` (when the grid has one key and its values are numbers, e.g.
+  ``task.rho2``): final cost and task metrics against that key, one line per ``[[settings]]``
+  entry and method (mean ± std over seeds).
 
 Quantities are those of ``soc-opt compare``: ``final_cost`` (mean true total cost of the final
 policy on ``eval_samples`` fresh rollouts, evaluation seed ``10000 + seed``), ``state_spread``,
@@ -33,7 +36,7 @@ import numpy as np  # noqa: E402
 from .report import COLORS, LABELS  # noqa: E402
 from .sweep import RESULT, SweepSpec, describe, read_json, setting_table  # noqa: E402
 
-__all__ = ["write_report", "aggregate", "QUANTITIES"]
+__all__ = ["write_report", "aggregate", "versus_key", "QUANTITIES"]
 
 QUANTITIES = ("final_cost", "state_spread", "action_spread", "best_cost")
 
@@ -148,6 +151,52 @@ def _plot_costs(task: str, spec: SweepSpec, results: dict[str, dict], path: Path
     return path
 
 
+def versus_key(spec: SweepSpec) -> str | None:
+    """The grid's single key when every setting has exactly one numeric grid value, else None."""
+    labels = {s.grid[0][0] for s in spec.settings if len(s.grid) == 1}
+    if len(labels) != 1 or any(len(s.grid) != 1 or isinstance(s.grid[0][1], bool)
+                               or not isinstance(s.grid[0][1], (int, float)) for s in spec.settings):
+        return None
+    return labels.pop()
+
+
+def _plot_versus(task: str, spec: SweepSpec, rows: list[dict], key: str, path: Path) -> Path | None:
+    qkeys = [k for k in _quantity_keys(rows) if k == "final_cost" or k.startswith("metric_")]
+    if not qkeys:
+        return None
+    groups = list(dict.fromkeys(s.group for s in spec.settings))
+    fig, axes = plt.subplots(len(qkeys), 1, figsize=(6.5, 3.0 * len(qkeys)), squeeze=False)
+    styles = ["o-", "s--", "^:", "d-."]
+    values = sorted({s.grid[0][1] for s in spec.settings})
+    for ax, q in zip(axes[:, 0], qkeys):
+        for gi, g in enumerate(groups):
+            for m in spec.methods:
+                pts = []
+                for s in spec.settings:
+                    r = next((r for r in rows if r["setting"] == s.name and r["method"] == m), None)
+                    if s.group == g and r is not None and r.get(f"{q}_mean") is not None:
+                        pts.append((s.grid[0][1], r[f"{q}_mean"], r.get(f"{q}_std", 0.0)))
+                if not pts:
+                    continue
+                x, mean, std = (np.array(v, float) for v in zip(*sorted(pts)))
+                label = LABELS.get(m, m) + (f" ({g})" if g else "")
+                ax.errorbar(x, mean, yerr=std, fmt=styles[gi % len(styles)], capsize=3, ms=4,
+                            color=COLORS.get(m, "gray"), label=label)
+        positive = [v for v in values if v > 0]
+        if positive and max(positive) / min(positive) >= 100:
+            ax.set_xscale("symlog", linthresh=min(positive)) if min(values) <= 0 else ax.set_xscale("log")
+        ax.set_xticks(values, [f"{v:g}" for v in values])
+        ax.set_xlabel(key)
+        ax.set_ylabel(q.replace("metric_", ""))
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    axes[0, 0].set_title(f"{task}: final policies against {key}, mean ± std over seeds")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def write_report(spec: SweepSpec, out: str | Path, status: dict[str, dict]) -> Path:
     """Write the tables and figures (module docstring) under ``out``; return ``report.md``."""
     out = Path(out)
@@ -186,8 +235,10 @@ def write_report(spec: SweepSpec, out: str | Path, status: dict[str, dict]) -> P
             seeds = f"{r['seeds_done']}" + (f" (+{r['seeds_failed']} failed)" if r["seeds_failed"] else "")
             cells = [f"{_fmt(r.get(k + '_mean'))} ± {_fmt(r.get(k + '_std'))}" for k in keys]
             lines.append(f"| {r['setting']} | {r['method']} | {seeds} | " + " | ".join(cells) + " |")
+        vkey = versus_key(spec)
         for fig in (_plot_final(task, spec, trows, out / f"final_{task}.png"),
-                    _plot_costs(task, spec, results, out / f"cost_{task}.png")):
+                    _plot_costs(task, spec, results, out / f"cost_{task}.png"),
+                    _plot_versus(task, spec, trows, vkey, out / f"versus_{vkey}_{task}.png") if vkey else None):
             if fig is not None:
                 lines += ["", f"![{fig.stem}]({fig.name})"]
     failed = [r for r in trial_rows if r["state"] == "failed"]

@@ -74,9 +74,9 @@ def test_invalid_toml_is_reported_with_the_file(tmp_path):
 
 def _run_configs():
     from soc_opt.algorithms import DPSOCConfig
-    from soc_opt.config_doc import LIBRARY, _resolve, config_tables
+    from soc_opt.config_doc import LIBRARY, resolve_config_class, config_tables
 
-    return [cls for _, cls in config_tables(DPSOCConfig)] + [_resolve(path) for path, _ in LIBRARY]
+    return [cls for _, cls in config_tables(DPSOCConfig)] + [resolve_config_class(path) for path, _ in LIBRARY]
 
 
 def test_every_config_field_is_documented_in_its_class_docstring():

@@ -86,6 +86,37 @@ def test_settings_entries_cross_the_grid_and_may_not_repeat_its_keys():
         sweep_from_dict(bad)
 
 
+def test_settings_record_their_entry_and_grid_values():
+    data = dict(SMALL, settings=[{"name": "a", "em": {"n_em": 2}}, {"name": "b"}],
+                grid={"task": {"rho2": [0.1, 0.01]}})
+    spec = sweep_from_dict(data)
+    assert [(s.group, s.grid) for s in spec.settings] == [
+        ("a", (("rho2", 0.1),)), ("a", (("rho2", 0.01),)), ("b", (("rho2", 0.1),)), ("b", (("rho2", 0.01),))]
+    assert [(s.group, s.grid) for s in sweep_from_dict(SMALL).settings] == [("", ())]
+
+
+def test_report_plots_quantities_against_a_single_numeric_grid_key(tmp_path):
+    from soc_opt.sweep import RESULT
+    from soc_opt.sweep_report import versus_key, write_report
+
+    data = dict(SMALL, settings=[{"name": "a"}, {"name": "b"}], grid={"task": {"rho2": [0.0, 0.01, 0.1]}})
+    spec = sweep_from_dict(data)
+    status = {}
+    for i, t in enumerate(spec.trials):
+        (tmp_path / t.relpath).mkdir(parents=True)
+        res = {"final_cost": float(i), "state_spread": 1.0, "action_spread": 1.0, "best_cost": float(i),
+               "metrics": {"final_distance": 0.1 * i}, "cost_per_iteration": [3.0, 2.0, float(i)]}
+        (tmp_path / t.relpath / RESULT).write_text(json.dumps(res))
+        status[t.id] = {"state": "done"}
+    assert versus_key(spec) == "rho2"
+    md = write_report(spec, tmp_path, status).read_text()
+    assert (tmp_path / "versus_rho2_linear2d.png").stat().st_size > 0
+    assert "versus_rho2_linear2d.png" in md
+    two_keys = dict(SMALL, grid={"task": {"rho2": [0.0, 0.1]}, "em": {"y_mode": ["model", "measured"]}})
+    assert versus_key(sweep_from_dict(two_keys)) is None
+    assert versus_key(sweep_from_dict(dict(SMALL, grid={"em": {"y_mode": ["model", "measured"]}}))) is None
+
+
 def test_baseline_trials_clamp_the_unused_switch_point_and_dpsoc_trials_reject_it():
     data = dict(SMALL, common={"baseline": {"iterations": 2}})  # default i_switch is 4
     spec = sweep_from_dict(dict(data, methods=["lqr-flm"]))
@@ -130,6 +161,25 @@ def test_sweep_file_with_an_unknown_task_or_method_is_rejected_naming_it(tmp_pat
 def test_the_example_sweep_file_is_valid():
     spec = load_sweep(os.path.join(os.path.dirname(__file__), "..", "problems", "sweeps", "linear2d_small.toml"))
     assert len(spec.trials) == len(spec.settings) * 2 * 2 and spec.name == "linear2d_small"
+
+
+def test_the_paper_scale_peg_sweep_has_the_trials_of_the_paper_comparison():
+    spec = load_sweep(os.path.join(os.path.dirname(__file__), "..", "problems", "sweeps", "peg_paper.toml"))
+    assert [(t.method, t.seed) for t in spec.trials] == [(m, s) for m in ("lqr-flm", "dpsoc-em") for s in range(5)]
+    for t in spec.trials:
+        assert (t.config.baseline.iterations, t.config.baseline.samples, t.config.i_switch) == (14, 20, 4)
+
+
+@pytest.mark.parametrize("task", ["peg", "door"])
+def test_the_noise_sweep_files_cross_both_variants_with_four_noise_levels(task):
+    spec = load_sweep(os.path.join(os.path.dirname(__file__), "..", "problems", "sweeps", f"noise_{task}.toml"))
+    assert len(spec.settings) == 8 and len(spec.trials) == 8 * 2 * 3
+    noise = {(s.group, s.grid[0][1]) for s in spec.settings}
+    assert noise == {(g, r) for g in ("paper", "noise-aware") for r in (0.0, 0.001, 0.01, 0.1)}
+    for t in spec.trials:
+        est = t.config.baseline.noise.estimator
+        assert est == ("kalman" if t.setting.startswith("noise-aware") else "none")
+        assert t.task_overrides["rho2"] in (0.0, 0.001, 0.01, 0.1) and t.config.baseline.iterations == 14
 
 
 def test_non_finite_sampled_cost_is_a_diverging_trial():

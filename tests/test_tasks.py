@@ -186,11 +186,12 @@ def test_door_can_be_hooked_and_pulled_open(door):
     mujoco.mj_fullM(m, d, Mf)
     Md = np.diag(Mf)[door.dof_adr[:6]]
     Kp, Kd = 64.0 * Md, 2 * 0.8 * 8.0 * Md
+    gear = m.actuator_gear[door.actuator_ids, 0]  # the PD torques in action units (torque = gear * action)
     K = np.zeros((T, 6, door.n))
     j = np.arange(6)
-    K[:, j, j] = -Kp
-    K[:, j, 6 + j] = -Kd
-    k = np.array([Kp * qs[sched[min(t, len(sched) - 1)]] for t in range(T)])
+    K[:, j, j] = -Kp / gear
+    K[:, j, 6 + j] = -Kd / gear
+    k = np.array([Kp * qs[sched[min(t, len(sched) - 1)]] / gear for t in range(T)])
     r = door.simulate(LinearGaussianPolicy(K, k, np.broadcast_to(np.eye(6), (T, 6, 6))))
     assert door.metrics(r)["min_hinge"] < -0.8
 

@@ -21,6 +21,7 @@ from ..costs import (
     StateCost,
     TorqueCost,
 )
+from ..estimator import FilteredPolicy
 from ..models import (
     LinearGaussianDynamics,
     LinearGaussianPolicy,
@@ -49,7 +50,8 @@ class RolloutNoise:
     """The random draws of ``M`` rollouts, in the order :meth:`TaskBase.draw_noise` takes them.
 
     eps: (M, T+1, n) measurement noise ``s_k - x_k`` (already scaled by ``sqrt(rho2)``).
-    w:   (M, T, m)   standard normal policy noise (``a_k = K_k s_k + k_k + L_k w_k``).
+    w:   (M, T, m)   standard normal policy noise (``a_k = K_k s_k + k_k + L_k w_k``; ``xhat_k``
+                     in place of ``s_k`` for a filtered policy, SPEC §10.2).
     xi:  (M, T, n)   process noise added to the transition (scaled), or ``None`` when the
                      task has none (MuJoCo tasks).
     """
@@ -284,14 +286,25 @@ class TaskBase:
         """One noise-free rollout of the policy mean (``eps = 0``, ``w = 0``) from ``x0`` (default ``x_0``)."""
         return self.rollouts(policy, 1, np.random.default_rng(0), noise=False, x0=x0)
 
-    def _check_policy(self, policy: LinearGaussianPolicy):
-        if (policy.T, policy.m, policy.n) != (self.T, self.m, self.n):
+    def _check_policy(self, policy) -> tuple[LinearGaussianPolicy, FilteredPolicy | None]:
+        """``(gains, filtered)`` of a rollout policy, checked against the task's ``(T, m, n)``.
+
+        A :class:`~soc_opt.estimator.FilteredPolicy` (SPEC §10.2) acts on the filter's estimate
+        ``xhat_k``, run online inside the rollout; ``gains`` is its linear-Gaussian part.  A plain
+        :class:`LinearGaussianPolicy` acts on the measured ``s_k`` (``filtered`` is ``None``).
+        """
+        filtered = policy if isinstance(policy, FilteredPolicy) else None
+        gains = policy.policy if filtered is not None else policy
+        if not isinstance(gains, LinearGaussianPolicy):
+            raise TypeError(f"policy must be a LinearGaussianPolicy or a FilteredPolicy, got {type(policy).__name__}")
+        if (gains.T, gains.m, gains.n) != (self.T, self.m, self.n):
             raise ShapeError(
-                f"policy has (T, m, n) = {(policy.T, policy.m, policy.n)}, task {self.name!r} needs {(self.T, self.m, self.n)}"
+                f"policy has (T, m, n) = {(gains.T, gains.m, gains.n)}, task {self.name!r} needs {(self.T, self.m, self.n)}"
             )
+        return gains, filtered
 
 
-def _rng(rng) -> np.random.Generator:
+def as_rng(rng) -> np.random.Generator:
     """``rng`` itself if it is a Generator, else ``default_rng(rng)`` (a seed, ``None`` or a SeedSequence).
 
     Not :func:`soc_opt.linalg.as_generator`, which rejects seeds: ``Task.rollouts`` accepts them.

@@ -9,7 +9,7 @@ import scipy.linalg
 
 from ..config import ConfigError
 from ..models import LinearGaussianDynamics, Rollouts
-from .base import RolloutNoise, TaskBase, _rng
+from .base import RolloutNoise, TaskBase, as_rng
 from .config import TaskConfig
 
 __all__ = ["LinearTask", "LinearSimulator"]
@@ -74,9 +74,14 @@ class LinearTask(TaskBase):
         self._setup_common()
 
     def rollouts(self, policy, M, rng, noise=True, workers=1, x0=None) -> Rollouts:
-        """``M`` rollouts (vectorised; ``workers`` is ignored).  Draw order: ``eps``, ``w``, process noise."""
-        self._check_policy(policy)
-        rng = _rng(rng)
+        """``M`` rollouts (vectorised; ``workers`` is ignored).  Draw order: ``eps``, ``w``, process noise.
+
+        A :class:`~soc_opt.estimator.FilteredPolicy` acts on ``xhat_k``, its filter run online
+        (causal: ``xhat_k`` from ``s_0..s_k`` and ``a_0..a_{k-1}``, SPEC §10.2); the draws are the
+        same as for a plain policy.
+        """
+        policy, filtered = self._check_policy(policy)
+        rng = as_rng(rng)
         T, n, m = self.T, self.n, self.m
         if noise:
             draws = self.draw_noise(M, rng)
@@ -90,9 +95,14 @@ class LinearTask(TaskBase):
         a = np.empty((M, T, m))
         x[:, 0] = self.x0 if x0 is None else np.asarray(x0, dtype=float)
         s = x.copy()
+        xhat = None
         for k in range(T):
             s[:, k] = x[:, k] + eps[:, k]
-            a[:, k] = s[:, k] @ policy.K[k].T + policy.k[k] + w[:, k] @ L[k].T
+            if filtered is None:
+                a[:, k] = s[:, k] @ policy.K[k].T + policy.k[k] + w[:, k] @ L[k].T
+            else:
+                xhat = filtered.estimate(k, s[:, k]) if k == 0 else filtered.estimate(k, s[:, k], xhat, a[:, k - 1])
+                a[:, k] = xhat @ policy.K[k].T + policy.k[k] + w[:, k] @ L[k].T
             x[:, k + 1] = self.step(x[:, k], a[:, k]) + xi[:, k]
         s[:, T] = x[:, T] + eps[:, T]
         return self._finish(x, s, a)

@@ -30,7 +30,7 @@ import numpy as np
 from ..config import ConfigError
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
 from . import linearize as _linearize
-from .base import SimulationError, TaskBase, _rng
+from .base import SimulationError, TaskBase, as_rng
 from .config import StateConfig, TaskConfig
 
 __all__ = ["MujocoTask", "MujocoSimulator"]
@@ -325,7 +325,7 @@ class MujocoTask(TaskBase):
         return q
 
     # -- rollouts (hot path)
-    def _run_samples(self, samples, K, offs, eps, x, s, a, x0):
+    def _run_samples(self, samples, K, offs, eps, x, s, a, x0, filtered=None):
         mj = import_mujoco()
         m = self.model
         d = mj.MjData(m)
@@ -350,7 +350,11 @@ class MujocoTask(TaskBase):
                 xk, sk, ak = xi[k], si[k], ai[k]
                 read(xk)
                 np.add(xk, ei[k], out=sk)
-                dot(K[k], sk, out=ak)
+                if filtered is None:
+                    dot(K[k], sk, out=ak)
+                else:  # act on the online estimate xhat_k (SPEC §10.2)
+                    xhat = filtered.estimate(k, sk) if k == 0 else filtered.estimate(k, sk, xhat, ai[k - 1])
+                    dot(K[k], xhat, out=ak)
                 ak += oi[k]
                 ctrl[act] = ak
                 if split:
@@ -390,10 +394,12 @@ class MujocoTask(TaskBase):
         ``workers``.  ``x0``: another initial state in task coordinates (its joint
         components are used; default ``self.x0``).  ``a`` records the policy's action
         before MuJoCo clamps it to ``ctrlrange``.  Raises :class:`SimulationError`
-        naming the sample and step on divergence.
+        naming the sample and step on divergence.  A :class:`~soc_opt.estimator.FilteredPolicy`
+        acts on ``xhat_k``, its filter run online on the measurements and the recorded actions
+        (SPEC §10.2); the draws are the same as for a plain policy.
         """
-        self._check_policy(policy)
-        rng = _rng(rng)
+        policy, filtered = self._check_policy(policy)
+        rng = as_rng(rng)
         M = int(M)
         T, n, m = self.T, self.n, self.m
         if noise:
@@ -409,11 +415,11 @@ class MujocoTask(TaskBase):
         a = np.empty((M, T, m))
         workers = max(1, min(int(workers), M))
         if workers == 1:
-            self._run_samples(range(M), K, offs, eps, x, s, a, x0)
+            self._run_samples(range(M), K, offs, eps, x, s, a, x0, filtered)
         else:
             blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
             with ThreadPoolExecutor(max_workers=workers) as ex:
-                futs = [ex.submit(self._run_samples, b.tolist(), K, offs, eps, x, s, a, x0) for b in blocks]
+                futs = [ex.submit(self._run_samples, b.tolist(), K, offs, eps, x, s, a, x0, filtered) for b in blocks]
                 errors = []
                 for f in futs:
                     try:

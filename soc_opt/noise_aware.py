@@ -1,0 +1,388 @@
+"""Noise-aware LQR-FLM and DPSOC-EM: SPEC §10 wired into the loop (``docs/noise.md`` §10).
+
+Selected by the ``[baseline.noise]`` table (:class:`NoiseConfig`).  The defaults
+(``estimator = "none"``, ``fit_correction = "none"``) are the paper's methods, bit for bit: the
+loop then calls exactly what it called before this module existed.
+
+``fit_correction`` (SPEC §10.1), how the local model is fitted from the measured rollouts:
+
+* ``"none"``: the paper's fit (SPEC §2), ``s_{k+1}`` regressed on ``(s_k, a_k)``.
+* ``"moments"``: the NIW posterior moments of each step's tuple ``(s_k, a_k, s_{k+1}[, y_k])``
+  are mapped to moments of the true tuple ``(x_k, a_k, x_{k+1}[, y_k])`` by
+  :func:`soc_opt.noisefit.correct_joint` before conditioning (``fit.fit_dynamics(correct=...)``),
+  with ``X_k = Cov(eps_k, a_k)`` of the policy that *sampled* the rollouts
+  (:func:`sampler_noise_action_cov`).
+* ``"ssm_em"``: EM for the state-space model with latent ``x`` and known ``R``, started from the
+  paper's fit (the ``"moments"`` fit can be far off when ``M`` is close to ``n + m``, see
+  ``docs/noise.md`` §10): E-step the RTS smoother of :func:`soc_opt.noisefit.smooth_states`, M-step
+  the smoothed tuple moments combined with the (noise-corrected) NIW prior of the step exactly as
+  the plain fit combines empirical moments with it, then conditioned (:func:`ssm_em_fit`).
+
+``time_window = h > 0`` pools the tuple moments of steps ``k-h..k+h`` before either noise-aware
+fit (:func:`pool_moments`): with ``M`` rollouts of a few tens of steps and ``rho2`` comparable to
+the spread of the states, per-step moments cannot resolve ``A_k`` (``docs/noise.md`` §10).
+
+``estimator = "kalman"`` (SPEC §10.2): the policy is a
+:class:`~soc_opt.estimator.FilteredPolicy` acting on ``xhat``, whose filter is built from the
+model fitted in the iteration that produced it (:func:`loop_filter`); rollouts run it online.
+The KL step and the step adaptation work on the innovation form (:func:`innovation_local_model`),
+DPSOC-EM's E-/M-step on the augmented model in ``xhat`` (:func:`filtered_em_model`).
+
+Filter prior.  Tasks start from a known state: ``task.P0 = (rho2 + 1e-6) I`` is the covariance of
+the *measured* ``s_0``, so the true ``x_0`` has covariance ``task.P0 - R = 1e-6 I``
+(:func:`noise_model`), which is positive definite, so ``S_0 = P0 + R`` is too, also at ``rho2 = 0``
+(where the filter is exactly ``xhat = s``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, NamedTuple
+
+import numpy as np
+
+from . import fit
+from .config import Config
+from .estimator import (
+    FilteredPolicy,
+    KalmanFilter,
+    check_noise_covariance,
+    filtered_cost,
+    initial_estimate,
+    innovation_augmented,
+    innovation_dynamics,
+    kalman_filter,
+    measurement_noise,
+)
+from .lqg import LocalModel
+from .models import (
+    AugmentedModel,
+    LinearGaussianDynamics,
+    LinearGaussianPolicy,
+    NotPositiveDefiniteError,
+    QuadraticCost,
+    Rollouts,
+    symmetrize,
+)
+from .noisefit import condition_joint, correct_joint, noise_action_cov, smooth_states
+
+__all__ = [
+    "NoiseConfig",
+    "NoiseModel",
+    "noise_model",
+    "gains",
+    "sampler_noise_action_cov",
+    "pool_moments",
+    "pool_noise_action_cov",
+    "moment_correction",
+    "fit_local",
+    "ssm_em_fit",
+    "loop_filter",
+    "innovation_local_model",
+    "filtered_em_model",
+]
+
+
+@dataclass(frozen=True)
+class NoiseConfig(Config):
+    """Noise-aware variants of LQR-FLM and DPSOC-EM (SPEC §10; ``docs/noise.md`` §10).
+
+    Defaults select the paper's methods (no correction, no estimator).
+
+    estimator:       ``"none"`` (the policy acts on the measured ``s_k``: the paper) or
+                     ``"kalman"`` (it acts on ``xhat_k`` of a time-varying Kalman filter built
+                     from the iteration's fitted model; KL step on the innovation form).
+                     Allowed at ``rho2 = 0`` (the filter is then ``xhat = s``).
+    fit_correction:  ``"none"`` (the paper's fit), ``"moments"`` (bias-corrected NIW posterior
+                     moments) or ``"ssm_em"`` (EM with latent true state and the NIW prior,
+                     started from the paper's fit).
+    min_reliability: reliability floor of the moment correction (``noisefit.correct_joint``).
+    filter_w_floor:  the filter's (and the innovation form's) process noise ``W_k`` has its
+                     eigenvalues floored at ``filter_w_floor * rho2`` (a fitted ``W`` near zero
+                     would make the filter stop listening to the measurements).
+    estep_p0_jitter: added (times ``I``) to the covariance of ``xhat_0`` for DPSOC-EM's E-step,
+                     which needs it positive definite (a known start makes it ~0).
+    em_max_iter:     maximum EM iterations of ``"ssm_em"``.
+    em_tol:          ``"ssm_em"`` stops when ``log p(s | a)`` changes by less than ``em_tol`` per
+                     sequence and time step.
+    time_window:     ``h``: the noise-aware fits pool the tuple moments of the steps ``k-h..k+h``
+                     (:func:`pool_moments`); ``0``: per step (SPEC §2's time-varying fit), ``h >= T``:
+                     one time-invariant model.  Needs a ``fit_correction``.
+    """
+
+    estimator: Literal["none", "kalman"] = "none"
+    fit_correction: Literal["none", "moments", "ssm_em"] = "none"
+    min_reliability: float = 0.05
+    filter_w_floor: float = 1e-3
+    estep_p0_jitter: float = 1e-6
+    em_max_iter: int = 20
+    em_tol: float = 1e-4
+    time_window: int = 0
+
+    def __post_init__(self):
+        if self.estimator not in ("none", "kalman"):
+            raise ValueError(f"estimator must be 'none' or 'kalman', got {self.estimator!r}")
+        if self.fit_correction not in ("none", "moments", "ssm_em"):
+            raise ValueError(f"fit_correction must be 'none', 'moments' or 'ssm_em', got {self.fit_correction!r}")
+        if not 0.0 < self.min_reliability <= 1.0:
+            raise ValueError(f"min_reliability must be in (0, 1], got {self.min_reliability!r}")
+        if not (np.isfinite(self.filter_w_floor) and self.filter_w_floor >= 0):
+            raise ValueError(f"filter_w_floor must be a finite number >= 0, got {self.filter_w_floor!r}")
+        if not (np.isfinite(self.estep_p0_jitter) and self.estep_p0_jitter > 0):
+            raise ValueError(f"estep_p0_jitter must be a positive number, got {self.estep_p0_jitter!r}")
+        if self.em_max_iter < 1:
+            raise ValueError(f"em_max_iter must be >= 1, got {self.em_max_iter!r}")
+        if not (np.isfinite(self.em_tol) and self.em_tol >= 0):
+            raise ValueError(f"em_tol must be a finite number >= 0, got {self.em_tol!r}")
+        if self.time_window < 0:
+            raise ValueError(f"time_window must be >= 0, got {self.time_window!r}")
+        if self.time_window > 0 and self.fit_correction == "none":
+            raise ValueError("time_window pools the noise-aware fits' moments; it needs fit_correction "
+                             "'moments' or 'ssm_em' (the paper's fit is per step)")
+
+    @property
+    def paper(self) -> bool:
+        """Whether this is the paper's method (nothing noise-aware selected)."""
+        return self.estimator == "none" and self.fit_correction == "none"
+
+    @property
+    def label(self) -> str:
+        """Short description for tables: ``"paper"`` or e.g. ``"kalman + moments"`` (``", window h"``)."""
+        if self.paper:
+            return "paper"
+        return f"{self.estimator} + {self.fit_correction}" + (f", window {self.time_window}" if self.time_window else "")
+
+
+class NoiseModel(NamedTuple):
+    """The known noise model of a task (SPEC §10).
+
+    Fields:
+        R:   (n, n) measurement noise ``rho2 I``
+        mu0: (n,)   mean of the true initial state ``x_0``
+        P0:  (n, n) covariance of ``x_0``: ``task.P0 - R`` (the task's ``P0`` is that of ``s_0``)
+    """
+
+    R: np.ndarray
+    mu0: np.ndarray
+    P0: np.ndarray
+
+
+def noise_model(task) -> NoiseModel:
+    """:class:`NoiseModel` of ``task``; ``ValueError`` for ``rho2 < 0``, ``NotPositiveDefiniteError``
+    when ``task.P0 - R`` is not positive semidefinite (naming it)."""
+    n = int(task.n)
+    R = measurement_noise(task.rho2, n)
+    P0 = symmetrize(np.asarray(task.P0, dtype=float) - R)
+    P0 = check_noise_covariance(f"true initial covariance task.P0 - rho2 I of task {getattr(task, 'name', '?')!r}",
+                                P0, (n, n))
+    return NoiseModel(R, np.asarray(task.mu0, dtype=float).copy(), P0)
+
+
+def gains(policy) -> LinearGaussianPolicy:
+    """The linear-Gaussian part ``(K, k, Sigma)`` of a plain or filtered policy."""
+    if isinstance(policy, FilteredPolicy):
+        return policy.policy
+    if isinstance(policy, LinearGaussianPolicy):
+        return policy
+    raise TypeError(f"policy must be a LinearGaussianPolicy or a FilteredPolicy, got {type(policy).__name__}")
+
+
+def sampler_noise_action_cov(policy, R) -> np.ndarray:
+    """``X_k = Cov(eps_k, a_k)`` (T, n, m) of the policy that sampled the data (``docs/noise.md`` §7):
+    ``R K_k^T`` on ``s``, ``R G_k^T K_k^T`` for a filtered policy."""
+    if isinstance(policy, FilteredPolicy):
+        return noise_action_cov(R, policy.policy.K, policy.filter.G)
+    return noise_action_cov(R, gains(policy).K)
+
+
+def pool_moments(mu: np.ndarray, Lam: np.ndarray, h: int) -> tuple[np.ndarray, np.ndarray]:
+    """Moments of the union of the tuples of steps ``k-h..k+h`` (clipped to ``0..T-1``), equal weights.
+
+    ``mu (T, d)``, ``Lam (T, d, d)`` per step -> pooled ``(mu, Lam)``: the mean of the means, and
+    the mean of the covariances plus the spread of the step means about the pooled mean.  ``h = 0``
+    returns the inputs.  (``X_k`` pools the same way: :func:`pool_noise_action_cov`.)
+    """
+    if h <= 0:
+        return mu, Lam
+    T = mu.shape[0]
+    out_mu = np.empty_like(mu)
+    out_L = np.empty_like(Lam)
+    for k in range(T):
+        lo, hi = max(0, k - h), min(T, k + h + 1)
+        mk = mu[lo:hi].mean(axis=0)
+        dev = mu[lo:hi] - mk
+        out_mu[k] = mk
+        out_L[k] = Lam[lo:hi].mean(axis=0) + dev.T @ dev / (hi - lo)
+    return out_mu, symmetrize(out_L)
+
+
+def pool_noise_action_cov(X: np.ndarray, h: int) -> np.ndarray:
+    """``X_k`` averaged over the window of :func:`pool_moments` (the noise part of a pooled
+    covariance is the mean of the steps' noise parts; the step means carry no noise)."""
+    if h <= 0:
+        return X
+    T = X.shape[0]
+    return np.stack([X[max(0, k - h): min(T, k + h + 1)].mean(axis=0) for k in range(T)])
+
+
+def moment_correction(R, X, n: int, m: int, min_reliability: float, time_window: int = 0):
+    """The ``correct`` hook of :func:`soc_opt.fit.fit_dynamics` / ``fit_augmented``: joint moments of
+    ``(s_k, a_k, s_{k+1}[, y_k])`` -> moments of ``(x_k, a_k, x_{k+1}[, y_k])`` (``noisefit.correct_joint``),
+    after pooling over ``time_window`` (:func:`pool_moments`)."""
+    Xp = pool_noise_action_cov(np.asarray(X, dtype=float), time_window)
+
+    def correct(mu, Lam):
+        mu, Lam = pool_moments(mu, Lam, time_window)
+        cm = correct_joint(mu, Lam, n, m, R, Xp, min_reliability=min_reliability)
+        return cm.mean, cm.cov
+
+    return correct
+
+
+def _model_rows(model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if isinstance(model, AugmentedModel):
+        return model.Ao, model.co, model.So
+    return np.concatenate([model.A, model.B], axis=2), model.c, model.cov
+
+
+def _as_model(Ao, co, So, n: int, include_y: bool):
+    if include_y:
+        return AugmentedModel(Ao, co, So, n)
+    return LinearGaussianDynamics(Ao[:, :, :n], Ao[:, :, n:], co, So)
+
+
+def fit_local(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: NoiseConfig, noise: NoiseModel,
+              sampler, *, include_y: bool = False):
+    """The iteration's local model under ``noise_cfg.fit_correction`` (module docstring).
+
+    ``include_y``: the augmented model of DPSOC-EM (``fit.fit_augmented``), else the dynamics
+    (``fit.fit_dynamics``).  ``sampler``: the policy that sampled ``rollouts``.
+    """
+    fitter = fit.fit_augmented if include_y else fit.fit_dynamics
+    if noise_cfg.fit_correction == "none":
+        return fitter(rollouts, fit_cfg, prior)
+    X = sampler_noise_action_cov(sampler, noise.R)
+    if noise_cfg.fit_correction == "moments":
+        hook = moment_correction(noise.R, X, rollouts.n, rollouts.m, noise_cfg.min_reliability, noise_cfg.time_window)
+        return fitter(rollouts, fit_cfg, prior, correct=hook)
+    return ssm_em_fit(rollouts, fit_cfg, prior, noise_cfg, noise, X, fitter(rollouts, fit_cfg, prior),
+                      include_y=include_y)
+
+
+def _smoothed_moments(sm, rollouts: Rollouts, include_y: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Per-step mean (T, d) and covariance (T, d, d) of ``(x_k, a_k, x_{k+1}[, y_k])`` under the
+    smoother: sample moments of the smoothed means plus the (shared) posterior covariances."""
+    xs = sm.mean
+    n, m = rollouts.n, rollouts.m
+    nz = n + m
+    parts = [xs[:, :-1], rollouts.a, xs[:, 1:]] + ([rollouts.y[..., None]] if include_y else [])
+    Xt = np.concatenate(parts, axis=-1)
+    mu = Xt.mean(axis=0)
+    Xc = Xt - mu
+    Lam = np.einsum("mti,mtj->tij", Xc, Xc) / Xt.shape[0]
+    Ps, cross = sm.cov[0], sm.cross[0]
+    Lam[:, :n, :n] += Ps[:-1]
+    Lam[:, nz : nz + n, nz : nz + n] += Ps[1:]
+    Lam[:, nz : nz + n, :n] += cross
+    Lam[:, :n, nz : nz + n] += np.swapaxes(cross, 1, 2)
+    return mu, symmetrize(Lam)
+
+
+def _floor_eig(S: np.ndarray, floor: float) -> np.ndarray:
+    ev, V = np.linalg.eigh(symmetrize(S))
+    return symmetrize(np.einsum("...ij,...j,...kj->...ik", V, np.maximum(ev, floor), V))
+
+
+def _w_floor(noise_cfg: NoiseConfig, R: np.ndarray) -> float:
+    return float(noise_cfg.filter_w_floor * np.trace(R) / R.shape[0])
+
+
+def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: NoiseConfig, noise: NoiseModel,
+               X: np.ndarray, start, *, include_y: bool = False):
+    """EM with latent true state from the ``start`` model (``docs/noise.md`` §10).
+
+    E-step: RTS smoother of ``x`` given the measured ``s`` and the actions (filter prior
+    ``noise.mu0, noise.P0``; ``W`` floored as for the loop's filter).  M-step: the smoothed tuple
+    moments (pooled over ``time_window``), combined with the step's NIW prior (the mixture
+    prior's moments, corrected for the noise with the sampler's ``X``; counts ``k0, n0``) as in
+    ``fit.joint_posterior``, the pooled moments counting as the ``M`` samples of one step (pooling
+    borrows strength across steps for the model of step ``k``; it does not weaken the prior, which
+    carries the tuples of earlier iterations), ridge
+    ``reg`` on the ``(x, a)`` block, conditioned with ``noisefit.condition_joint``.  With the prior
+    folded in this is not exact maximum likelihood; EM stops when ``log p(s | a)`` changes by
+    less than ``em_tol`` per sequence and step, or after ``em_max_iter`` iterations.
+    """
+    n, m = rollouts.n, rollouts.m
+    nz = n + m
+    M, T = rollouts.M, rollouts.T
+    Ao, co, So = _model_rows(start)
+    pri = None
+    if prior is not None and fit_cfg.prior == "mixture":
+        mu0p, S0p = prior.step_prior(fit.tuples(rollouts, include_y), include_y)
+        cm = correct_joint(mu0p, S0p, n, m, noise.R, X, min_reliability=noise_cfg.min_reliability)
+        pri = (cm.mean, cm.cov)
+    z = np.concatenate([rollouts.s[:, :-1], rollouts.a], axis=-1).reshape(-1, nz)
+    scale = float(z.var(axis=0).mean())
+    lam = fit_cfg.reg * (scale if scale > 0 and np.isfinite(scale) else 1.0)
+    floor = _w_floor(noise_cfg, noise.R)
+    h = noise_cfg.time_window
+    last = -np.inf
+    for _ in range(noise_cfg.em_max_iter):
+        W = _floor_eig(So[:, :n, :n], floor) if floor > 0 else So[:, :n, :n]
+        kf = kalman_filter(LinearGaussianDynamics(Ao[:, :n, :n], Ao[:, :n, n:], co[:, :n], W), noise.R, noise.mu0, noise.P0)
+        sm = smooth_states(kf, rollouts.s, rollouts.a)
+        ll = float(sm.loglik.sum())
+        if abs(ll - last) < noise_cfg.em_tol * M * (T + 1):
+            break
+        last = ll
+        mu, Lam = pool_moments(*_smoothed_moments(sm, rollouts, include_y), noise_cfg.time_window)
+        if pri is not None:
+            k0, n0 = fit_cfg.k0, fit_cfg.n0
+            d = mu - pri[0]
+            mu = (k0 * pri[0] + M * mu) / (k0 + M)
+            Lam = (n0 * pri[1] + M * Lam + (k0 * M / (k0 + M)) * np.einsum("ti,tj->tij", d, d)) / (M + n0)
+        idx = np.arange(nz)
+        Lam = symmetrize(Lam)
+        Lam[:, idx, idx] += lam
+        Ao, co, So = condition_joint(mu, Lam, nz, fit_cfg.min_eig)
+    return _as_model(Ao, co, So, n, include_y)
+
+
+def loop_filter(dynamics: LinearGaussianDynamics, noise: NoiseModel, noise_cfg: NoiseConfig,
+                where: str = "") -> KalmanFilter:
+    """The Kalman filter of a fitted model (SPEC §10.2): ``W_k`` floored at ``filter_w_floor * rho2``,
+    measurement noise ``R``, prior of the true ``x_0``.  A noise model that leaves an innovation
+    covariance singular raises ``NotPositiveDefiniteError`` naming the step (and ``where``)."""
+    floor = _w_floor(noise_cfg, noise.R)
+    W = _floor_eig(dynamics.cov, floor) if floor > 0 else dynamics.cov
+    try:
+        return kalman_filter(LinearGaussianDynamics(dynamics.A, dynamics.B, dynamics.c, W), noise.R, noise.mu0, noise.P0)
+    except NotPositiveDefiniteError as e:
+        raise NotPositiveDefiniteError(f"estimator = 'kalman'{where}: {e}") from None
+
+
+def innovation_local_model(kf: KalmanFilter, cost: QuadraticCost) -> LocalModel:
+    """The KL step's model on the filtered loop (``docs/noise.md`` §5): innovation-form dynamics,
+    cost with ``1/2 tr(C_xx P_k)`` added, initial distribution of ``xhat_0``."""
+    mu0, P0 = initial_estimate(kf)
+    return LocalModel(innovation_dynamics(kf), filtered_cost(kf, cost), mu0, P0)
+
+
+def filtered_em_model(model: AugmentedModel, noise: NoiseModel, noise_cfg: NoiseConfig,
+                      where: str = "") -> tuple[AugmentedModel, KalmanFilter, np.ndarray, np.ndarray]:
+    """DPSOC-EM on the filtered loop (``docs/noise.md`` §6).
+
+    ``model``: the x-frame augmented model.  Its ``W`` block is floored as in :func:`loop_filter`
+    (adding a PSD matrix to the state block keeps ``So`` positive definite), the filter is built
+    from it, and the result is ``(innovation_augmented(model, kf), kf, mu0, P0)`` with
+    ``(mu0, P0)`` the distribution of ``xhat_0`` plus ``estep_p0_jitter * I``.
+    """
+    n = model.n
+    floor = _w_floor(noise_cfg, noise.R)
+    So = np.array(model.So)
+    if floor > 0:
+        So[:, :n, :n] = _floor_eig(So[:, :n, :n], floor)
+    model = AugmentedModel(model.Ao, model.co, symmetrize(So), n)
+    kf = loop_filter(model.dynamics(), noise, noise_cfg.replace(filter_w_floor=0.0), where)
+    mu0, P0 = initial_estimate(kf)
+    return innovation_augmented(model, kf), kf, mu0, symmetrize(P0 + noise_cfg.estep_p0_jitter * np.eye(n))
