@@ -754,3 +754,66 @@ def test_benchmark_rows():
     (big,) = run(sizes=((26, 7, 100),), repeats=1, budgets=("total",), ipopt_max_vars=0)
     assert big["fatrop_s"] is None and big["ipopt_s"] is None and big["worst_violation"] < 1e-6
     assert "fatrop skipped: 21700 NLP variables > fatrop_max_vars=5000 (solver build" in big["note"]
+
+
+# ----------------------------------------------------------------------------------------------
+# per-step dual: the coupling model of the L-BFGS preconditioner (soc_opt.lqg.dual)
+# ----------------------------------------------------------------------------------------------
+
+
+def _dense_kernel(t, rho):
+    K = rho ** np.abs(np.subtract.outer(t, t)).astype(float)
+    np.fill_diagonal(K, 0.0)
+    return K
+
+
+@pytest.mark.parametrize("rho", [0.3, 0.85, 0.96])
+def test_coupling_kernel_recursion_matches_dense_kernel(rho):
+    from soc_opt.lqg.dual import _kms_apply
+
+    u = np.random.default_rng(0).standard_normal(40)
+    u[[0, 7, 8, 39]] = 0.0  # steps off the free set
+    np.testing.assert_allclose(_kms_apply(u, rho), _dense_kernel(np.arange(40), rho) @ u, rtol=1e-12, atol=1e-12)
+
+
+def test_coupling_fit_recovers_the_model_that_generated_the_pair():
+    """A curvature pair made by ``Hess = S^1/2 (I - a K_rho) S^1/2`` (free steps) gives back
+    ``(rho, a)``, and a correct previous fit validates it; a wrong one does not."""
+    from soc_opt.lqg.dual import _fit_coupling
+
+    rng = np.random.default_rng(1)
+    T, rho, a = 30, 0.85, 0.03
+    active = np.zeros(T, bool)
+    active[[4, 17]] = True
+    free = ~active
+    t = np.flatnonzero(free)
+    h = rng.uniform(0.5, 3.0, T)
+    s = np.where(active, 0.0, rng.standard_normal(T))
+    sq = np.sqrt(h[free])
+    y = np.zeros(T)
+    y[free] = sq * ((np.eye(t.size) - a * _dense_kernel(t, rho)) @ (sq * s[free]))
+    fit, use = _fit_coupling(h, active, s, y, (rho, a))
+    assert fit[0] == rho and abs(fit[1] - a) < 1e-12 and use
+    fit, use = _fit_coupling(h, active, s, y, (0.3, -0.2))
+    assert fit[0] == rho and not use
+    # a pair the diagonal model explains exactly: nothing to fit
+    y[free] = h[free] * s[free]
+    assert _fit_coupling(h, active, s, y, (rho, a)) == (None, False)
+
+
+def test_coupling_model_applies_the_inverse_on_the_free_steps():
+    from soc_opt.lqg.dual import _CouplingModel
+
+    rng = np.random.default_rng(2)
+    T, rho, a = 25, 0.7, -0.1
+    active = np.zeros(T, bool)
+    active[[0, 12]] = True
+    free = ~active
+    t = np.flatnonzero(free)
+    h = rng.uniform(0.5, 3.0, T)
+    q = rng.standard_normal(T)
+    sq = np.sqrt(h[free])
+    hess = sq[:, None] * (np.eye(t.size) - a * _dense_kernel(t, rho)) * sq[None, :]
+    d = _CouplingModel(h, active, (rho, a))(q)
+    np.testing.assert_allclose(hess @ d[free], q[free], rtol=1e-12, atol=1e-12)
+    assert np.all(d[active] == 0.0)

@@ -8,9 +8,10 @@ one forward pass for the moments and ``KL_k``):
   interpolation / Newton-secant steps with bisection fallback (:func:`_solve_scalar`).
   Typically 5-8 backward passes.
 * vector ``eta`` (per-step budgets): the concave dual is maximised over ``eta_k >= eta_min`` by a
-  projected, diagonally preconditioned L-BFGS method in ``x = log eta`` with the analytic
-  gradient ``eta_k (KL_k - nu_k)`` (:func:`_solve_vector`).  Typically 10-20 backward passes,
-  independent of ``T``.
+  projected, preconditioned L-BFGS method in ``x = log eta`` with the analytic gradient
+  ``eta_k (KL_k - nu_k)`` (:func:`_solve_vector`); the preconditioner is a per-step diagonal
+  model with a fitted geometric coupling between steps (:func:`_fit_coupling`).  Typically 10-16
+  backward passes (12-13 at ``n=26, m=7, T=100``), independent of ``T``.
 
 Both apply the Quu repair rule of :mod:`.backward` to non-PD points.
 """
@@ -20,6 +21,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+from scipy.signal import lfilter
 
 from ..models import NotPositiveDefiniteError
 from .backward import _backward, _direct_dkl, _Eval, _evaluate, _NotPD
@@ -154,7 +157,17 @@ def _solve_vector(prob: _Problem, nu: np.ndarray, config: KLStepConfig, eta0) ->
       moves a slack budget to ``eta_min`` in a few steps.  As a curvature it tends to the diagonal
       ``eta_k^2 |dKL_k/deta_k|`` of the dual Hessian at the solution, and the preconditioned
       Hessian is well conditioned (eigenvalues in about [0.6, 1.3] on random instances);
-    * L-BFGS (memory 10) with that diagonal as the initial inverse Hessian, used only once every
+    * coupling: the steps interact through the value function and the state marginals, which
+      the diagonal misses (on the benchmark instances at ``n=26, m=7, T=100`` the eigenvalues of
+      the diagonally preconditioned Hessian spread over about [0.62, 1.07], with a few
+      smooth, collective outliers, and the relative off-diagonal entries decay like
+      ``0.85^|k-j|``).  A two-parameter model ``S^1/2 (I - a K_rho) S^1/2`` of the Hessian,
+      ``K_rho[k, j] = rho^|k-j|`` off the diagonal, is fitted to each curvature pair and, once
+      the previous fit has predicted the new pair, used as the initial inverse Hessian of
+      L-BFGS (:func:`_fit_coupling`, :class:`_CouplingModel`; the best such model at the
+      solution narrows the spread to about [0.94, 1.07]); the solve then takes 12-13 instead of
+      15-16 backward passes there, and about as many as before on small problems;
+    * L-BFGS (memory 10) with that initial inverse Hessian, the memory used only once every
       free budget is within 10 % (``|log KL_k/nu_k| < 0.1``) or after 25 iterations: far from
       the solution the coupling between steps (through the value function and the state
       marginals) is nonlinear and curvature pairs hurt (notably while slack budgets travel to
@@ -191,6 +204,7 @@ def _solve_vector(prob: _Problem, nu: np.ndarray, config: KLStepConfig, eta0) ->
     mem_s: list[np.ndarray] = []
     mem_y: list[np.ndarray] = []
     prev_active = None
+    coup, use_coup = None, False
     it = 0
     while True:
         if dual.converged(r, x):
@@ -203,10 +217,12 @@ def _solve_vector(prob: _Problem, nu: np.ndarray, config: KLStepConfig, eta0) ->
             mem_s.clear()
             mem_y.clear()
         prev_active = active
-        d = _lbfgs_direction(g, h, active, mem_s, mem_y, dual.cap)
+        h0 = _CouplingModel(h, active, coup) if use_coup else None
+        d = _lbfgs_direction(g, h, active, mem_s, mem_y, dual.cap, h0)
         xn, rn, phin, gn = dual.line_search(x, d, phi, g)
         s_ = np.where(active, 0.0, xn - x) if near else np.zeros(T)
         y_ = np.where(active, 0.0, gn - g)
+        coup, use_coup = _fit_coupling(h, active, np.where(active, 0.0, xn - x), y_, coup)
         _remember(mem_s, mem_y, s_, y_)
         x, r, phi, g = xn, rn, phin, gn
         if np.any(x[free] >= xmax - 1e-12):
@@ -297,11 +313,99 @@ class _VectorDual:
                 raise SolverError("vector dual line search failed (no decrease along the quasi-Newton direction)")
 
 
+_RHOS = (0.3, 0.5, 0.6, 0.7, 0.75, 0.8, 0.85, 0.9, 0.93, 0.96)  # decay rates tried by _fit_coupling
+_EXPLAIN = 0.5  # a coupling fit must remove half of the squared secant mismatch of its own pair ...
+_VALID = 0.5  # ... and the previous fit as much of the next pair's before a fit is used
+
+
+def _kms(t: np.ndarray, rho: float) -> np.ndarray:
+    """``K[i, j] = rho^|t_i - t_j|`` off the diagonal, 0 on it."""
+    K = rho ** np.abs(t[:, None] - t[None, :]).astype(float)
+    np.fill_diagonal(K, 0.0)
+    return K
+
+
+def _kms_apply(u: np.ndarray, rho: float) -> np.ndarray:
+    """``K_rho u`` over all ``T`` steps in O(T): ``sum_{j != i} rho^|i - j| u_j`` by two
+    first-order recursive filters (forward and backward in time)."""
+    a = [1.0, -rho]
+    return lfilter([0.0, rho], a, u) + lfilter([0.0, rho], a, u[::-1])[::-1]
+
+
+def _fit_coupling(h: np.ndarray, active: np.ndarray, s: np.ndarray, y: np.ndarray, prev):
+    """Fit the coupling model of :class:`_CouplingModel` to the last curvature pair.
+
+    The Hessian of ``phi`` in ``x`` is modelled on the free steps as
+    ``S^1/2 (I - a K_rho) S^1/2`` with ``S = diag(h)`` (the diagonal model) and
+    ``K_rho[i, j] = rho^|t_i - t_j|`` off the diagonal (a coupling between steps that decays
+    geometrically with their distance in time, through the value function backwards and the
+    state marginals forwards).  With ``u = S^1/2 s`` the pair ``(s, y)`` (T,) should satisfy
+    ``r = u - S^-1/2 y = a K_rho u``: for each ``rho`` in ``_RHOS`` ``a`` is the least-squares
+    fit, and the ``rho`` with the smallest residual is kept.  Returns ``(fit, use)``: ``fit`` is
+    ``(rho, a)``, or None if it removes less than ``_EXPLAIN`` of ``|r|^2`` or ``I - a K_rho``
+    would have an eigenvalue below 0.2; ``use`` is True when the previous fit ``prev`` also
+    predicted this pair (out of sample: residual at most ``_VALID |r|^2``), so that a fit is used
+    only once the model has been seen to predict.
+    """
+    free = ~active
+    if free.sum() < 3:
+        return None, False
+    sq = np.sqrt(h[free])
+    u = np.zeros(h.size)
+    u[free] = sq * s[free]
+    r = u[free] - y[free] / sq
+    nr = r @ r
+    if not nr > 0 or not np.isfinite(nr):
+        return None, False
+    use = False
+    if prev is not None:
+        e = r - prev[1] * _kms_apply(u, prev[0])[free]
+        use = bool(e @ e <= _VALID * nr)
+    best = None
+    for rho in _RHOS:
+        v = _kms_apply(u, rho)[free]
+        vv = v @ v
+        if not vv > 0:
+            continue
+        a = (r @ v) / vv
+        res = nr - a * (r @ v)
+        if best is None or res < best[0]:
+            best = (res, rho, a)
+    if best is None or best[0] > _EXPLAIN * nr:
+        return None, False
+    _, rho, a = best
+    # the eigenvalues of K_rho lie in (-2 rho/(1 + rho), 2 rho/(1 - rho)): |a| <= lim keeps those
+    # of I - a K_rho >= 0.2
+    lim = 0.8 * min((1 - rho) / (2 * rho), (1 + rho) / (2 * rho))
+    if abs(a) > lim:
+        return None, False
+    return (float(rho), float(a)), use
+
+
+class _CouplingModel:
+    """Initial inverse Hessian of the L-BFGS recursion with coupling between steps:
+    ``H0 q = S^-1/2 (I - a K_rho)^-1 S^-1/2 q`` on the free steps, 0 on the active set
+    (``S = diag(h)``, ``coup = (rho, a)`` from :func:`_fit_coupling`; one Cholesky factorisation
+    of the free-step block)."""
+
+    def __init__(self, h: np.ndarray, active: np.ndarray, coup: tuple[float, float]):
+        rho, a = coup
+        self.free = ~active
+        t = np.flatnonzero(self.free)
+        self.isq = 1.0 / np.sqrt(h[self.free])
+        self.cf = cho_factor(np.eye(t.size) - a * _kms(t, rho), lower=True)
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        out = np.zeros_like(q)
+        out[self.free] = self.isq * cho_solve(self.cf, self.isq * q[self.free])
+        return out
+
+
 def _lbfgs_direction(g: np.ndarray, h: np.ndarray, active: np.ndarray, mem_s: list, mem_y: list,
-                     cap: float) -> np.ndarray:
-    """L-BFGS two-loop direction with the initial inverse Hessian ``diag(1/h)``, zero on the
-    active set, components capped at ``cap``; not a descent direction: the memory is dropped and
-    the diagonal step used."""
+                     cap: float, h0: _CouplingModel | None = None) -> np.ndarray:
+    """L-BFGS two-loop direction with the initial inverse Hessian ``h0`` (default ``diag(1/h)``),
+    zero on the active set, components capped at ``cap``; not a descent direction: the memory is
+    dropped and ``-h0 g`` used, or the diagonal step if that is not one either (capping)."""
     q = np.where(active, 0.0, g)
     alphas = []
     for s_, y_ in zip(reversed(mem_s), reversed(mem_y)):
@@ -309,7 +413,7 @@ def _lbfgs_direction(g: np.ndarray, h: np.ndarray, active: np.ndarray, mem_s: li
         a_ = rho * (s_ @ q)
         q = q - a_ * y_
         alphas.append((rho, a_, s_, y_))
-    d = np.where(active, 0.0, q / h)
+    d = np.where(active, 0.0, q / h) if h0 is None else h0(q)
     for rho, a_, s_, y_ in reversed(alphas):
         b_ = rho * (y_ @ d)
         d = d + s_ * (a_ - b_)
@@ -317,7 +421,9 @@ def _lbfgs_direction(g: np.ndarray, h: np.ndarray, active: np.ndarray, mem_s: li
     if g @ d >= 0:  # not a descent direction: drop the memory, use the diagonal step
         mem_s.clear()
         mem_y.clear()
-        d = np.clip(np.where(active, 0.0, -g / h), -cap, cap)
+        d = None if h0 is None else np.clip(-h0(g), -cap, cap)
+        if d is None or not g @ d < 0:
+            d = np.clip(np.where(active, 0.0, -g / h), -cap, cap)
     return d
 
 
