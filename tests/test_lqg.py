@@ -416,16 +416,16 @@ def test_structured_nlp_derivatives_match_casadi_ad(nu):
     own CasADi objective/constraints; at the closed-form optimum the cross-step Hessian blocks vanish."""
     import casadi as ca
 
-    from soc_opt.lqg.casadi_nlp import _casadi_kinds
-    from soc_opt.lqg.problem import _Problem
-    from soc_opt.lqg.structured_nlp import _StructuredNLP
+    from soc_opt.lqg.casadi_nlp import casadi_kinds
+    from soc_opt.lqg.problem import KLProblem
+    from soc_opt.lqg.structured_nlp import StructuredNLP
 
     rng = np.random.default_rng(29)
     T = 6
     dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, T)
     nu_a, scalar = np.atleast_1d(np.asarray(nu, float)), np.isscalar(nu)
-    _, kind = _casadi_kinds(nu_a, scalar, T)
-    nlp = _StructuredNLP(_Problem(dyn, cost, ref, mu0, P0), kind, scalar, 1e-9)
+    _, kind = casadi_kinds(nu_a, scalar, T)
+    nlp = StructuredNLP(KLProblem(dyn, cost, ref, mu0, P0), kind, scalar, 1e-9)
     x, f, g = nlp.oracle(ca)
     sf, lg = ca.MX.sym("sf"), ca.MX.sym("lg", nlp.ng)
     H = ca.hessian(sf * f + ca.dot(lg, g), x)[0]
@@ -533,17 +533,17 @@ def test_fatrop_start_policy_spends_each_budget(nu):
     """fatrop's start point (Kh, kh, alpha_t Sh_t): its KL (kl_divergence, an independent oracle)
     is the step's budget (total: an equal share of the free steps), so no KL row starts at the
     reference, where its gradient vanishes."""
-    from soc_opt.lqg.casadi_nlp import _casadi_kinds
+    from soc_opt.lqg.casadi_nlp import casadi_kinds
     from soc_opt.lqg.fatrop_nlp import _FatropOCP
-    from soc_opt.lqg.problem import _Problem
+    from soc_opt.lqg.problem import KLProblem
 
     rng = np.random.default_rng(41)
     T = 6
     dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, T)
     scalar = np.isscalar(nu)
-    nu_full, kind = _casadi_kinds(np.atleast_1d(np.asarray(nu, float)), scalar, T)
+    nu_full, kind = casadi_kinds(np.atleast_1d(np.asarray(nu, float)), scalar, T)
     ub = [float(nu)] if scalar else list(nu_full[kind == "free"])
-    ocp = _FatropOCP(_Problem(dyn, cost, ref, mu0, P0), kind, scalar, KLStepConfig())
+    ocp = _FatropOCP(KLProblem(dyn, cost, ref, mu0, P0), kind, scalar, KLStepConfig())
     S0 = ocp._start_covariances(ub)
     kl = kl_divergence(dyn, LinearGaussianPolicy(ref.K, ref.k, S0), ref, mu0, P0)
     want = np.full(T, nu / T) if scalar else nu

@@ -41,11 +41,11 @@ from scipy.linalg import lapack
 
 from ..linalg import logdet_chol
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, NotPositiveDefiniteError, QuadraticCost, symmetrize
-from .moments import _expected_cost_marg, _forward_arrays
-from .problem import KLStepConfig, Marginals, _check_dims, _check_init, _Problem
+from .moments import expected_cost_marg, forward_arrays
+from .problem import KLStepConfig, Marginals, check_dims, check_init, KLProblem
 
 
-class _NotPD(Exception):
+class NotPDPoint(Exception):
     def __init__(self, t: int, eta: float, eta_crit: float):
         super().__init__(t, eta, eta_crit)
         self.t, self.eta, self.eta_crit = t, eta, eta_crit
@@ -63,20 +63,20 @@ class _Backward(NamedTuple):
     eta: np.ndarray  # (T,) multipliers actually used (after repair)
 
 
-def _eta_crit(prob: _Problem, t: int, Q0uu: np.ndarray) -> float:
+def _eta_crit(prob: KLProblem, t: int, Q0uu: np.ndarray) -> float:
     """Smallest ``eta`` making ``Quu(eta) = Q0uu + eta Sh^-1`` PD at step ``t`` (later steps fixed)."""
     Lh = prob.Lh[t]
     lam = float(np.linalg.eigvalsh(symmetrize(Lh.T @ Q0uu @ Lh))[0])
     return max(-lam, 0.0)
 
 
-def _backward(prob: _Problem, eta: np.ndarray, *, repair: np.ndarray | None = None,
+def backward_pass(prob: KLProblem, eta: np.ndarray, *, repair: np.ndarray | None = None,
               config: KLStepConfig | None = None) -> _Backward:
     """Backward pass for fixed multipliers ``eta`` (T,).
 
     ``eta_k = 0``: deterministic LQR step; ``eta_k = inf``: step pinned to the reference.
     The recursion runs in the deviation coordinates ``z' = (s, 1, delta)``, ``delta = a - Kh s - kh``
-    (``_Problem.Fd``, ``Ctd``), where the KL term is ``eta delta^T Sh^-1 delta / 2`` without cross
+    (``KLProblem.Fd``, ``Ctd``), where the KL term is ``eta delta^T Sh^-1 delta / 2`` without cross
     terms: with ``Q'`` the Q-function of ``l + V_{k+1}`` in these coordinates,
     ``Quu = Q'uu + eta Sh^-1``, the deviation gain ``[dK, dk] = -Quu^-1 Q'ux`` and
     ``V = Q'xx - Q'xu Quu^-1 Q'ux``.  Nothing here grows with ``eta``, so the policy stays accurate
@@ -84,7 +84,7 @@ def _backward(prob: _Problem, eta: np.ndarray, *, repair: np.ndarray | None = No
     coordinates ``(s, 1, a)`` (the same operations as :func:`lqr`, so ``nu = inf`` reproduces it
     exactly).  Per step only the Q-function and one
     LAPACK ``posv`` (Cholesky factorisation and solve) run in the loop; ``Quu^-1``, ``Sigma`` and
-    the log-determinants are batched afterwards.  Raises :class:`_NotPD` at the
+    the log-determinants are batched afterwards.  Raises :class:`NotPDPoint` at the
     first (latest) step whose ``Quu`` is not PD, unless that step is marked in the boolean mask
     ``repair``: then ``eta_k`` is raised in place by the repair rule (see above) and the pass
     continues.
@@ -127,7 +127,7 @@ def _backward(prob: _Problem, eta: np.ndarray, *, repair: np.ndarray | None = No
         np.add(Q[n1:, n1:], eR[t], out=La)
         Xt[:n1] = Q[n1:, :n1].T
         if dposv(La.T, Xt.T, lower=1, overwrite_a=1, overwrite_b=1)[2] != 0:
-            _repair(prob, t, Q[n1:, n1:], eta, repair, config)  # raises eta[t] (or raises _NotPD)
+            _repair(prob, t, Q[n1:, n1:], eta, repair, config)  # raises eta[t] (or raises NotPDPoint)
             np.add(Q[n1:, n1:], eta[t] * prob.Shinv[t], out=La)
             Xt[:n1] = Q[n1:, :n1].T
             Xt[n1:] = np.eye(m)
@@ -157,14 +157,14 @@ def _backward(prob: _Problem, eta: np.ndarray, *, repair: np.ndarray | None = No
                      S, logdetS, Quu_inv, Qall[:, n1:, n1:], eta)
 
 
-def _repair(prob: _Problem, t: int, Q0uu: np.ndarray, eta: np.ndarray, repair, config) -> None:
-    """``Quu_t`` is not PD at ``eta[t]``: raise :class:`_NotPD`, or (``repair[t]``) raise ``eta[t]``
+def _repair(prob: KLProblem, t: int, Q0uu: np.ndarray, eta: np.ndarray, repair, config) -> None:
+    """``Quu_t`` is not PD at ``eta[t]``: raise :class:`NotPDPoint`, or (``repair[t]``) raise ``eta[t]``
     in place by the repair rule until ``Quu_t`` is PD."""
     e = eta[t]
     while True:
         crit = _eta_crit(prob, t, Q0uu) if prob.has_ref else math.inf
         if repair is None or not repair[t]:
-            raise _NotPD(t, e, crit)
+            raise NotPDPoint(t, e, crit)
         e = max(config.repair_factor * e, (1.0 + config.repair_margin) * crit)
         if e > config.eta_max:
             raise NotPositiveDefiniteError(
@@ -176,7 +176,7 @@ def _repair(prob: _Problem, t: int, Q0uu: np.ndarray, eta: np.ndarray, repair, c
             return
 
 
-class _Eval(NamedTuple):
+class DualEval(NamedTuple):
     bw: _Backward
     marg: Marginals
     kl: np.ndarray
@@ -185,7 +185,7 @@ class _Eval(NamedTuple):
     mu_eig: np.ndarray  # (T, m) eigenvalues of Lh^T Q0uu Lh
 
 
-def _evaluate(prob: _Problem, bw: _Backward) -> _Eval:
+def evaluate_eta(prob: KLProblem, bw: _Backward) -> DualEval:
     """Forward pass, expected costs and ``KL_k`` of a backward-pass policy.
 
     The covariance part of ``KL_k`` is evaluated from the eigenvalues ``mu_i`` of
@@ -194,7 +194,7 @@ def _evaluate(prob: _Problem, bw: _Backward) -> _Eval:
     even when ``KL`` is many orders below 1 (large ``eta``).
     """
     T = prob.T
-    marg = _forward_arrays(prob.dynamics, bw.K, bw.k, bw.S, prob.mu0, prob.P0)
+    marg = forward_arrays(prob.dynamics, bw.K, bw.k, bw.S, prob.mu0, prob.P0)
     dm = (bw.dK @ marg.mean[:T, :, None])[:, :, 0] + bw.dk
     Md = bw.dK @ marg.cov[:T] @ np.swapaxes(bw.dK, 1, 2) + dm[:, :, None] * dm[:, None, :]
     quad = np.einsum("tij,tij->t", prob.Shinv, Md)
@@ -209,11 +209,11 @@ def _evaluate(prob: _Problem, bw: _Backward) -> _Eval:
     cov_part[eta == 0] = np.inf
     kl = 0.5 * (cov_part + quad)
     kl[np.isinf(eta)] = 0.0
-    cost = _expected_cost_marg(prob.cost, marg)
-    return _Eval(bw, marg, kl, cost, Md, mu_eig)
+    cost = expected_cost_marg(prob.cost, marg)
+    return DualEval(bw, marg, kl, cost, Md, mu_eig)
 
 
-def _direct_dkl(prob: _Problem, ev: _Eval) -> np.ndarray:
+def direct_dkl(prob: KLProblem, ev: DualEval) -> np.ndarray:
     """(T,) ``dKL_k/deta_k`` through step ``k``'s own policy only (later steps and ``p(s_k)`` fixed).
 
     With ``R = Sh^-1``, ``Quu = Q0 + eta R``, ``delta(s) = (K - Kh) s + k - kh``:
@@ -236,12 +236,12 @@ def lqr(dynamics: LinearGaussianDynamics, cost: QuadraticCost, mu0, P0) -> Linea
     validated for interface symmetry.  Raises :class:`NotPositiveDefiniteError` naming the step
     if ``Quu_k`` is not positive definite (cost-to-go not strictly convex in ``a_k``).
     """
-    T, n, m = _check_dims(dynamics, cost=cost)
-    _check_init(mu0, P0, n)
-    prob = _Problem(dynamics, cost, None, None, None)
+    T, n, m = check_dims(dynamics, cost=cost)
+    check_init(mu0, P0, n)
+    prob = KLProblem(dynamics, cost, None, None, None)
     try:
-        bw = _backward(prob, np.zeros(T))
-    except _NotPD as e:
+        bw = backward_pass(prob, np.zeros(T))
+    except NotPDPoint as e:
         raise NotPositiveDefiniteError(
             f"Quu[{e.t}] is not positive definite: the cost-to-go is not strictly convex in a_{e.t}, "
             "so the unconstrained LQR problem has no unique minimiser"

@@ -2,13 +2,13 @@
 SPEC §6).
 
 The same problem as an NLP over ``(K_k, k_k, L_k)`` with single-shooting moments, solved by
-IPOPT (:func:`_kl_step_casadi`), in one of two formulations (``KLStepConfig.casadi_nlp``, by
+IPOPT (:func:`kl_step_casadi`), in one of two formulations (``KLStepConfig.casadi_nlp``, by
 default chosen by size):
 
 * ``"symbolic"`` (:func:`_casadi_symbolic`, up to ``casadi_auto_max_vars = 600`` NLP variables):
   SX expressions and CasADi's symbolic exact Hessian, dense in all variables; a reference solver
   for small problems (documented and tested for ``n <= 6, T <= 20``).
-* ``"structured"`` (:class:`.structured_nlp._StructuredNLP`, above that size): the policy
+* ``"structured"`` (:class:`.structured_nlp.StructuredNLP`, above that size): the policy
   variables rescaled by the reference policy (KL Hessian close to the identity), objective and constraints as chained
   per-step CasADi functions, the gradient and the constraint Jacobian from the adjoint
   (value-function) recursion of the moment dynamics, and a per-step block-diagonal Hessian of
@@ -30,15 +30,15 @@ import numpy as np
 
 from ..linalg import logdet_pd
 from ..models import symmetrize
-from .moments import _expected_cost_marg, _forward_arrays, _kl_batched
-from .problem import KLStepConfig, KLStepResult, SolverError, _policy_from, _Problem
-from .structured_nlp import _StructuredNLP
+from .moments import expected_cost_marg, forward_arrays, kl_batched
+from .problem import KLStepConfig, KLStepResult, SolverError, policy_from, KLProblem
+from .structured_nlp import StructuredNLP
 
 
 _IPOPT_OK = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 
 
-def _casadi_kinds(nu: np.ndarray, scalar: bool, T: int) -> tuple[np.ndarray, np.ndarray]:
+def casadi_kinds(nu: np.ndarray, scalar: bool, T: int) -> tuple[np.ndarray, np.ndarray]:
     """``(nu per step, kind per step)``: ``"free"`` (finite ``nu_k > 0``: ``K, k, L`` variables and a
     KL row), ``"det"`` (``nu_k = inf``: ``K, k`` only, ``Sigma_k = 0``), ``"pin"`` (``nu_k = 0``: the
     reference, no variables)."""
@@ -46,12 +46,12 @@ def _casadi_kinds(nu: np.ndarray, scalar: bool, T: int) -> tuple[np.ndarray, np.
     return nu_full, np.where(np.isinf(nu_full), "det", np.where(nu_full == 0, "pin", "free"))
 
 
-def _casadi_n_vars(kind: np.ndarray, n: int, m: int) -> int:
+def casadi_n_vars(kind: np.ndarray, n: int, m: int) -> int:
     """NLP size (both formulations): ``m n + m`` per unpinned step, ``m (m+1)/2`` more per free step."""
     return int(np.sum(kind != "pin") * (m * n + m) + np.sum(kind == "free") * (m * (m + 1) // 2))
 
 
-def _kl_step_casadi(prob: _Problem, nu: np.ndarray, scalar: bool, nu_out, config: KLStepConfig) -> KLStepResult:
+def kl_step_casadi(prob: KLProblem, nu: np.ndarray, scalar: bool, nu_out, config: KLStepConfig) -> KLStepResult:
     """The same problem as a nonlinear program solved by IPOPT (CasADi ``nlpsol``).
 
     Decision variables per step: the gain ``K_k``, the offset ``k_k`` and the lower-triangular
@@ -78,8 +78,8 @@ def _kl_step_casadi(prob: _Problem, nu: np.ndarray, scalar: bool, nu_out, config
     Hessian that is exact at the solution: scales to ``n=26, m=7, T=100``).
     """
     T, n, m = prob.T, prob.n, prob.m
-    nu_full, kind = _casadi_kinds(nu, scalar, T)
-    n_vars = _casadi_n_vars(kind, n, m)
+    nu_full, kind = casadi_kinds(nu, scalar, T)
+    n_vars = casadi_n_vars(kind, n, m)
     form = config.casadi_nlp
     if form == "auto":
         form = "symbolic" if n_vars <= config.casadi_auto_max_vars else "structured"
@@ -111,13 +111,13 @@ def _kl_step_casadi(prob: _Problem, nu: np.ndarray, scalar: bool, nu_out, config
             eta[:] = lam[0]
     else:
         eta[free] = lam
-    policy = _policy_from(Kout, kout, symmetrize(Sout), eta)
-    marg = _forward_arrays(prob.dynamics, policy.K, policy.k, policy.cov, prob.mu0, prob.P0)
+    policy = policy_from(Kout, kout, symmetrize(Sout), eta)
+    marg = forward_arrays(prob.dynamics, policy.K, policy.k, policy.cov, prob.mu0, prob.P0)
     ref = prob.reference
     logdetS = logdet_pd(policy.cov)
-    kl = _kl_batched(policy.K, policy.k, policy.cov, logdetS, ref.K, ref.k, prob.Shinv, prob.logdetSh,
+    kl = kl_batched(policy.K, policy.k, policy.cov, logdetS, ref.K, ref.k, prob.Shinv, prob.logdetSh,
                      marg.mean, marg.cov)
-    costs = _expected_cost_marg(prob.cost, marg)
+    costs = expected_cost_marg(prob.cost, marg)
     return KLStepResult(
         policy=policy, eta=eta, kl=kl, expected_cost=float(costs.sum()), n_backward=0, scalar_eta=scalar,
         nu=nu_out, dual_value=fval, method="casadi", n_iter=n_iter, status=status, marginals=marg, lam_g=lam,
@@ -151,7 +151,7 @@ def _ipopt_solve(solver_fn, x0, lbx, ub, n_kl, acceptable_tol: float):
             solve_s)
 
 
-def _casadi_symbolic(prob: _Problem, kind: np.ndarray, scalar: bool, ub, opts: dict, config: KLStepConfig):
+def _casadi_symbolic(prob: KLProblem, kind: np.ndarray, scalar: bool, ub, opts: dict, config: KLStepConfig):
     """SX single shooting in ``(K_k, k_k, L_k)`` with CasADi's symbolic exact Hessian.
 
     ``L_k`` is the Cholesky factor of ``Sigma_k`` itself, its diagonal bounded below by
@@ -199,7 +199,7 @@ def _casadi_symbolic(prob: _Problem, kind: np.ndarray, scalar: bool, ub, opts: d
              "C": ca.DM(cst.C[t]), "cl": ca.DM(cst.c[t]), "c0": float(cst.c0[t]), "Kh": ca.DM(ref.K[t]),
              "kh": ca.DM(ref.k[t]), "R": ca.DM(prob.Shinv[t]), "logdetSh": float(prob.logdetSh[t])}
         logdetS = 2 * sum(ca.log(L[i, i]) for i in range(m)) if kind[t] == "free" else None
-        stage_obj, kl, mu_n, P_n = _stage_terms(ca, D, n, mu, P, K, kk, S, logdetS)
+        stage_obj, kl, mu_n, P_n = stage_terms(ca, D, n, mu, P, K, kk, S, logdetS)
         obj = obj + stage_obj
         if kl is not None:
             kl_terms.append(kl)
@@ -237,7 +237,7 @@ def _casadi_symbolic(prob: _Problem, kind: np.ndarray, scalar: bool, ub, opts: d
     return Kout, kout, Sout, lam, status, n_iter, fval, {"build_s": build_s, "solve_s": solve_s}
 
 
-def _stage_terms(ca, D: dict, n: int, mu, P, K, kk, S, logdetS):
+def stage_terms(ca, D: dict, n: int, mu, P, K, kk, S, logdetS):
     """CasADi expressions of one step (SPEC §6): ``(E[l], KL or None, E[s'], Cov(s'))`` for the state
     moments ``(mu, P)``, the policy ``(K, kk, S)`` and the step's data ``D`` (keys ``A, B, c, W, C, cl,
     c0, Kh, kh, R = Sh^-1, logdetSh``); ``KL`` only when ``logdetS`` (``log|S|``) is given.  Shared by
@@ -264,8 +264,8 @@ def _stage_terms(ca, D: dict, n: int, mu, P, K, kk, S, logdetS):
     return obj, kl, mu_n, 0.5 * (P_n + P_n.T)
 
 
-def _casadi_structured(prob: _Problem, kind: np.ndarray, scalar: bool, ub, opts: dict, config: KLStepConfig):
-    """:class:`_StructuredNLP` solved by IPOPT: objective and constraints as CasADi MX graphs of
+def _casadi_structured(prob: KLProblem, kind: np.ndarray, scalar: bool, ub, opts: dict, config: KLStepConfig):
+    """:class:`StructuredNLP` solved by IPOPT: objective and constraints as CasADi MX graphs of
     per-step SX functions, first derivatives and the block-diagonal Hessian from NumPy callbacks.
 
     MUMPS uses the QAMD ordering (``mumps_pivot_order = 6``: the per-step KL rows of the Jacobian
@@ -275,7 +275,7 @@ def _casadi_structured(prob: _Problem, kind: np.ndarray, scalar: bool, ub, opts:
     import casadi as ca
 
     t0 = time.perf_counter()
-    nlp = _StructuredNLP(prob, kind, scalar, config.chol_floor)
+    nlp = StructuredNLP(prob, kind, scalar, config.chol_floor)
     x, f, g = nlp.oracle(ca)
     grad_f, jac_g, hess = nlp.derivative_functions(ca)
     opts = dict(opts, **{"ipopt.mumps_pivot_order": 6, "grad_f": grad_f, "jac_g": jac_g, "hess_lag": hess})

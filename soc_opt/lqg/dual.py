@@ -5,11 +5,11 @@ one forward pass for the moments and ``KL_k``):
 
 * scalar ``eta`` (total budget): ``KL(eta) = sum_k KL_k`` is continuous and strictly decreasing,
   so we solve ``log KL(e^x) = log nu`` for ``x = log eta`` by safeguarded inverse quadratic
-  interpolation / Newton-secant steps with bisection fallback (:func:`_solve_scalar`).
+  interpolation / Newton-secant steps with bisection fallback (:func:`solve_scalar`).
   Typically 5-8 backward passes.
 * vector ``eta`` (per-step budgets): the concave dual is maximised over ``eta_k >= eta_min`` by a
   projected, preconditioned L-BFGS method in ``x = log eta`` with the analytic gradient
-  ``eta_k (KL_k - nu_k)`` (:func:`_solve_vector`); the preconditioner is a per-step diagonal
+  ``eta_k (KL_k - nu_k)`` (:func:`solve_vector`); the preconditioner is a per-step diagonal
   model with a fitted geometric coupling between steps (:func:`_fit_coupling`).  Typically 10-16
   backward passes (12-13 at ``n=26, m=7, T=100``), independent of ``T``.
 
@@ -25,8 +25,8 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.signal import lfilter
 
 from ..models import NotPositiveDefiniteError
-from .backward import _backward, _direct_dkl, _Eval, _evaluate, _NotPD
-from .problem import KLStepConfig, SolverError, _Problem
+from .backward import backward_pass, direct_dkl, DualEval, evaluate_eta, NotPDPoint
+from .problem import KLStepConfig, SolverError, KLProblem
 
 _MEM = 10
 _NEAR = 0.1  # L-BFGS memory is used only once every free |log(KL_k/nu_k)| < _NEAR ...
@@ -34,30 +34,30 @@ _GATE_ITERS = 25  # ... or after this many iterations (strongly coupled, e.g. no
 
 
 class _Counter:
-    def __init__(self, prob: _Problem, config: KLStepConfig):
+    def __init__(self, prob: KLProblem, config: KLStepConfig):
         self.prob, self.config, self.n = prob, config, 0
 
-    def __call__(self, eta: np.ndarray, repair=None) -> _Eval | _NotPD:
+    def __call__(self, eta: np.ndarray, repair=None) -> DualEval | NotPDPoint:
         if self.n >= self.config.max_backward:
             raise SolverError(
                 f"dual solver exceeded max_backward={self.config.max_backward} backward passes"
             )
         self.n += 1
         try:
-            bw = _backward(self.prob, eta, repair=repair, config=self.config)
-        except _NotPD as e:
+            bw = backward_pass(self.prob, eta, repair=repair, config=self.config)
+        except NotPDPoint as e:
             return e
-        return _evaluate(self.prob, bw)
+        return evaluate_eta(self.prob, bw)
 
 
-def _solve_scalar(prob: _Problem, nu: float, config: KLStepConfig, eta0) -> tuple[_Eval, int, int, str]:
+def solve_scalar(prob: KLProblem, nu: float, config: KLStepConfig, eta0) -> tuple[DualEval, int, int, str]:
     """Root of ``f(x) = log sum_k KL_k(e^x) - log nu`` (continuous, strictly decreasing) in ``x = log eta``.
 
     Safeguarded root finding in log-log coordinates (:func:`_scalar_proposal`): inverse
     quadratic interpolation through the last three points once there are three, else a Newton
     step whose slope is the secant through the last two points when they are within 1 of each
     other in ``log eta``, else the analytic slope ``eta sum_k dKL_k/deta / sum_k KL_k`` through
-    each step's own policy (:func:`_direct_dkl`); slopes clipped to ``[-10, -1e-3]``, steps capped
+    each step's own policy (:func:`direct_dkl`); slopes clipped to ``[-10, -1e-3]``, steps capped
     at ``max_log_step``; a step leaving the current bracket, or two steps in a row that do not
     halve ``|f|``, is replaced by bisection.  (``f`` is concave in ``x``, its slope going from about
     0 at small ``eta`` to -2 at large ``eta``: a first Newton step from a small ``eta`` overshoots,
@@ -83,7 +83,7 @@ def _solve_scalar(prob: _Problem, nu: float, config: KLStepConfig, eta0) -> tupl
     while True:
         it += 1
         r = call(np.full(T, config.eta_min if x <= xmin else math.exp(x)))
-        if isinstance(r, _NotPD):  # repair rule: raise eta
+        if isinstance(r, NotPDPoint):  # repair rule: raise eta
             lo = max(lo, x)
             e = max(config.repair_factor * math.exp(x), (1.0 + config.repair_margin) * r.eta_crit)
             if e > config.eta_max:
@@ -113,7 +113,7 @@ def _solve_scalar(prob: _Problem, nu: float, config: KLStepConfig, eta0) -> tupl
             return r, call.n, it, "converged (bracket width)"
         slow = slow + 1 if pts and abs(f) > 0.5 * abs(pts[-1][1]) else 0
         pts = (pts + [(x, f)])[-3:]
-        xn = _scalar_proposal(pts, lo, hi, cap, lambda: math.exp(x) * float(_direct_dkl(prob, r).sum()) / ksum)
+        xn = _scalar_proposal(pts, lo, hi, cap, lambda: math.exp(x) * float(direct_dkl(prob, r).sum()) / ksum)
         if not lo < xn < hi or (slow >= 2 and math.isfinite(lo) and math.isfinite(hi)):
             if math.isfinite(lo) and math.isfinite(hi):
                 xn = 0.5 * (lo + hi)
@@ -124,7 +124,7 @@ def _solve_scalar(prob: _Problem, nu: float, config: KLStepConfig, eta0) -> tupl
 
 
 def _scalar_proposal(pts: list, lo: float, hi: float, cap: float, direct_slope) -> float:
-    """Next ``x`` of :func:`_solve_scalar` from the last points ``pts = [(x, f), ...]`` (current
+    """Next ``x`` of :func:`solve_scalar` from the last points ``pts = [(x, f), ...]`` (current
     last): inverse quadratic interpolation through three points with distinct ``f`` when it lands
     inside the bracket ``(lo, hi)`` within ``cap`` of the current point, else the capped Newton step
     with the secant slope (last two points within 1 in ``x``) or ``direct_slope()``."""
@@ -145,7 +145,7 @@ def _scalar_proposal(pts: list, lo: float, hi: float, cap: float, direct_slope) 
     return x + min(max(-f / slope, -cap), cap)
 
 
-def _solve_vector(prob: _Problem, nu: np.ndarray, config: KLStepConfig, eta0) -> tuple[_Eval, int, int, str]:
+def solve_vector(prob: KLProblem, nu: np.ndarray, config: KLStepConfig, eta0) -> tuple[DualEval, int, int, str]:
     """Maximise the concave dual over ``eta_k >= eta_min`` (steps with finite ``nu_k > 0``).
 
     Minimises ``phi(x) = -g(e^x)`` over ``x = log eta >= log eta_min`` (gradient
@@ -153,7 +153,7 @@ def _solve_vector(prob: _Problem, nu: np.ndarray, config: KLStepConfig, eta0) ->
 
     * diagonal model: per step the Newton step of ``log KL_k(x_k) = log nu_k`` in log-log
       coordinates, with the slope ``dlog KL_k/dx_k`` through step ``k``'s own policy
-      (:func:`_direct_dkl`).  This is exact for the power law ``KL ~ eta^-2`` of large ``eta`` and
+      (:func:`direct_dkl`).  This is exact for the power law ``KL ~ eta^-2`` of large ``eta`` and
       moves a slack budget to ``eta_min`` in a few steps.  As a curvature it tends to the diagonal
       ``eta_k^2 |dKL_k/deta_k|`` of the dual Hessian at the solution, and the preconditioned
       Hessian is well conditioned (eigenvalues in about [0.6, 1.3] on random instances);
@@ -189,7 +189,7 @@ def _solve_vector(prob: _Problem, nu: np.ndarray, config: KLStepConfig, eta0) ->
     call, free, xmin, xmax = dual.call, dual.free, dual.xmin, dual.xmax
     if not free.any():
         r = call(dual.eta)
-        if isinstance(r, _NotPD):
+        if isinstance(r, NotPDPoint):
             _raise_unbounded(r)
         return r, call.n, 0, "no finite budget"
     e0 = np.full(T, config.eta_init) if eta0 is None else np.broadcast_to(np.asarray(eta0, float), (T,))
@@ -197,7 +197,7 @@ def _solve_vector(prob: _Problem, nu: np.ndarray, config: KLStepConfig, eta0) ->
     x = np.zeros(T)
     x[free] = np.clip(np.log(np.maximum(e0[free], config.eta_min)), xmin, xmax)
     r = call(dual.full(x), repair=free)  # first point: repair non-PD steps upwards
-    if isinstance(r, _NotPD):
+    if isinstance(r, NotPDPoint):
         _raise_unbounded(r)
     x[free] = np.log(r.bw.eta[free])
     phi, g = dual.merit(r)
@@ -231,10 +231,10 @@ def _solve_vector(prob: _Problem, nu: np.ndarray, config: KLStepConfig, eta0) ->
 
 
 class _VectorDual:
-    """The fixed data of one :func:`_solve_vector` run and its per-iteration pieces, in
+    """The fixed data of one :func:`solve_vector` run and its per-iteration pieces, in
     ``x = log eta`` (only the free steps, finite ``nu_k > 0``, are variables)."""
 
-    def __init__(self, prob: _Problem, nu: np.ndarray, config: KLStepConfig):
+    def __init__(self, prob: KLProblem, nu: np.ndarray, config: KLStepConfig):
         self.prob, self.config, self.T = prob, config, prob.T
         self.call = _Counter(prob, config)
         self.free = np.isfinite(nu) & (nu > 0)
@@ -252,7 +252,7 @@ class _VectorDual:
         out[free] = np.where(xv[free] <= self.xmin + 1e-12, self.config.eta_min, np.exp(xv[free]))
         return out
 
-    def merit(self, rr: _Eval) -> tuple[float, np.ndarray]:
+    def merit(self, rr: DualEval) -> tuple[float, np.ndarray]:
         """``(phi, dphi/dx)`` with ``phi = -g(eta)``."""
         free, nuf = self.free, self.nuf
         ef = rr.bw.eta[free]
@@ -260,8 +260,8 @@ class _VectorDual:
         grad[free] = ef * (nuf - rr.kl[free])
         return -(rr.cost.sum() + ef @ (rr.kl[free] - nuf)), grad
 
-    def converged(self, r: _Eval, x: np.ndarray) -> bool:
-        """Stopping rule of :func:`_solve_vector` (active budgets met, bound budgets not exceeded)."""
+    def converged(self, r: DualEval, x: np.ndarray) -> bool:
+        """Stopping rule of :func:`solve_vector` (active budgets met, bound budgets not exceeded)."""
         free, nuf, config = self.free, self.nuf, self.config
         kl = r.kl[free]
         at_lo = x[free] <= self.xmin + 1e-12
@@ -269,7 +269,7 @@ class _VectorDual:
         ok = np.where(at_lo, kl <= nuf + tol, np.abs(kl - nuf) <= tol)
         return bool(ok.all())
 
-    def diag_model(self, r: _Eval, x: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def diag_model(self, r: DualEval, x: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(h, lr)``: the diagonal curvature (T,) and ``log(KL_k / nu_k)`` of the free steps.
 
         Per step the Newton step of ``log KL_k = log nu_k`` in ``v_k = log(eta_k - c_k)``,
@@ -281,7 +281,7 @@ class _VectorDual:
         free, nuf, cap = self.free, self.nuf, self.cap
         etaf = np.exp(x)
         eta_fr, kl_fr = etaf[free], np.maximum(r.kl[free], 1e-300)
-        dkl = np.abs(_direct_dkl(self.prob, r))[free]
+        dkl = np.abs(direct_dkl(self.prob, r))[free]
         c = np.minimum(np.maximum(-r.mu_eig[free].min(axis=1), 0.0), 0.999 * eta_fr)
         gap = eta_fr - c
         lr = np.log(kl_fr / nuf)
@@ -304,7 +304,7 @@ class _VectorDual:
         while True:
             xn = np.where(free, np.clip(x + step * d, xmin, xmax), x)
             rn = self.call(self.full(xn))
-            if not isinstance(rn, _NotPD):
+            if not isinstance(rn, NotPDPoint):
                 phin, gn = self.merit(rn)
                 if phin <= phi + 1e-4 * step * slope + 1e-12 * abs(phi):
                     return xn, rn, phin, gn
@@ -437,13 +437,13 @@ def _remember(mem_s: list, mem_y: list, s_: np.ndarray, y_: np.ndarray) -> None:
             mem_y.pop(0)
 
 
-def _raise_unbounded(e: _NotPD):
+def _raise_unbounded(e: NotPDPoint):
     raise NotPositiveDefiniteError(
         f"Quu[{e.t}] is not positive definite at eta={e.eta:g} on a step without a finite KL budget: "
         "the cost-to-go is not strictly convex in the action there"
     )
 
 
-def _dual_value(ev: _Eval, eta: np.ndarray, nu: np.ndarray) -> float:
+def dual_objective(ev: DualEval, eta: np.ndarray, nu: np.ndarray) -> float:
     use = np.isfinite(eta) & (eta > 0)
     return float(ev.cost.sum() + eta[use] @ (ev.kl[use] - nu[use]))

@@ -78,9 +78,9 @@ import numpy as np
 
 from ..linalg import chol, logdet_pd, right_cho_solve
 from ..models import symmetrize
-from .casadi_nlp import _casadi_kinds, _casadi_n_vars, _stage_terms
-from .moments import _expected_cost_marg, _forward_arrays, _kl_batched
-from .problem import KLStepConfig, KLStepResult, SolverError, _policy_from, _Problem
+from .casadi_nlp import casadi_kinds, casadi_n_vars, stage_terms
+from .moments import expected_cost_marg, forward_arrays, kl_batched
+from .problem import KLStepConfig, KLStepResult, SolverError, policy_from, KLProblem
 
 
 def _vech_pairs(n: int) -> list[tuple[int, int]]:
@@ -88,7 +88,7 @@ def _vech_pairs(n: int) -> list[tuple[int, int]]:
     return [(i, j) for j in range(n) for i in range(j, n)]
 
 
-def _stage_data(prob: _Problem, t: int, with_ref_cov: bool) -> np.ndarray:
+def _stage_data(prob: KLProblem, t: int, with_ref_cov: bool) -> np.ndarray:
     """Step ``t``'s data as one column-major vector (the layout :func:`_stage_function` unpacks)."""
     d, c, r = prob.dynamics, prob.cost, prob.reference
     parts = [d.A[t], d.B[t], d.c[t], d.cov[t], c.C[t], c.c[t], [c.c0[t]], r.K[t], r.k[t], prob.Shinv[t],
@@ -136,7 +136,7 @@ def _stage_function(ca, n: int, m: int, kind: str, r: int = 0):
         pos += rows * cols
     P = _sym_from_vech(ca, pv, n)
     if kind == "pin":
-        obj, kl, mu_n, P_n = _stage_terms(ca, D, n, mu, P, D["Kh"], D["kh"], D["Sh"], None)
+        obj, kl, mu_n, P_n = stage_terms(ca, D, n, mu, P, D["Kh"], D["kh"], D["Sh"], None)
     else:
         obj, kl, mu_n, P_n = _moment_terms(ca, D, n, m, mu, P, u, D.get("U"))
     pv_n = ca.vertcat(*[P_n[i, j] for i, j in vp])
@@ -194,7 +194,7 @@ class _FatropOCP:
     ``nu[t]`` controls, ``ng[t]`` path rows (the KL row, if any), in fatrop's order.
     """
 
-    def __init__(self, prob: _Problem, kind: np.ndarray, scalar: bool, config: KLStepConfig):
+    def __init__(self, prob: KLProblem, kind: np.ndarray, scalar: bool, config: KLStepConfig):
         T, n, m = prob.T, prob.n, prob.m
         self.prob, self.kind, self.scalar, self.config = prob, kind, scalar, config
         self.T, self.n, self.m = T, n, m
@@ -252,7 +252,7 @@ class _FatropOCP:
         X = [None] + [ca.MX.sym(f"x{t}", self.nx[t]) for t in range(1, T)]
         U = [ca.MX.sym(f"u{t}", self.nu[t]) for t in range(T)]
         S0 = self._start_covariances(ub)
-        mg = _forward_arrays(prob.dynamics, ref.K, ref.k, S0, prob.mu0, prob.P0)
+        mg = forward_arrays(prob.dynamics, ref.K, ref.k, S0, prob.mu0, prob.P0)
         vp = _vech_pairs(n)
         w, x0, lbx, g, lbg, ubg = [], [], [], [], [], []
         obj = 0
@@ -345,18 +345,18 @@ def _vech_to_sym(v: np.ndarray, n: int) -> np.ndarray:
     return P
 
 
-def _kl_step_fatrop(prob: _Problem, nu: np.ndarray, scalar: bool, nu_out, config: KLStepConfig) -> KLStepResult:
+def kl_step_fatrop(prob: KLProblem, nu: np.ndarray, scalar: bool, nu_out, config: KLStepConfig) -> KLStepResult:
     """The KL step solved by fatrop (module docstring); the result carries ``lam_g`` (the KL rows'
     multipliers) and ``solver_stats`` like the IPOPT path (formulation ``"multiple_shooting"``)."""
     import casadi as ca
 
     T, n, m = prob.T, prob.n, prob.m
-    nu_full, kind = _casadi_kinds(nu, scalar, T)
+    nu_full, kind = casadi_kinds(nu, scalar, T)
     if np.any(kind == "det"):
         t = int(np.flatnonzero(kind == "det")[0])
         raise ValueError(f"method='fatrop' needs finite budgets: nu is inf at step {t} (a deterministic step makes "
                          "the joint covariance of the moment formulation singular); use method='casadi'")
-    n_vars = _casadi_n_vars(kind, n, m)
+    n_vars = casadi_n_vars(kind, n, m)
     free = np.flatnonzero(kind == "free")
     ub = [float(nu[0])] if scalar else [float(nu_full[t]) for t in free]
     ocp = _FatropOCP(prob, kind, scalar, config)
@@ -398,12 +398,12 @@ def _kl_step_fatrop(prob: _Problem, nu: np.ndarray, scalar: bool, nu_out, config
             eta[:] = lam[0]
     else:
         eta[free] = lam
-    policy = _policy_from(Kout, kout, symmetrize(Sout), eta)
-    marg = _forward_arrays(prob.dynamics, policy.K, policy.k, policy.cov, prob.mu0, prob.P0)
+    policy = policy_from(Kout, kout, symmetrize(Sout), eta)
+    marg = forward_arrays(prob.dynamics, policy.K, policy.k, policy.cov, prob.mu0, prob.P0)
     ref = prob.reference
-    kl = _kl_batched(policy.K, policy.k, policy.cov, logdet_pd(policy.cov), ref.K, ref.k, prob.Shinv,
+    kl = kl_batched(policy.K, policy.k, policy.cov, logdet_pd(policy.cov), ref.K, ref.k, prob.Shinv,
                      prob.logdetSh, marg.mean, marg.cov)
-    costs = _expected_cost_marg(prob.cost, marg)
+    costs = expected_cost_marg(prob.cost, marg)
     return KLStepResult(
         policy=policy, eta=eta, kl=kl, expected_cost=float(costs.sum()), n_backward=0, scalar_eta=scalar,
         nu=nu_out, dual_value=fval, method="fatrop", n_iter=n_iter, status=status, marginals=marg, lam_g=lam,

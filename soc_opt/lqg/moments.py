@@ -7,10 +7,10 @@ import numpy as np
 
 from ..linalg import logdet_pd
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, symmetrize
-from .problem import Marginals, _check_dims, _check_init, _ref_inverse, _reference_chol
+from .problem import Marginals, check_dims, check_init, ref_inverse, reference_chol
 
 
-def _forward_arrays(dynamics: LinearGaussianDynamics, K, k, S, mu0, P0) -> Marginals:
+def forward_arrays(dynamics: LinearGaussianDynamics, K, k, S, mu0, P0) -> Marginals:
     T, n = dynamics.T, dynamics.n
     A, B = dynamics.A, dynamics.B
     Acl = A + B @ K  # (T, n, n) closed-loop state matrices
@@ -47,12 +47,12 @@ def forward(dynamics: LinearGaussianDynamics, policy: LinearGaussianPolicy, mu0,
     ``Cov(s_{k+1}) = (A + B K) P_k (A + B K)^T + B Sigma B^T + W``; action moments
     ``E[a] = K E[s] + k``, ``Cov(a) = K P K^T + Sigma``, ``Cov(s, a) = P K^T``.
     """
-    T, n, m = _check_dims(dynamics, policy=policy)
-    mu0, P0 = _check_init(mu0, P0, n)
-    return _forward_arrays(dynamics, policy.K, policy.k, policy.cov, mu0, P0)
+    T, n, m = check_dims(dynamics, policy=policy)
+    mu0, P0 = check_init(mu0, P0, n)
+    return forward_arrays(dynamics, policy.K, policy.k, policy.cov, mu0, P0)
 
 
-def _expected_cost_marg(cost: QuadraticCost, marg: Marginals) -> np.ndarray:
+def expected_cost_marg(cost: QuadraticCost, marg: Marginals) -> np.ndarray:
     n, T = cost.n, cost.T
     zbar = np.concatenate([marg.mean[:T], marg.a_mean], axis=1)
     C = cost.C
@@ -68,11 +68,11 @@ def _expected_cost_marg(cost: QuadraticCost, marg: Marginals) -> np.ndarray:
 
 def expected_cost(dynamics, cost, policy, mu0, P0) -> np.ndarray:
     """(T,) closed-form ``E[l_k(s_k, a_k)] = 1/2 tr(C_k Cov(z_k)) + l_k(E[z_k])``."""
-    _check_dims(dynamics, cost=cost, policy=policy)
-    return _expected_cost_marg(cost, forward(dynamics, policy, mu0, P0))
+    check_dims(dynamics, cost=cost, policy=policy)
+    return expected_cost_marg(cost, forward(dynamics, policy, mu0, P0))
 
 
-def _kl_batched(K, k, S, logdetS, Kh, kh, Shinv, logdetSh, mean, cov) -> np.ndarray:
+def kl_batched(K, k, S, logdetS, Kh, kh, Shinv, logdetSh, mean, cov) -> np.ndarray:
     """(T,) ``E_{s~N(mean, cov)} KL(N(K s + k, S) || N(Kh s + kh, Sh))``.
 
     ``KL = 1/2 [tr(Sh^-1 S) - m + log|Sh| - log|S| + (dK mu + dk)^T Sh^-1 (dK mu + dk)
@@ -93,10 +93,10 @@ def kl_divergence(dynamics, policy, reference, mu0, P0) -> np.ndarray:
     ``p(s_k)`` is the state marginal of ``policy`` (it enters through the gain difference
     ``K - Kh``); ``inf`` where the policy covariance is singular.
     """
-    _check_dims(dynamics, policy=policy, reference=reference)
-    Lh = _reference_chol(reference)
-    Shinv, logdetSh = _ref_inverse(Lh)
+    check_dims(dynamics, policy=policy, reference=reference)
+    Lh = reference_chol(reference)
+    Shinv, logdetSh = ref_inverse(Lh)
     marg = forward(dynamics, policy, mu0, P0)
     logdetS = logdet_pd(policy.cov)
-    return _kl_batched(policy.K, policy.k, policy.cov, logdetS, reference.K, reference.k, Shinv, logdetSh,
+    return kl_batched(policy.K, policy.k, policy.cov, logdetS, reference.K, reference.k, Shinv, logdetSh,
                        marg.mean, marg.cov)

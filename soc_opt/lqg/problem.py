@@ -199,7 +199,7 @@ class KLStepResult(NamedTuple):
 # --------------------------------------------------------------------------------------------
 
 
-def _check_dims(dynamics, *, cost=None, policy=None, reference=None) -> tuple[int, int, int]:
+def check_dims(dynamics, *, cost=None, policy=None, reference=None) -> tuple[int, int, int]:
     if not isinstance(dynamics, LinearGaussianDynamics):
         raise TypeError(f"dynamics must be a LinearGaussianDynamics, got {type(dynamics).__name__}")
     T, n, m = dynamics.T, dynamics.n, dynamics.m
@@ -220,14 +220,14 @@ def _check_dims(dynamics, *, cost=None, policy=None, reference=None) -> tuple[in
     return T, n, m
 
 
-def _check_init(mu0, P0, n: int) -> tuple[np.ndarray, np.ndarray]:
+def check_init(mu0, P0, n: int) -> tuple[np.ndarray, np.ndarray]:
     mu0 = check_array("mu0", mu0, (n,))
     P0 = check_array("P0", P0, (n, n))
     P0 = check_covariances("P0", P0, psd_only=True)
     return mu0, P0
 
 
-def _reference_chol(reference: LinearGaussianPolicy) -> np.ndarray:
+def reference_chol(reference: LinearGaussianPolicy) -> np.ndarray:
     """Lower Cholesky factors of the reference covariances (batched); clear error naming the
     first step that is not PD."""
     try:
@@ -244,7 +244,7 @@ def _reference_chol(reference: LinearGaussianPolicy) -> np.ndarray:
     raise NotPositiveDefiniteError("reference cov is not positive definite")  # pragma: no cover
 
 
-def _check_nu(nu, T: int) -> tuple[np.ndarray, bool]:
+def check_nu(nu, T: int) -> tuple[np.ndarray, bool]:
     """Return ``(nu as (T,) or (1,), scalar?)``; errors name the step."""
     a = np.asarray(nu, dtype=float)
     if a.ndim == 0:
@@ -263,7 +263,7 @@ def _check_nu(nu, T: int) -> tuple[np.ndarray, bool]:
     return a, scalar
 
 
-def _ref_inverse(Lh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def ref_inverse(Lh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(Sh^-1, log|Sh|)`` from the Cholesky factors (batched triangular solves), symmetrised."""
     return inv_from_chol(Lh), logdet_chol(Lh)
 
@@ -273,7 +273,7 @@ def _ref_inverse(Lh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------------------------
 
 
-class _Problem:
+class KLProblem:
     """Per-step arrays of one problem, precomputed once (vectorised over T).
 
     In homogeneous coordinates ``z~ = (s, 1, a)`` the stage cost is ``1/2 z~^T Ct z~``, the mean
@@ -320,9 +320,9 @@ class _Problem:
             self.Fdt_half = 0.5 * np.swapaxes(F, 1, 2)
             return
         self.reference = reference
-        self.Lh = _reference_chol(reference)
+        self.Lh = reference_chol(reference)
         self.Kh, self.kh, self.Sh = reference.K, reference.k, reference.cov
-        self.Shinv, self.logdetSh = _ref_inverse(self.Lh)
+        self.Shinv, self.logdetSh = ref_inverse(self.Lh)
         self.Kth = Kth = np.concatenate([reference.K, reference.k[:, :, None]], axis=2)  # (T, m, n1)
         self.Lhinv = tri_solve(self.Lh, np.broadcast_to(np.eye(m), (T, m, m)))  # (T, m, m)
         # Fd = F E = [Fx + Fu Kth, Fu];  Ctd = E^T Ct E by blocks (Ct_ux + Ct_uu Kth = Ctd_ux)
@@ -349,5 +349,5 @@ class _Problem:
         return self._H
 
 
-def _policy_from(K, k, S, eta) -> LinearGaussianPolicy:
+def policy_from(K, k, S, eta) -> LinearGaussianPolicy:
     return LinearGaussianPolicy(K, k, S, allow_singular=bool(np.any(eta == 0)))

@@ -15,10 +15,10 @@ import numpy as np
 
 from ..linalg import single_thread_blas_cached
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost
-from .casadi_nlp import _kl_step_casadi
-from .fatrop_nlp import _kl_step_fatrop
-from .dual import _dual_value, _solve_scalar, _solve_vector
-from .problem import KLStepConfig, KLStepResult, _check_dims, _check_init, _check_nu, _policy_from, _Problem
+from .casadi_nlp import kl_step_casadi
+from .fatrop_nlp import kl_step_fatrop
+from .dual import dual_objective, solve_scalar, solve_vector
+from .problem import KLStepConfig, KLStepResult, check_dims, check_init, check_nu, policy_from, KLProblem
 
 
 def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: LinearGaussianPolicy, nu, mu0, P0,
@@ -42,43 +42,43 @@ def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: Li
     config = KLStepConfig() if config is None else config
     if not isinstance(config, KLStepConfig):
         raise TypeError(f"config must be a KLStepConfig, got {type(config).__name__}")
-    T, n, m = _check_dims(dynamics, cost=cost, reference=reference)
-    mu0, P0 = _check_init(mu0, P0, n)
-    nu_arr, scalar = _check_nu(nu, T)
+    T, n, m = check_dims(dynamics, cost=cost, reference=reference)
+    mu0, P0 = check_init(mu0, P0, n)
+    nu_arr, scalar = check_nu(nu, T)
     nu_out = float(nu_arr[0]) if scalar else nu_arr.copy()
     if method == "closed_form":
         # many small matrix products: threaded BLAS gains nothing there, and on a loaded machine
         # its spinning threads made the dual solve several times slower
         with single_thread_blas_cached():
-            return _kl_step_closed(_Problem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config, eta0)
+            return _kl_step_closed(KLProblem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config, eta0)
     if method == "casadi":
-        return _kl_step_casadi(_Problem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config)
+        return kl_step_casadi(KLProblem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config)
     if method == "fatrop":
-        return _kl_step_fatrop(_Problem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config)
+        return kl_step_fatrop(KLProblem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config)
     raise ValueError(f"unknown method {method!r}; use 'closed_form', 'casadi' or 'fatrop'")
 
 
-def _kl_step_closed(prob: _Problem, nu: np.ndarray, scalar: bool, nu_out, config, eta0) -> KLStepResult:
+def _kl_step_closed(prob: KLProblem, nu: np.ndarray, scalar: bool, nu_out, config, eta0) -> KLStepResult:
     T = prob.T
     if scalar:
         v = float(nu[0])
         if math.isinf(v) or v == 0.0:
             eta_fixed = np.full(T, 0.0 if math.isinf(v) else math.inf)
-            r, nb, it, status = _solve_vector(prob, np.full(T, v), config, None)
+            r, nb, it, status = solve_vector(prob, np.full(T, v), config, None)
             status = "unconstrained (nu = inf): LQR" if math.isinf(v) else "nu = 0: reference policy"
             eta = eta_fixed
             dual = float(r.cost.sum())
         else:
-            r, nb, it, status = _solve_scalar(prob, v, config, eta0)
+            r, nb, it, status = solve_scalar(prob, v, config, eta0)
             eta = r.bw.eta.copy()
             dual = float(r.cost.sum() + eta[0] * (r.kl.sum() - v))
     else:
-        r, nb, it, status = _solve_vector(prob, nu, config, eta0)
+        r, nb, it, status = solve_vector(prob, nu, config, eta0)
         eta = r.bw.eta.copy()
-        dual = _dual_value(r, eta, nu)
+        dual = dual_objective(r, eta, nu)
     bw = r.bw
     return KLStepResult(
-        policy=_policy_from(bw.K, bw.k, bw.S, eta),
+        policy=policy_from(bw.K, bw.k, bw.S, eta),
         eta=eta,
         kl=r.kl.copy(),
         expected_cost=float(r.cost.sum()),

@@ -1,5 +1,5 @@
 """The ``"structured"`` NLP formulation of the KL step (SPEC §6): rescaled single shooting with
-analytic adjoint derivatives and a per-step block-diagonal Hessian (:class:`_StructuredNLP`),
+analytic adjoint derivatives and a per-step block-diagonal Hessian (:class:`StructuredNLP`),
 exposed to CasADi through buffer callbacks.  Solved by :func:`.casadi_nlp._casadi_structured`."""
 
 from __future__ import annotations
@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..models import symmetrize
-from .moments import _forward_arrays
-from .problem import _Problem
+from .moments import forward_arrays
+from .problem import KLProblem
 
 
-class _StructuredNLP:
+class StructuredNLP:
     """Scaled single-shooting NLP of the KL step with analytic first and second derivatives.
 
     Homogeneous state ``x = (s, 1)`` (``n1 = n + 1``), second moments ``X_k = E[x_k x_k^T]``,
@@ -52,7 +52,7 @@ class _StructuredNLP:
     adjoint sweep.
     """
 
-    def __init__(self, prob: _Problem, kind: np.ndarray, scalar: bool, chol_floor: float):
+    def __init__(self, prob: KLProblem, kind: np.ndarray, scalar: bool, chol_floor: float):
         T, n, m = prob.T, prob.n, prob.m
         n1 = n + 1
         self.prob, self.T, self.n, self.m, self.n1 = prob, T, n, m, n1
@@ -75,7 +75,7 @@ class _StructuredNLP:
         x0h = np.append(prob.mu0, 1.0)
         self.X0 = np.outer(x0h, x0h)
         self.X0[:n, :n] += prob.P0
-        mg = _forward_arrays(prob.dynamics, ref.K, ref.k, ref.cov, prob.mu0, prob.P0)
+        mg = forward_arrays(prob.dynamics, ref.K, ref.k, ref.cov, prob.mu0, prob.P0)
         xm = np.concatenate([mg.mean[:T], np.ones((T, 1))], axis=1)
         Xr = xm[:, :, None] * xm[:, None, :]
         Xr[:, :n, :n] += mg.cov[:T]
