@@ -4,37 +4,44 @@ the expected KL against a reference policy (SPEC §6)."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import blas
 
 from ..linalg import logdet_pd
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, symmetrize
 from .problem import Marginals, check_dims, check_init, ref_inverse, reference_chol
 
 
-def forward_arrays(dynamics: LinearGaussianDynamics, K, k, S, mu0, P0) -> Marginals:
+def forward_arrays(dynamics: LinearGaussianDynamics, K, k, S, mu0, P0, Bt=None) -> Marginals:
+    """:func:`forward` on arrays (no validation); ``Bt`` is ``B^T`` (T, m, n) C-contiguous if the
+    caller has it (``KLProblem.Bt``)."""
     T, n = dynamics.T, dynamics.n
     A, B = dynamics.A, dynamics.B
+    if Bt is None:
+        Bt = np.ascontiguousarray(np.swapaxes(B, 1, 2))
     Acl = A + B @ K  # (T, n, n) closed-loop state matrices
     # state moments as one (T+1, n+1, n) array, rows [Cov(s_k); E[s_k]^T]: per step
     # [Cov'; E'^T] = blkdiag(Acl, 1) [Cov; E^T] Acl^T + [B Sigma B^T + W; (B k + c)^T].
     # The products are not exactly symmetric; the covariances are symmetrised once at the end (the
     # symmetric part of the recursion does not depend on the antisymmetric roundoff).
+    # Per step two BLAS calls on the Fortran-ordered views Cm[t].T = [Cov | E] (n, n+1) of the
+    # C-ordered stack: Tmp = Acl [Cov | E], then Cm[t+1].T += Tmp blkdiag(Acl, 1)^T (prefilled with
+    # the additive terms).
     Aaug = np.zeros((T, n + 1, n + 1))
     Aaug[:, :n, :n] = Acl
     Aaug[:, n, n] = 1.0
-    AclT = np.swapaxes(Acl, 1, 2)
-    add = np.empty((T, n + 1, n))
-    add[:, :n] = (B @ S) @ np.swapaxes(B, 1, 2) + dynamics.cov
-    add[:, n] = (B @ k[:, :, None])[:, :, 0] + dynamics.c
     Cm = np.empty((T + 1, n + 1, n))
     Cm[0, :n] = P0
     Cm[0, n] = mu0
+    Cm[1:, :n] = (B @ S) @ Bt + dynamics.cov  # (contiguous operands: numpy's batched matmul is faster)
+    Cm[1:, n] = (B @ k[:, :, None])[:, :, 0] + dynamics.c
+    dgemm = blas.dgemm
+    tmp = np.empty((n, n + 1), order="F")
     for t in range(T):
-        nxt = Cm[t + 1]
-        np.matmul(Aaug[t], Cm[t] @ AclT[t], out=nxt)
-        nxt += add[t]
+        dgemm(1.0, Acl[t].T, Cm[t].T, 0.0, tmp, 1, 0, 1)  # Acl [Cov | E]  (Acl[t].T is Acl^T in F order)
+        dgemm(1.0, tmp, Aaug[t].T, 1.0, Cm[t + 1].T, 0, 0, 1)
     cov = symmetrize(Cm[:, :n])
     mean = np.ascontiguousarray(Cm[:, n])
-    sa_cov = cov[:T] @ np.swapaxes(K, 1, 2)  # Cov(s, a) = P K^T, (T, n, m)
+    sa_cov = cov[:T] @ np.ascontiguousarray(np.swapaxes(K, 1, 2))  # Cov(s, a) = P K^T, (T, n, m)
     a_mean = (K @ mean[:T, :, None])[:, :, 0] + k
     a_cov = symmetrize(K @ sa_cov + S)
     return Marginals(mean, cov, a_mean, a_cov, sa_cov)
