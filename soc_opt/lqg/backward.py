@@ -42,7 +42,7 @@ from scipy.linalg import blas, lapack
 
 from ..linalg import logdet_chol
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, NotPositiveDefiniteError, QuadraticCost, symmetrize
-from .moments import expected_cost_marg, forward_arrays
+from .moments import expected_cost_marg, forward_arrays, ForwardWorkspace
 from .problem import KLStepConfig, Marginals, check_dims, check_init, KLProblem, ux_transpose
 
 
@@ -97,51 +97,46 @@ def backward_pass(prob: KLProblem, eta: np.ndarray, *, repair: np.ndarray | None
     has_ref = prob.has_ref
     fin = np.isfinite(eta)
     zero = eta == 0
-    Fdut, Ctd = prob.Fdut, prob.Ctd
+    Ctd = prob.Ctd
     dev = has_ref & ~zero  # steps in deviation coordinates; eta = 0 steps (LQR) in z~ = (s, 1, a)
     if has_ref and zero.any():
         sel = zero[:, None, None]
-        Fdut = np.where(sel, ux_transpose(prob.F, n1), Fdut)
         Ctd = np.where(sel, prob.Ct, Ctd)
+        ws = _Workspace(np.where(sel, ux_transpose(prob.F, n1), prob.Fdut), Ctd, m)
+    else:
+        if prob.workspace is None:
+            prob.workspace = _Workspace(prob.Fdut, Ctd, m)
+        ws = prob.workspace
     d = n1 + m
-    # Per step, BLAS/LAPACK work in place on the Fortran-ordered views X[t].T of these C-ordered
-    # stacks (the symmetric blocks are their own transposes):
-    #   U[t].T = [Quu | Q'ux | I]  (m, d + m), prefilled with [Ctd_uu + eta R | Ctd_ux | I] and
-    #            overwritten by [L | Quu^-1 Q'ux | Quu^-1] (Quu = L L^T, two triangular solves);
-    #   V[t].T = Q'xx (n1, n1), overwritten by the value function V_t = Q'xx - Z^T Z, Z = L^-1 Q'ux.
-    U = np.empty((T, d + m, m))
-    U[:, :m] = Ctd[:, n1:, n1:]
+    U, V = ws.U, ws.V
+    np.copyto(U, ws.U0)
     if has_ref:
         U[:, :m] += np.where(fin, eta, 0.0)[:, None, None] * prob.Shinv
-    U[:, m:d] = Ctd[:, :n1, n1:]
-    U[:, d:] = np.eye(m)
-    V = np.ascontiguousarray(Ctd[:, :n1, :n1])  # (T, n1, n1)
+    np.copyto(V[:T], ws.V0)
     dgemm, dpotrf, dtrtrs = blas.dgemm, lapack.dpotrf, lapack.dtrtrs
-    W = np.zeros((n1, n1), order="F")  # value function of step t + 1
+    Y, Yx, Yu = ws.Y, ws.Yx, ws.Yu
+    W = ws.W_end  # value function of step t + 1 (zero after the last step)
+    fin_l = fin.tolist()
+    steps = ws.steps
     for t in range(T - 1, -1, -1):
-        Ft, Wt = Fdut[t], V[t].T
-        Y = dgemm(1.0, W, Ft.T)  # V_{t+1} [Fu, Fx]  (n1, d)
-        dgemm(1.0, Ft[m:].T, Y[:, m:], 1.0, Wt, 1, 0, 1)  # Q'xx = Fx^T V Fx + Ctd_xx
-        if not fin[t]:  # pinned to the reference (delta = 0): cost-to-go under phat (KL_t = 0)
+        FdT, FxT, FuT, Qu, Lt, B, Z, Wt = steps[t]
+        dgemm(1.0, W, FdT, 0.0, Y, 0, 0, 1)  # Y = V_{t+1} [Fu, Fx]  (n1, d)
+        dgemm(1.0, FxT, Yx, 1.0, Wt, 1, 0, 1)  # Q'xx = Fx^T V Fx + Ctd_xx
+        if not fin_l[t]:  # pinned to the reference (delta = 0): cost-to-go under phat (KL_t = 0)
             W = Wt
             continue
-        Ut = U[t]
-        dgemm(1.0, Ft[:m].T, Y, 1.0, Ut[:d].T, 1, 0, 1)  # [Quu, Q'ux] = Fu^T V [Fu, Fx] + prefill
-        Lt, B = Ut[:m].T, Ut[m:].T
+        dgemm(1.0, FuT, Y, 1.0, Qu, 1, 0, 1)  # [Quu, Q'ux] = Fu^T V [Fu, Fx] + prefill
         if dpotrf(Lt, 1, 1, 1)[1] != 0:
-            Q0uu = Ft[:m] @ Y[:, :m] + Ctd[t, n1:, n1:]
+            Q0uu = FuT.T @ Yu + Ctd[t, n1:, n1:]
             _repair(prob, t, Q0uu, eta, repair, config)  # raises eta[t] (or raises NotPDPoint)
             Lt[...] = Q0uu + eta[t] * prob.Shinv[t]
             dpotrf(Lt, 1, 1, 1)
         dtrtrs(Lt, B, 1, 0, 0, m, 1)  # [Z, L^-1] = L^-1 [Q'ux, I]
-        Z = Ut[m:d].T
         dgemm(-1.0, Z, Z, 1.0, Wt, 1, 0, 1)  # V_t = Q'xx - Z^T Z
         dtrtrs(Lt, B, 1, 1, 0, m, 1)  # L^-T [Z, L^-1] = Quu^-1 [Q'ux, I]
         W = Wt
     # batched over T: Q0uu = Fu^T V_{t+1} Fu + Ctd_uu (Quu without the KL term)
-    Vn = np.concatenate([V[1:], np.zeros((1, n1, n1))])
-    Fu = Fdut[:, :m]  # (T, m, n1) = Fu^T
-    Q0uu = symmetrize(Fu @ Vn @ np.ascontiguousarray(np.swapaxes(Fu, 1, 2)) + Ctd[:, n1:, n1:])
+    Q0uu = symmetrize(ws.Fut @ V[1:] @ ws.Fu + Ctd[:, n1:, n1:])
     pinned = ~fin
     G = -np.swapaxes(U[:, m:d], 1, 2)  # (T, m, n1) gains of the step's coordinates
     G[pinned] = 0.0  # pinned: the step's coordinate delta = 0
@@ -164,6 +159,37 @@ def backward_pass(prob: KLProblem, eta: np.ndarray, *, repair: np.ndarray | None
     return _Backward(np.ascontiguousarray(Kt[:, :, :n]), np.ascontiguousarray(Kt[:, :, n]),
                      np.ascontiguousarray(D[:, :, :n]), np.ascontiguousarray(D[:, :, n]),
                      S, logdetS, Quu_inv, Q0uu, eta)
+
+
+class _Workspace:
+    """Buffers of :func:`backward_pass` for one problem, reused by every pass, and their per-step
+    Fortran-ordered views (``X[t].T`` of C-ordered stacks; the symmetric blocks are their own
+    transposes), built once: the views are a large part of the per-step cost otherwise.
+
+    ``U[t].T = [Quu | Q'ux | I]`` (m, d + m), copied from ``U0`` = ``[Ctd_uu | Ctd_ux | I]`` and
+    the KL term ``eta R`` added before each pass, overwritten by ``[L | Quu^-1 Q'ux | Quu^-1]``
+    (``Quu = L L^T``); ``V[t].T = Q'xx`` (n1, n1), copied from ``V0 = Ctd_xx``, overwritten by the
+    value function ``V_t = Q'xx - Z^T Z``, ``Z = L^-1 Q'ux``; ``V[T] = 0``.  ``Fdut`` (T, d, n1) is
+    ``KLProblem.Fdut``, ``Ctd`` (T, d, d) the stage costs in the pass's coordinates.
+    """
+
+    def __init__(self, Fdut: np.ndarray, Ctd: np.ndarray, m: int):
+        T, d, n1 = Fdut.shape
+        self.U0 = np.empty((T, d + m, m))
+        self.U0[:, :m] = Ctd[:, n1:, n1:]
+        self.U0[:, m:d] = Ctd[:, :n1, n1:]
+        self.U0[:, d:] = np.eye(m)
+        self.V0 = np.ascontiguousarray(Ctd[:, :n1, :n1])
+        self.U = np.empty_like(self.U0)
+        self.V = np.zeros((T + 1, n1, n1))
+        self.W_end = self.V[T].T
+        self.Y = np.empty((n1, d), order="F")
+        self.Yu, self.Yx = self.Y[:, :m], self.Y[:, m:]
+        self.Fut = np.ascontiguousarray(Fdut[:, :m])  # (T, m, n1) Fu^T
+        self.Fu = np.ascontiguousarray(np.swapaxes(self.Fut, 1, 2))  # (T, n1, m)
+        U, V = self.U, self.V
+        self.steps = [(Fdut[t].T, Fdut[t, m:].T, Fdut[t, :m].T, U[t, :d].T, U[t, :m].T, U[t, m:].T,
+                       U[t, m:d].T, V[t].T) for t in range(T)]
 
 
 def _repair(prob: KLProblem, t: int, Q0uu: np.ndarray, eta: np.ndarray, repair, config) -> None:
@@ -203,7 +229,9 @@ def evaluate_eta(prob: KLProblem, bw: _Backward) -> DualEval:
     even when ``KL`` is many orders below 1 (large ``eta``).
     """
     T = prob.T
-    marg = forward_arrays(prob.dynamics, bw.K, bw.k, bw.S, prob.mu0, prob.P0, prob.Bt)
+    if prob.fwd_workspace is None:
+        prob.fwd_workspace = ForwardWorkspace(prob.dynamics)
+    marg = forward_arrays(prob.dynamics, bw.K, bw.k, bw.S, prob.mu0, prob.P0, prob.fwd_workspace)
     dm = (bw.dK @ marg.mean[:T, :, None])[:, :, 0] + bw.dk
     Md = bw.dK @ marg.cov[:T] @ np.swapaxes(bw.dK, 1, 2) + dm[:, :, None] * dm[:, None, :]
     quad = np.einsum("tij,tij->t", prob.Shinv, Md)

@@ -11,36 +11,54 @@ from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost
 from .problem import Marginals, check_dims, check_init, ref_inverse, reference_chol
 
 
-def forward_arrays(dynamics: LinearGaussianDynamics, K, k, S, mu0, P0, Bt=None) -> Marginals:
-    """:func:`forward` on arrays (no validation); ``Bt`` is ``B^T`` (T, m, n) C-contiguous if the
-    caller has it (``KLProblem.Bt``)."""
+class ForwardWorkspace:
+    """Buffers of :func:`forward_arrays` for one ``dynamics``, reusable by every call, and their
+    per-step Fortran-ordered views, built once (``X[t].T`` of C-ordered stacks).
+
+    The state moments are kept as ``M_k = [[Cov(s_k), E[s_k]], [0, 1]]`` (n+1, n+1), so that with
+    ``Aaug = blkdiag(A + B K, 1)`` the recursion is ``M' = Aaug M Aaug^T + [[B Sigma B^T + W,
+    B k + c], [0, 0]]``: two ``gemm`` per step.  ``Mc[k] = M_k^T`` (T+1, n+1, n+1) C-ordered, so
+    ``Mc[k, :n, :n] = Cov`` and ``Mc[k, n, :n] = E^T``; ``Aaug`` (T, n+1, n+1) keeps its last row
+    and column ``e_n``; ``Bt = B^T`` (T, m, n) C-contiguous.
+    """
+
+    def __init__(self, dynamics: LinearGaussianDynamics):
+        T, n = dynamics.T, dynamics.n
+        self.Bt = np.ascontiguousarray(np.swapaxes(dynamics.B, 1, 2))
+        self.BK = np.empty((T, n, n))
+        self.Aaug = np.zeros((T, n + 1, n + 1))
+        self.Aaug[:, n, n] = 1.0
+        self.Mc = np.empty((T + 1, n + 1, n + 1))
+        self.tmp = np.empty((n + 1, n + 1), order="F")
+        self.steps = [(self.Aaug[t].T, self.Mc[t].T, self.Mc[t + 1].T) for t in range(T)]
+
+
+def forward_arrays(dynamics: LinearGaussianDynamics, K, k, S, mu0, P0,
+                   ws: ForwardWorkspace | None = None) -> Marginals:
+    """:func:`forward` on arrays (no validation); ``ws`` a :class:`ForwardWorkspace` of
+    ``dynamics`` to reuse (none of the returned arrays is a view of it)."""
     T, n = dynamics.T, dynamics.n
     A, B = dynamics.A, dynamics.B
-    if Bt is None:
-        Bt = np.ascontiguousarray(np.swapaxes(B, 1, 2))
-    Acl = A + B @ K  # (T, n, n) closed-loop state matrices
-    # state moments as one (T+1, n+1, n) array, rows [Cov(s_k); E[s_k]^T]: per step
-    # [Cov'; E'^T] = blkdiag(Acl, 1) [Cov; E^T] Acl^T + [B Sigma B^T + W; (B k + c)^T].
+    if ws is None:
+        ws = ForwardWorkspace(dynamics)
+    Aaug, Mc, tmp = ws.Aaug, ws.Mc, ws.tmp
+    np.matmul(B, K, out=ws.BK)
+    np.add(A, ws.BK, out=Aaug[:, :n, :n])  # closed-loop state matrices A + B K
     # The products are not exactly symmetric; the covariances are symmetrised once at the end (the
-    # symmetric part of the recursion does not depend on the antisymmetric roundoff).
-    # Per step two BLAS calls on the Fortran-ordered views Cm[t].T = [Cov | E] (n, n+1) of the
-    # C-ordered stack: Tmp = Acl [Cov | E], then Cm[t+1].T += Tmp blkdiag(Acl, 1)^T (prefilled with
-    # the additive terms).
-    Aaug = np.zeros((T, n + 1, n + 1))
-    Aaug[:, :n, :n] = Acl
-    Aaug[:, n, n] = 1.0
-    Cm = np.empty((T + 1, n + 1, n))
-    Cm[0, :n] = P0
-    Cm[0, n] = mu0
-    Cm[1:, :n] = (B @ S) @ Bt + dynamics.cov  # (contiguous operands: numpy's batched matmul is faster)
-    Cm[1:, n] = (B @ k[:, :, None])[:, :, 0] + dynamics.c
+    # symmetric part of the recursion does not depend on the antisymmetric roundoff).  The last
+    # row of M stays exactly (0, ..., 0, 1).
+    Mc[0, :n, :n] = P0
+    Mc[0, n, :n] = mu0
+    Mc[:, :, n] = 0.0
+    Mc[0, n, n] = 1.0
+    Mc[1:, :n, :n] = (B @ S) @ ws.Bt + dynamics.cov  # (contiguous operands: numpy's batched matmul is faster)
+    Mc[1:, n, :n] = (B @ k[:, :, None])[:, :, 0] + dynamics.c
     dgemm = blas.dgemm
-    tmp = np.empty((n, n + 1), order="F")
-    for t in range(T):
-        dgemm(1.0, Acl[t].T, Cm[t].T, 0.0, tmp, 1, 0, 1)  # Acl [Cov | E]  (Acl[t].T is Acl^T in F order)
-        dgemm(1.0, tmp, Aaug[t].T, 1.0, Cm[t + 1].T, 0, 0, 1)
-    cov = symmetrize(Cm[:, :n])
-    mean = np.ascontiguousarray(Cm[:, n])
+    for Aa, M, Mn in ws.steps:  # Aa = Aaug^T, M, Mn in Fortran order
+        dgemm(1.0, Aa, M, 0.0, tmp, 1, 0, 1)  # Aaug M
+        dgemm(1.0, tmp, Aa, 1.0, Mn, 0, 0, 1)  # M' = Aaug M Aaug^T + prefill
+    cov = symmetrize(Mc[:, :n, :n])
+    mean = np.ascontiguousarray(Mc[:, n, :n])
     sa_cov = cov[:T] @ np.ascontiguousarray(np.swapaxes(K, 1, 2))  # Cov(s, a) = P K^T, (T, n, m)
     a_mean = (K @ mean[:T, :, None])[:, :, 0] + k
     a_cov = symmetrize(K @ sa_cov + S)

@@ -285,7 +285,7 @@ class KLProblem:
     Fields (``n1 = n + 1``, ``d = n1 + m``): ``F`` (T, n1, d), ``Ct`` (T, d, d), ``Fd`` (T, n1, d),
     ``Fdut = [Fdu, Fdx]^T`` (T, d, n1: ``Fd``'s columns in the order (u, x), transposed and
     C-contiguous, so that ``Fdut[t].T`` is that matrix in Fortran order, as BLAS takes it),
-    ``Ctd`` (T, d, d), ``Bt = B^T`` (T, m, n, C-contiguous), ``has_ref``; with a reference also
+    ``Ctd`` (T, d, d), ``has_ref``; with a reference also
     ``Lh`` (T, m, m) (``Sh = Lh Lh^T``), ``Lhinv = Lh^-1``, ``Shinv`` (T, m, m), ``logdetSh`` (T,),
     ``Kth = [Kh, kh]`` (T, m, n1) and ``H`` (T, d, d) (computed on first use).
     """
@@ -315,9 +315,10 @@ class KLProblem:
         Ct[:, n, n1:] = c[:, n:]
         Ct[:, n, n] = 2.0 * cost.c0
         self.Ct = Ct
-        self.Bt = np.ascontiguousarray(np.swapaxes(dynamics.B, 1, 2))  # (T, m, n)
         self.has_ref = reference is not None
         self._H = None
+        self.workspace = None  # buffers of backward_pass, created there on first use
+        self.fwd_workspace = None  # buffers of the forward pass (moments.ForwardWorkspace), likewise
         if not self.has_ref:
             self.Fd, self.Ctd = F, Ct
             self.Fdut = ux_transpose(F, n1)
