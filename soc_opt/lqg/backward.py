@@ -140,7 +140,9 @@ def backward_pass(prob: KLProblem, eta: np.ndarray, *, repair: np.ndarray | None
     pinned = ~fin
     G = -np.swapaxes(U[:, m:d], 1, 2)  # (T, m, n1) gains of the step's coordinates
     G[pinned] = 0.0  # pinned: the step's coordinate delta = 0
-    if has_ref:
+    if has_ref and dev.all():
+        Kt, D = prob.Kth + G, G
+    elif has_ref:
         devc = dev[:, None, None]
         Kt = np.where(devc, prob.Kth + G, G)
         D = np.where(devc, G, G - prob.Kth)  # deviation gains, computed directly where possible
