@@ -231,6 +231,80 @@ def test_backward_pass_minimises_the_lagrangian():
         assert lagrangian(dyn, cost, pert, ref, mu0, P0, res.eta, nu) >= L0 - 1e-10 * abs(L0)
 
 
+def _dense_backward(dyn, cost, ref, eta):
+    """Oracle for the backward pass at fixed multipliers (SPEC §6), written directly in
+    ``z = (s, 1, a)`` with the KL term ``eta H`` (``-log phat = z^T H z / 2 + const``) and dense
+    solves: ``(K, k, Sigma)`` per step; ``eta = 0`` gives the LQR step, ``eta = inf`` the reference."""
+    T, n, m = dyn.T, dyn.n, dyn.m
+    n1 = n + 1
+    F = np.zeros((T, n1, n1 + m))
+    F[:, :n, :n], F[:, :n, n], F[:, :n, n1:], F[:, n, n] = dyn.A, dyn.c, dyn.B, 1.0
+    perm = np.r_[0:n, n + m, n:n + m]  # (s, a, 1) -> (s, 1, a)
+    Cz = np.zeros((T, n + m + 1, n + m + 1))
+    Cz[:, :n + m, :n + m] = cost.C
+    Cz[:, :n + m, n + m] = Cz[:, n + m, :n + m] = cost.c
+    Cz[:, n + m, n + m] = 2.0 * cost.c0
+    Ct = Cz[:, perm][:, :, perm]
+    V = np.zeros((n1, n1))
+    K, k, S = np.zeros((T, m, n)), np.zeros((T, m)), np.zeros((T, m, m))
+    for t in range(T - 1, -1, -1):
+        Q = Ct[t] + F[t].T @ V @ F[t]
+        Gh = np.hstack([ref.K[t], ref.k[t][:, None]])  # phat mean gain on (s, 1)
+        if np.isinf(eta[t]):
+            E = np.vstack([np.eye(n1), Gh])
+            V = E.T @ Q @ E
+            K[t], k[t], S[t] = ref.K[t], ref.k[t], ref.cov[t]
+            continue
+        if eta[t] > 0:
+            Gz = np.hstack([-Gh, np.eye(m)])
+            Q = Q + eta[t] * Gz.T @ np.linalg.solve(ref.cov[t], Gz)
+        Quu, Qux = Q[n1:, n1:], Q[n1:, :n1]
+        gain = -np.linalg.solve(Quu, Qux)
+        K[t], k[t] = gain[:, :n], gain[:, n]
+        S[t] = eta[t] * np.linalg.inv(Quu) if eta[t] > 0 else 0.0
+        V = Q[:n1, :n1] + Qux.T @ gain
+        V = 0.5 * (V + V.T)
+    return K, k, S
+
+
+def test_backward_and_forward_passes_match_dense_oracle_when_buffers_are_reused():
+    """One problem, several multiplier patterns in a row (finite, 0 = LQR, inf = pinned): the
+    passes, which reuse per-problem buffers, give the dense oracle's policy and the same arrays as
+    on a fresh problem."""
+    from soc_opt.lqg.backward import backward_pass
+    from soc_opt.lqg.moments import ForwardWorkspace, forward_arrays
+    from soc_opt.lqg.problem import KLProblem
+
+    rng = np.random.default_rng(31)
+    T = 8
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 4, 2, T)
+    finite = rng.uniform(0.05, 5.0, T)
+    mixed = finite.copy()
+    mixed[[1, 5]] = 0.0
+    mixed[[3, 6]] = np.inf
+    prob = KLProblem(dyn, cost, ref, mu0, P0)
+    prob.fwd_workspace = ForwardWorkspace(dyn)
+    for eta in (finite, mixed, finite, 10.0 * finite, mixed):
+        bw = backward_pass(prob, eta)
+        K, k, S = _dense_backward(dyn, cost, ref, eta)
+        np.testing.assert_allclose(bw.K, K, rtol=1e-9, atol=1e-10)
+        np.testing.assert_allclose(bw.k, k, rtol=1e-9, atol=1e-10)
+        np.testing.assert_allclose(bw.S, S, rtol=1e-9, atol=1e-10)
+        fresh = backward_pass(KLProblem(dyn, cost, ref, mu0, P0), eta)
+        for a, b in zip(bw, fresh):
+            np.testing.assert_array_equal(a, b)
+        marg = forward_arrays(dyn, bw.K, bw.k, bw.S, mu0, P0, prob.fwd_workspace)
+        mean, cov = mu0, P0  # plain moment recursion of the oracle's policy
+        for t in range(T):
+            np.testing.assert_allclose(marg.mean[t], mean, rtol=1e-9, atol=1e-10)
+            np.testing.assert_allclose(marg.cov[t], cov, rtol=1e-9, atol=1e-10)
+            Acl = dyn.A[t] + dyn.B[t] @ K[t]
+            mean = Acl @ mean + dyn.B[t] @ k[t] + dyn.c[t]
+            cov = Acl @ cov @ Acl.T + dyn.B[t] @ S[t] @ dyn.B[t].T + dyn.cov[t]
+        np.testing.assert_allclose(marg.mean[T], mean, rtol=1e-9, atol=1e-10)
+        np.testing.assert_allclose(marg.cov[T], cov, rtol=1e-9, atol=1e-10)
+
+
 def test_slack_budgets_have_zero_multipliers():
     rng = np.random.default_rng(10)
     T = 10

@@ -25,10 +25,11 @@ restarted (scalar ``eta``) or continued (per step).  Past ``config.eta_max`` a
 
 Cost.  Both passes are loops over ``T`` of small matrix products whose Python overhead is of
 the order of their arithmetic at ``n=26, m=7``: the backward loop runs in deviation coordinates
-(no KL cross terms, nothing recomputed per step that does not depend on ``eta``), one LAPACK
-``posv`` per step in place on preallocated buffers, and everything that is not recursive
-(``Quu^-1``, ``Sigma``, log-determinants, gains) batched over ``T`` afterwards; the forward loop
-propagates ``[Cov; mean^T]`` with one pair of products per step (:mod:`.moments`).
+(no KL cross terms, nothing recomputed per step that does not depend on ``eta``) and calls
+BLAS/LAPACK directly (three ``gemm``, one ``potrf``, two ``trtrs`` per step) in place on
+preallocated buffers prefilled with the stage cost; everything that is not recursive (``Q0uu``,
+``Sigma``, log-determinants, gains) is batched over ``T`` afterwards; the forward loop propagates
+``[Cov | mean]`` with two ``gemm`` per step (:mod:`.moments`).
 """
 
 from __future__ import annotations
@@ -37,12 +38,12 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from scipy.linalg import lapack
+from scipy.linalg import blas, lapack
 
 from ..linalg import logdet_chol
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, NotPositiveDefiniteError, QuadraticCost, symmetrize
-from .moments import expected_cost_marg, forward_arrays
-from .problem import KLStepConfig, Marginals, check_dims, check_init, KLProblem
+from .moments import expected_cost_marg, forward_arrays, ForwardWorkspace
+from .problem import KLStepConfig, Marginals, check_dims, check_init, KLProblem, ux_transpose
 
 
 class NotPDPoint(Exception):
@@ -82,9 +83,10 @@ def backward_pass(prob: KLProblem, eta: np.ndarray, *, repair: np.ndarray | None
     ``V = Q'xx - Q'xu Quu^-1 Q'ux``.  Nothing here grows with ``eta``, so the policy stays accurate
     when ``eta`` is large and it is close to the reference.  Steps with ``eta_k = 0`` use the
     coordinates ``(s, 1, a)`` (the same operations as :func:`lqr`, so ``nu = inf`` reproduces it
-    exactly).  Per step only the Q-function and one
-    LAPACK ``posv`` (Cholesky factorisation and solve) run in the loop; ``Quu^-1``, ``Sigma`` and
-    the log-determinants are batched afterwards.  Raises :class:`NotPDPoint` at the
+    exactly).  Per step only the Q-function blocks ``Q'xx`` and ``[Quu, Q'ux]``, the Cholesky
+    factorisation ``Quu = L L^T``, ``Z = L^-1 Q'ux`` (so ``V = Q'xx - Z^T Z``) and
+    ``Quu^-1 [Q'ux, I] = L^-T [Z, L^-1]`` run in the loop; ``Q0uu``, ``Sigma`` and the
+    log-determinants are batched afterwards.  Raises :class:`NotPDPoint` at the
     first (latest) step whose ``Quu`` is not PD, unless that step is marked in the boolean mask
     ``repair``: then ``eta_k`` is raised in place by the repair rule (see above) and the pass
     continues.
@@ -95,66 +97,101 @@ def backward_pass(prob: KLProblem, eta: np.ndarray, *, repair: np.ndarray | None
     has_ref = prob.has_ref
     fin = np.isfinite(eta)
     zero = eta == 0
-    Fd, Fdt_half, Ctd = prob.Fd, prob.Fdt_half, prob.Ctd
+    Ctd = prob.Ctd
     dev = has_ref & ~zero  # steps in deviation coordinates; eta = 0 steps (LQR) in z~ = (s, 1, a)
     if has_ref and zero.any():
         sel = zero[:, None, None]
-        Fd = np.where(sel, prob.F, Fd)
-        Fdt_half = np.where(sel, 0.5 * np.swapaxes(prob.F, 1, 2), Fdt_half)
         Ctd = np.where(sel, prob.Ct, Ctd)
-    d = n1 + m
-    Qall = np.empty((T, d, d))
-    # per step, LAPACK posv works in place on Fortran-ordered views of these C-ordered buffers:
-    # Lall[t].T <- Quu, overwritten by its Cholesky factor L (so Lall[t] holds L^T in its upper
-    # triangle), and Xall[t].T <- [Q'ux, I], overwritten by [Quu^-1 Q'ux, Quu^-1]
-    Lall = np.empty((T, m, m))
-    Xall = np.zeros((T, d, m))
-    Xall[:, n1:, :] = np.eye(m)
-    if has_ref:
-        eR = np.where(fin, eta, 0.0)[:, None, None] * prob.Shinv  # KL term of Quu
+        ws = _Workspace(np.where(sel, ux_transpose(prob.F, n1), prob.Fdut), Ctd, m)
     else:
-        eR = np.zeros((T, m, m))
-    dposv = lapack.dposv
-    W = np.zeros((n1, n1))  # twice the value function (the factor 1/2 is folded into Fdt_half)
-    for t in range(T - 1, -1, -1):
-        Q = Qall[t]
-        np.matmul(Fdt_half[t], W @ Fd[t], out=Q)
-        Q += Ctd[t]
-        if not fin[t]:  # pinned to the reference (delta = 0): cost-to-go under phat (KL_t = 0)
-            W = Q[:n1, :n1] + Q[:n1, :n1].T
-            continue
-        La, Xt = Lall[t], Xall[t]
-        np.add(Q[n1:, n1:], eR[t], out=La)
-        Xt[:n1] = Q[n1:, :n1].T
-        if dposv(La.T, Xt.T, lower=1, overwrite_a=1, overwrite_b=1)[2] != 0:
-            _repair(prob, t, Q[n1:, n1:], eta, repair, config)  # raises eta[t] (or raises NotPDPoint)
-            np.add(Q[n1:, n1:], eta[t] * prob.Shinv[t], out=La)
-            Xt[:n1] = Q[n1:, :n1].T
-            Xt[n1:] = np.eye(m)
-            dposv(La.T, Xt.T, lower=1, overwrite_a=1, overwrite_b=1)
-        W = Q[:n1, :n1] - Xt[:n1] @ Q[n1:, :n1]  # V = Q'xx - Q'xu Quu^-1 Q'ux
-        W = W + W.T
-    G = -np.swapaxes(Xall[:, :n1, :], 1, 2)  # (T, m, n1) gains of the step's coordinates, 0 where pinned
+        if prob.workspace is None:
+            prob.workspace = _Workspace(prob.Fdut, Ctd, m)
+        ws = prob.workspace
+    d = n1 + m
+    U, V = ws.U, ws.V
+    np.copyto(U, ws.U0)
     if has_ref:
+        U[:, :m] += np.where(fin, eta, 0.0)[:, None, None] * prob.Shinv
+    np.copyto(V[:T], ws.V0)
+    dgemm, dpotrf, dtrtrs = blas.dgemm, lapack.dpotrf, lapack.dtrtrs
+    Y, Yx, Yu = ws.Y, ws.Yx, ws.Yu
+    W = ws.W_end  # value function of step t + 1 (zero after the last step)
+    fin_l = fin.tolist()
+    steps = ws.steps
+    for t in range(T - 1, -1, -1):
+        FdT, FxT, FuT, Qu, Lt, B, Z, Wt = steps[t]
+        dgemm(1.0, W, FdT, 0.0, Y, 0, 0, 1)  # Y = V_{t+1} [Fu, Fx]  (n1, d)
+        dgemm(1.0, FxT, Yx, 1.0, Wt, 1, 0, 1)  # Q'xx = Fx^T V Fx + Ctd_xx
+        if not fin_l[t]:  # pinned to the reference (delta = 0): cost-to-go under phat (KL_t = 0)
+            W = Wt
+            continue
+        dgemm(1.0, FuT, Y, 1.0, Qu, 1, 0, 1)  # [Quu, Q'ux] = Fu^T V [Fu, Fx] + prefill
+        if dpotrf(Lt, 1, 1, 1)[1] != 0:
+            Q0uu = FuT.T @ Yu + Ctd[t, n1:, n1:]
+            _repair(prob, t, Q0uu, eta, repair, config)  # raises eta[t] (or raises NotPDPoint)
+            Lt[...] = Q0uu + eta[t] * prob.Shinv[t]
+            dpotrf(Lt, 1, 1, 1)
+        dtrtrs(Lt, B, 1, 0, 0, m, 1)  # [Z, L^-1] = L^-1 [Q'ux, I]
+        dgemm(-1.0, Z, Z, 1.0, Wt, 1, 0, 1)  # V_t = Q'xx - Z^T Z
+        dtrtrs(Lt, B, 1, 1, 0, m, 1)  # L^-T [Z, L^-1] = Quu^-1 [Q'ux, I]
+        W = Wt
+    # batched over T: Q0uu = Fu^T V_{t+1} Fu + Ctd_uu (Quu without the KL term)
+    Q0uu = symmetrize(ws.Fut @ V[1:] @ ws.Fu + Ctd[:, n1:, n1:])
+    pinned = ~fin
+    G = -np.swapaxes(U[:, m:d], 1, 2)  # (T, m, n1) gains of the step's coordinates
+    G[pinned] = 0.0  # pinned: the step's coordinate delta = 0
+    if has_ref and dev.all():
+        Kt, D = prob.Kth + G, G
+    elif has_ref:
         devc = dev[:, None, None]
         Kt = np.where(devc, prob.Kth + G, G)
         D = np.where(devc, G, G - prob.Kth)  # deviation gains, computed directly where possible
     else:
         Kt = D = G
-    pinned = ~fin
-    Quu_inv = symmetrize(Xall[:, n1:, :])
+    Quu_inv = symmetrize(U[:, d:])
     Quu_inv[pinned] = 0.0
     pos = fin & (eta > 0)
     S = np.where(fin, eta, 0.0)[:, None, None] * Quu_inv  # 0 where eta = 0
     logdetS = np.empty(T)
-    logdetS[pos] = m * np.log(eta[pos]) - 2.0 * np.log(np.diagonal(Lall[pos], axis1=1, axis2=2)).sum(axis=1)
+    logdetS[pos] = m * np.log(eta[pos]) - 2.0 * np.log(np.diagonal(U[pos, :m], axis1=1, axis2=2)).sum(axis=1)
     logdetS[zero] = -np.inf
     if pinned.any():
         S[pinned] = prob.Sh[pinned]
         logdetS[pinned] = logdet_chol(prob.Lh[pinned])
     return _Backward(np.ascontiguousarray(Kt[:, :, :n]), np.ascontiguousarray(Kt[:, :, n]),
                      np.ascontiguousarray(D[:, :, :n]), np.ascontiguousarray(D[:, :, n]),
-                     S, logdetS, Quu_inv, Qall[:, n1:, n1:], eta)
+                     S, logdetS, Quu_inv, Q0uu, eta)
+
+
+class _Workspace:
+    """Buffers of :func:`backward_pass` for one problem, reused by every pass, and their per-step
+    Fortran-ordered views (``X[t].T`` of C-ordered stacks; the symmetric blocks are their own
+    transposes), built once: the views are a large part of the per-step cost otherwise.
+
+    ``U[t].T = [Quu | Q'ux | I]`` (m, d + m), copied from ``U0`` = ``[Ctd_uu | Ctd_ux | I]`` and
+    the KL term ``eta R`` added before each pass, overwritten by ``[L | Quu^-1 Q'ux | Quu^-1]``
+    (``Quu = L L^T``); ``V[t].T = Q'xx`` (n1, n1), copied from ``V0 = Ctd_xx``, overwritten by the
+    value function ``V_t = Q'xx - Z^T Z``, ``Z = L^-1 Q'ux``; ``V[T] = 0``.  ``Fdut`` (T, d, n1) is
+    ``KLProblem.Fdut``, ``Ctd`` (T, d, d) the stage costs in the pass's coordinates.
+    """
+
+    def __init__(self, Fdut: np.ndarray, Ctd: np.ndarray, m: int):
+        T, d, n1 = Fdut.shape
+        self.U0 = np.empty((T, d + m, m))
+        self.U0[:, :m] = Ctd[:, n1:, n1:]
+        self.U0[:, m:d] = Ctd[:, :n1, n1:]
+        self.U0[:, d:] = np.eye(m)
+        self.V0 = np.ascontiguousarray(Ctd[:, :n1, :n1])
+        self.U = np.empty_like(self.U0)
+        self.V = np.zeros((T + 1, n1, n1))
+        self.W_end = self.V[T].T
+        self.Y = np.empty((n1, d), order="F")
+        self.Yu, self.Yx = self.Y[:, :m], self.Y[:, m:]
+        self.Fut = np.ascontiguousarray(Fdut[:, :m])  # (T, m, n1) Fu^T
+        self.Fu = np.ascontiguousarray(np.swapaxes(self.Fut, 1, 2))  # (T, n1, m)
+        U, V = self.U, self.V
+        self.steps = [(Fdut[t].T, Fdut[t, m:].T, Fdut[t, :m].T, U[t, :d].T, U[t, :m].T, U[t, m:].T,
+                       U[t, m:d].T, V[t].T) for t in range(T)]
 
 
 def _repair(prob: KLProblem, t: int, Q0uu: np.ndarray, eta: np.ndarray, repair, config) -> None:
@@ -194,12 +231,14 @@ def evaluate_eta(prob: KLProblem, bw: _Backward) -> DualEval:
     even when ``KL`` is many orders below 1 (large ``eta``).
     """
     T = prob.T
-    marg = forward_arrays(prob.dynamics, bw.K, bw.k, bw.S, prob.mu0, prob.P0)
+    if prob.fwd_workspace is None:
+        prob.fwd_workspace = ForwardWorkspace(prob.dynamics)
+    marg = forward_arrays(prob.dynamics, bw.K, bw.k, bw.S, prob.mu0, prob.P0, prob.fwd_workspace)
     dm = (bw.dK @ marg.mean[:T, :, None])[:, :, 0] + bw.dk
     Md = bw.dK @ marg.cov[:T] @ np.swapaxes(bw.dK, 1, 2) + dm[:, :, None] * dm[:, None, :]
     quad = np.einsum("tij,tij->t", prob.Shinv, Md)
     LhT = np.swapaxes(prob.Lh, 1, 2)
-    mu_eig = np.linalg.eigvalsh(symmetrize(LhT @ bw.Q0uu @ prob.Lh))
+    mu_eig = np.linalg.eigvalsh(LhT @ bw.Q0uu @ prob.Lh)  # reads the lower triangle only
     eta = bw.eta
     pos = np.isfinite(eta) & (eta > 0)
     cov_part = np.zeros(T)

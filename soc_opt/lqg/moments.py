@@ -4,37 +4,62 @@ the expected KL against a reference policy (SPEC §6)."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import blas
 
 from ..linalg import logdet_pd
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, symmetrize
 from .problem import Marginals, check_dims, check_init, ref_inverse, reference_chol
 
 
-def forward_arrays(dynamics: LinearGaussianDynamics, K, k, S, mu0, P0) -> Marginals:
+class ForwardWorkspace:
+    """Buffers of :func:`forward_arrays` for one ``dynamics``, reusable by every call, and their
+    per-step Fortran-ordered views, built once (``X[t].T`` of C-ordered stacks).
+
+    The state moments are kept as ``M_k = [[Cov(s_k), E[s_k]], [0, 1]]`` (n+1, n+1), so that with
+    ``Aaug = blkdiag(A + B K, 1)`` the recursion is ``M' = Aaug M Aaug^T + [[B Sigma B^T + W,
+    B k + c], [0, 0]]``: two ``gemm`` per step.  ``Mc[k] = M_k^T`` (T+1, n+1, n+1) C-ordered, so
+    ``Mc[k, :n, :n] = Cov`` and ``Mc[k, n, :n] = E^T``; ``Aaug`` (T, n+1, n+1) keeps its last row
+    and column ``e_n``; ``Bt = B^T`` (T, m, n) C-contiguous.
+    """
+
+    def __init__(self, dynamics: LinearGaussianDynamics):
+        T, n = dynamics.T, dynamics.n
+        self.Bt = np.ascontiguousarray(np.swapaxes(dynamics.B, 1, 2))
+        self.BK = np.empty((T, n, n))
+        self.Aaug = np.zeros((T, n + 1, n + 1))
+        self.Aaug[:, n, n] = 1.0
+        self.Mc = np.empty((T + 1, n + 1, n + 1))
+        self.tmp = np.empty((n + 1, n + 1), order="F")
+        self.steps = [(self.Aaug[t].T, self.Mc[t].T, self.Mc[t + 1].T) for t in range(T)]
+
+
+def forward_arrays(dynamics: LinearGaussianDynamics, K, k, S, mu0, P0,
+                   ws: ForwardWorkspace | None = None) -> Marginals:
+    """:func:`forward` on arrays (no validation); ``ws`` a :class:`ForwardWorkspace` of
+    ``dynamics`` to reuse (none of the returned arrays is a view of it)."""
     T, n = dynamics.T, dynamics.n
     A, B = dynamics.A, dynamics.B
-    Acl = A + B @ K  # (T, n, n) closed-loop state matrices
-    # state moments as one (T+1, n+1, n) array, rows [Cov(s_k); E[s_k]^T]: per step
-    # [Cov'; E'^T] = blkdiag(Acl, 1) [Cov; E^T] Acl^T + [B Sigma B^T + W; (B k + c)^T].
+    if ws is None:
+        ws = ForwardWorkspace(dynamics)
+    Aaug, Mc, tmp = ws.Aaug, ws.Mc, ws.tmp
+    np.matmul(B, K, out=ws.BK)
+    np.add(A, ws.BK, out=Aaug[:, :n, :n])  # closed-loop state matrices A + B K
     # The products are not exactly symmetric; the covariances are symmetrised once at the end (the
-    # symmetric part of the recursion does not depend on the antisymmetric roundoff).
-    Aaug = np.zeros((T, n + 1, n + 1))
-    Aaug[:, :n, :n] = Acl
-    Aaug[:, n, n] = 1.0
-    AclT = np.swapaxes(Acl, 1, 2)
-    add = np.empty((T, n + 1, n))
-    add[:, :n] = (B @ S) @ np.swapaxes(B, 1, 2) + dynamics.cov
-    add[:, n] = (B @ k[:, :, None])[:, :, 0] + dynamics.c
-    Cm = np.empty((T + 1, n + 1, n))
-    Cm[0, :n] = P0
-    Cm[0, n] = mu0
-    for t in range(T):
-        nxt = Cm[t + 1]
-        np.matmul(Aaug[t], Cm[t] @ AclT[t], out=nxt)
-        nxt += add[t]
-    cov = symmetrize(Cm[:, :n])
-    mean = np.ascontiguousarray(Cm[:, n])
-    sa_cov = cov[:T] @ np.swapaxes(K, 1, 2)  # Cov(s, a) = P K^T, (T, n, m)
+    # symmetric part of the recursion does not depend on the antisymmetric roundoff).  The last
+    # row of M stays exactly (0, ..., 0, 1).
+    Mc[0, :n, :n] = P0
+    Mc[0, n, :n] = mu0
+    Mc[:, :, n] = 0.0
+    Mc[0, n, n] = 1.0
+    Mc[1:, :n, :n] = (B @ S) @ ws.Bt + dynamics.cov  # (contiguous operands: numpy's batched matmul is faster)
+    Mc[1:, n, :n] = (B @ k[:, :, None])[:, :, 0] + dynamics.c
+    dgemm = blas.dgemm
+    for Aa, M, Mn in ws.steps:  # Aa = Aaug^T, M, Mn in Fortran order
+        dgemm(1.0, Aa, M, 0.0, tmp, 1, 0, 1)  # Aaug M
+        dgemm(1.0, tmp, Aa, 1.0, Mn, 0, 0, 1)  # M' = Aaug M Aaug^T + prefill
+    cov = symmetrize(Mc[:, :n, :n])
+    mean = np.ascontiguousarray(Mc[:, n, :n])
+    sa_cov = cov[:T] @ np.ascontiguousarray(np.swapaxes(K, 1, 2))  # Cov(s, a) = P K^T, (T, n, m)
     a_mean = (K @ mean[:T, :, None])[:, :, 0] + k
     a_cov = symmetrize(K @ sa_cov + S)
     return Marginals(mean, cov, a_mean, a_cov, sa_cov)

@@ -283,7 +283,9 @@ class KLProblem:
     ``E = [[I, 0], [Kth, I]]``, dynamics ``Fd = F E`` and stage cost ``Ctd = E^T Ct E``.
 
     Fields (``n1 = n + 1``, ``d = n1 + m``): ``F`` (T, n1, d), ``Ct`` (T, d, d), ``Fd`` (T, n1, d),
-    ``Fdt_half = Fd^T / 2`` (T, d, n1), ``Ctd`` (T, d, d), ``has_ref``; with a reference also
+    ``Fdut = [Fdu, Fdx]^T`` (T, d, n1: ``Fd``'s columns in the order (u, x), transposed and
+    C-contiguous, so that ``Fdut[t].T`` is that matrix in Fortran order, as BLAS takes it),
+    ``Ctd`` (T, d, d), ``has_ref``; with a reference also
     ``Lh`` (T, m, m) (``Sh = Lh Lh^T``), ``Lhinv = Lh^-1``, ``Shinv`` (T, m, m), ``logdetSh`` (T,),
     ``Kth = [Kh, kh]`` (T, m, n1) and ``H`` (T, d, d) (computed on first use).
     """
@@ -315,23 +317,30 @@ class KLProblem:
         self.Ct = Ct
         self.has_ref = reference is not None
         self._H = None
+        self.workspace = None  # buffers of backward_pass, created there on first use
+        self.fwd_workspace = None  # buffers of the forward pass (moments.ForwardWorkspace), likewise
         if not self.has_ref:
             self.Fd, self.Ctd = F, Ct
-            self.Fdt_half = 0.5 * np.swapaxes(F, 1, 2)
+            self.Fdut = ux_transpose(F, n1)
             return
         self.reference = reference
         self.Lh = reference_chol(reference)
         self.Kh, self.kh, self.Sh = reference.K, reference.k, reference.cov
-        self.Shinv, self.logdetSh = ref_inverse(self.Lh)
-        self.Kth = Kth = np.concatenate([reference.K, reference.k[:, :, None]], axis=2)  # (T, m, n1)
         self.Lhinv = tri_solve(self.Lh, np.broadcast_to(np.eye(m), (T, m, m)))  # (T, m, m)
+        # = ref_inverse(Lh) (the same triangular solves), reusing Lh^-1
+        self.Shinv = symmetrize(tri_solve(np.swapaxes(self.Lh, 1, 2), self.Lhinv))
+        self.logdetSh = logdet_chol(self.Lh)
+        self.Kth = Kth = np.concatenate([reference.K, reference.k[:, :, None]], axis=2)  # (T, m, n1)
         # Fd = F E = [Fx + Fu Kth, Fu];  Ctd = E^T Ct E by blocks (Ct_ux + Ct_uu Kth = Ctd_ux)
-        Fu = F[:, :, n1:]
-        self.Fd = np.concatenate([F[:, :, :n1] + Fu @ Kth, Fu], axis=2)
-        self.Fdt_half = 0.5 * np.swapaxes(self.Fd, 1, 2)  # (T, d, n1), contiguous
+        # (the batched products on contiguous operands: numpy's batched matmul is much faster so)
+        Fd = F.copy()
+        Fd[:, :n, :n1] += dynamics.B @ Kth  # (the last row of Fu is 0)
+        self.Fd = Fd
+        self.Fdut = ux_transpose(Fd, n1)
         Ctd = np.empty((T, d, d))
-        ux = Ct[:, n1:, :n1] + Ct[:, n1:, n1:] @ Kth
-        xx = Ct[:, :n1, :n1] + Ct[:, :n1, n1:] @ Kth + np.swapaxes(Kth, 1, 2) @ ux
+        ux = Ct[:, n1:, :n1] + np.ascontiguousarray(Ct[:, n1:, n1:]) @ Kth
+        xx = (Ct[:, :n1, :n1] + np.ascontiguousarray(Ct[:, :n1, n1:]) @ Kth
+              + np.ascontiguousarray(np.swapaxes(Kth, 1, 2)) @ ux)
         Ctd[:, :n1, :n1] = symmetrize(xx)
         Ctd[:, n1:, :n1] = ux
         Ctd[:, :n1, n1:] = np.swapaxes(ux, 1, 2)
@@ -347,6 +356,12 @@ class KLProblem:
             G = np.concatenate([-ref.K, -ref.k[:, :, None], np.broadcast_to(np.eye(m), (T, m, m))], axis=2)
             self._H = symmetrize(np.swapaxes(G, 1, 2) @ self.Shinv @ G)
         return self._H
+
+
+def ux_transpose(F: np.ndarray, n1: int) -> np.ndarray:
+    """(T, d, n1) ``[F[:, :, n1:], F[:, :, :n1]]^T`` of (T, n1, d) dynamics ``F`` (columns (x, u)),
+    C-contiguous (the layout of ``KLProblem.Fdut``)."""
+    return np.concatenate([np.swapaxes(F[:, :, n1:], 1, 2), np.swapaxes(F[:, :, :n1], 1, 2)], axis=1)
 
 
 def policy_from(K, k, S, eta) -> LinearGaussianPolicy:
