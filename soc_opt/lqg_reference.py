@@ -119,7 +119,7 @@ def closed_loop_moments(dynamics: LinearGaussianDynamics, R, fpolicy: FilteredPo
     filter (its model, noise and prior) is the policy's own and may differ from them.
     """
     R, mu0, P0 = _check(dynamics, R, fpolicy, mu0, P0)
-    T, n, m = dynamics.T, dynamics.n, dynamics.m
+    T, n = dynamics.T, dynamics.n
     A, B, c, W = dynamics.A, dynamics.B, dynamics.c, dynamics.cov
     kf, pol = fpolicy.filter, fpolicy.policy
     K, kk, Sig = pol.K, pol.k, pol.cov

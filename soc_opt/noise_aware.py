@@ -325,7 +325,6 @@ def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Noi
     scale = float(z.var(axis=0).mean())
     lam = fit_cfg.reg * (scale if scale > 0 and np.isfinite(scale) else 1.0)
     floor = _w_floor(noise_cfg, noise.R)
-    h = noise_cfg.time_window
     last = -np.inf
     for _ in range(noise_cfg.em_max_iter):
         W = _floor_eig(So[:, :n, :n], floor) if floor > 0 else So[:, :n, :n]

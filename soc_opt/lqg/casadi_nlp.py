@@ -105,24 +105,31 @@ def kl_step_casadi(prob: KLProblem, nu: np.ndarray, scalar: bool, nu_out, config
         Kout, kout, Sout, lam, status, n_iter, fval, timing = _casadi_structured(prob, kind, scalar, ub, opts, config)
     else:
         Kout, kout, Sout, lam, status, n_iter, fval, timing = _casadi_symbolic(prob, kind, scalar, ub, opts, config)
+    policy, eta, marg, kl, costs = nlp_solution(prob, kind, free, scalar, Kout, kout, Sout, lam)
+    return KLStepResult(
+        policy=policy, eta=eta, kl=kl, expected_cost=float(costs.sum()), n_backward=0, scalar_eta=scalar,
+        nu=nu_out, dual_value=fval, method="casadi", n_iter=n_iter, status=status, marginals=marg, lam_g=lam,
+        solver_stats={"n_vars": n_vars, "formulation": form if n_vars else "none", **timing},
+    )
+
+
+def nlp_solution(prob: KLProblem, kind: np.ndarray, free: np.ndarray, scalar: bool, K, k, S, lam):
+    """The KL step's result from an NLP's policy ``(K, k, S)`` and its KL-row multipliers ``lam``
+    (shared by the IPOPT and fatrop forms): ``eta`` (``inf`` on pinned steps, 0 on unconstrained
+    ones, ``lam`` on the constrained ones or everywhere for a total budget), the policy, its
+    marginals, ``KL_k`` and the expected stage costs."""
     eta = np.where(kind == "pin", np.inf, 0.0)
     if scalar:
         if lam.size:
             eta[:] = lam[0]
     else:
         eta[free] = lam
-    policy = policy_from(Kout, kout, symmetrize(Sout), eta)
+    policy = policy_from(K, k, symmetrize(S), eta)
     marg = forward_arrays(prob.dynamics, policy.K, policy.k, policy.cov, prob.mu0, prob.P0)
     ref = prob.reference
-    logdetS = logdet_pd(policy.cov)
-    kl = kl_batched(policy.K, policy.k, policy.cov, logdetS, ref.K, ref.k, prob.Shinv, prob.logdetSh,
-                     marg.mean, marg.cov)
-    costs = expected_cost_marg(prob.cost, marg)
-    return KLStepResult(
-        policy=policy, eta=eta, kl=kl, expected_cost=float(costs.sum()), n_backward=0, scalar_eta=scalar,
-        nu=nu_out, dual_value=fval, method="casadi", n_iter=n_iter, status=status, marginals=marg, lam_g=lam,
-        solver_stats={"n_vars": n_vars, "formulation": form if n_vars else "none", **timing},
-    )
+    kl = kl_batched(policy.K, policy.k, policy.cov, logdet_pd(policy.cov), ref.K, ref.k, prob.Shinv,
+                    prob.logdetSh, marg.mean, marg.cov)
+    return policy, eta, marg, kl, expected_cost_marg(prob.cost, marg)
 
 
 def _ipopt_solve(solver_fn, x0, lbx, ub, n_kl, acceptable_tol: float):

@@ -76,11 +76,11 @@ import time
 
 import numpy as np
 
-from ..linalg import chol, logdet_pd, right_cho_solve
+from ..linalg import chol, right_cho_solve
 from ..models import symmetrize
-from .casadi_nlp import casadi_kinds, casadi_n_vars, stage_terms
-from .moments import expected_cost_marg, forward_arrays, kl_batched
-from .problem import KLStepConfig, KLStepResult, SolverError, policy_from, KLProblem
+from .casadi_nlp import casadi_kinds, casadi_n_vars, nlp_solution, stage_terms
+from .moments import forward_arrays
+from .problem import KLProblem, KLStepConfig, KLStepResult, SolverError
 
 
 def _vech_pairs(n: int) -> list[tuple[int, int]]:
@@ -392,18 +392,7 @@ def kl_step_fatrop(prob: KLProblem, nu: np.ndarray, scalar: bool, nu_out, config
         Kout, kout, Sout = ocp.policy(sol_x)
         n_iter, fval = int(stats.get("iter_count", -1)), float(sol["f"])
         timing = {"build_s": build_s, "solve_s": solve_s}
-    eta = np.where(kind == "pin", np.inf, 0.0)
-    if scalar:
-        if lam.size:
-            eta[:] = lam[0]
-    else:
-        eta[free] = lam
-    policy = policy_from(Kout, kout, symmetrize(Sout), eta)
-    marg = forward_arrays(prob.dynamics, policy.K, policy.k, policy.cov, prob.mu0, prob.P0)
-    ref = prob.reference
-    kl = kl_batched(policy.K, policy.k, policy.cov, logdet_pd(policy.cov), ref.K, ref.k, prob.Shinv,
-                     prob.logdetSh, marg.mean, marg.cov)
-    costs = expected_cost_marg(prob.cost, marg)
+    policy, eta, marg, kl, costs = nlp_solution(prob, kind, free, scalar, Kout, kout, Sout, lam)
     return KLStepResult(
         policy=policy, eta=eta, kl=kl, expected_cost=float(costs.sum()), n_backward=0, scalar_eta=scalar,
         nu=nu_out, dual_value=fval, method="fatrop", n_iter=n_iter, status=status, marginals=marg, lam_g=lam,
