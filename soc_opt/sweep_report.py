@@ -226,6 +226,7 @@ def write_report(spec: SweepSpec, out: str | Path, status: dict[str, dict]) -> P
              f"{sum(1 for r in trial_rows if r['state'] not in ('done', 'failed'))} not finished",
              "", "## Settings", "", "| setting | overrides |", "|---|---|"]
     lines += [f"| {name} | {desc} |" for name, desc in setting_table(spec)]
+    vkey = versus_key(spec)
     for task in spec.tasks:
         trows = [r for r in rows if r["task"] == task]
         keys = _quantity_keys(trows)
@@ -235,7 +236,6 @@ def write_report(spec: SweepSpec, out: str | Path, status: dict[str, dict]) -> P
             seeds = f"{r['seeds_done']}" + (f" (+{r['seeds_failed']} failed)" if r["seeds_failed"] else "")
             cells = [f"{_fmt(r.get(k + '_mean'))} ± {_fmt(r.get(k + '_std'))}" for k in keys]
             lines.append(f"| {r['setting']} | {r['method']} | {seeds} | " + " | ".join(cells) + " |")
-        vkey = versus_key(spec)
         for fig in (_plot_final(task, spec, trows, out / f"final_{task}.png"),
                     _plot_costs(task, spec, results, out / f"cost_{task}.png"),
                     _plot_versus(task, spec, trows, vkey, out / f"versus_{vkey}_{task}.png") if vkey else None):

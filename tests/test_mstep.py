@@ -19,7 +19,7 @@ from scipy.stats import multivariate_normal
 from soc_opt import errors as soc_errors
 from soc_opt.config import ConfigError
 from soc_opt.estep import moments
-from soc_opt.models import AugmentedModel, LinearGaussianPolicy, ShapeError, Smoothed
+from soc_opt.models import AugmentedModel, LinearGaussianPolicy, ShapeError
 from soc_opt.mstep import (
     ClosedFormUnavailableError,
     InfeasibleConstraintsError,
@@ -37,6 +37,7 @@ from soc_opt.mstep import (
 )
 from soc_opt.mstep.cvx import CACHE
 from soc_opt.mstep.exact_em import sigma_exact
+from soc_opt.testing import random_smoothed, random_spd
 
 SETTINGS = settings(max_examples=25, deadline=None, derandomize=True)
 LOG2PI = np.log(2 * np.pi)
@@ -45,45 +46,20 @@ LOG2PI = np.log(2 * np.pi)
 # --------------------------------------------------------------------------- instances
 
 
-def random_spd(rng, d, floor=0.1):
-    R = rng.normal(size=(d, d)) / np.sqrt(d)
-    return R @ R.T + floor * np.eye(d)
-
-
 def random_model(rng, n, m, T, *, deficient_step=None):
     """Random augmented model; at ``deficient_step`` the action columns are rank 1."""
     Ao = rng.normal(size=(T, n + 1, n + m)) / np.sqrt(n + m)
     if deficient_step is not None and m > 1:
         Ao[deficient_step, :, n + 1 :] = Ao[deficient_step, :, n : n + 1] * rng.normal(size=m - 1)
     co = rng.normal(size=(T, n + 1))
-    So = np.stack([random_spd(rng, n + 1, 0.2) for _ in range(T)])
+    So = np.stack([random_spd(rng, n + 1, floor=0.2) for _ in range(T)])
     return AugmentedModel(Ao, co, So, n)
-
-
-def random_smoothed(rng, n, T, *, singular_step=None, M=None):
-    """Blocks of a random joint Gaussian over ``(s_0..s_T)``; ``s_j`` deterministic at ``singular_step``."""
-
-    def one():
-        L = rng.normal(size=((T + 1) * n, (T + 1) * n)) / np.sqrt(n)
-        L += 0.3 * np.eye((T + 1) * n)
-        if singular_step is not None:
-            L[singular_step * n : (singular_step + 1) * n] = 0.0
-        C = (L @ L.T).reshape(T + 1, n, T + 1, n)
-        cov = np.stack([C[t, :, t, :] for t in range(T + 1)])
-        cross = np.stack([C[t + 1, :, t, :] for t in range(T)])
-        return rng.normal(size=(T + 1, n)), cov, cross
-
-    if M is None:
-        mean, cov, cross = one()
-        return Smoothed(mean, cov, cross, 0.0)
-    parts = [one() for _ in range(M)]
-    return Smoothed(*(np.stack([p[i] for p in parts]) for i in range(3)), np.zeros(M))
 
 
 def random_policy(rng, T, n, m, var=0.5):
     K = 0.3 * rng.normal(size=(T, m, n))
     k = rng.normal(size=(T, m))
-    cov = np.stack([random_spd(rng, m, 0.05) * var for _ in range(T)])
+    cov = np.stack([random_spd(rng, m, floor=0.05) * var for _ in range(T)])
     return LinearGaussianPolicy(K, k, cov)
 
 
@@ -274,7 +250,7 @@ def test_closed_form_is_a_maximum_under_random_perturbations(seed, n, m, cons):
     assume(m <= n + 1)  # B is (n+1) x m: full column rank needs m <= n+1
     T = 3
     model, sm, y, mom, rng = instance(seed, n, m, T=T)
-    Smin = random_spd(rng, m, 0.05)
+    Smin = random_spd(rng, m, floor=0.05)
     c = float(rng.normal())
     C = {"floor_scalar": MStepConstraints(cov_floor=0.2), "floor_matrix": MStepConstraints(cov_floor=Smin),
          "entropy": MStepConstraints(entropy_floor=c)}[cons]
@@ -336,7 +312,7 @@ def test_batched_moments_from_several_sequences():
 # --------------------------------------------------------------------------- CVXPY vs closed form
 
 CLOSED_FORM_SETS = {
-    "floor": lambda rng, m: MStepConstraints(cov_floor=random_spd(rng, m, 0.05)),
+    "floor": lambda rng, m: MStepConstraints(cov_floor=random_spd(rng, m, floor=0.05)),
     "floor_scalar": lambda rng, m: MStepConstraints(cov_floor=0.3),
     "entropy": lambda rng, m: MStepConstraints(entropy_floor=float(rng.normal())),
     # relaxation rule: the floor's optimum satisfies a loose ceiling
@@ -705,8 +681,8 @@ def test_offset_bound_and_trust_region_kkt():
 def test_floor_and_ceiling_kkt():
     model, sm, y, mom, rng = instance(23, 3, 2, T=3)
     m = 2
-    Smin = random_spd(rng, m, 0.05)
-    Smax = Smin + random_spd(rng, m, 0.01)
+    Smin = random_spd(rng, m, floor=0.05)
+    Smax = Smin + random_spd(rng, m, floor=0.01)
     res = maximize_moments(model, mom, MStepConstraints(cov_floor=Smin, cov_ceiling=Smax), method="cvxpy",
                            return_result=True)
     H, R, S = quad_terms(model, mom)
@@ -798,8 +774,8 @@ def test_exact_em_floor_clipping_is_the_constrained_gaussian_mle():
     rng = np.random.default_rng(3)
     m = 3
     for _ in range(20):
-        W = random_spd(rng, m, 0.01)
-        Smin = random_spd(rng, m, 0.05)
+        W = random_spd(rng, m, floor=0.01)
+        Smin = random_spd(rng, m, floor=0.05)
         rc = MStepConstraints(cov_floor=Smin).resolve(m)
         X = sigma_exact(W[None], rc, "closed_form", "CLARABEL", MStepConfig(), ["t"])[0]
 
@@ -828,7 +804,7 @@ def test_exact_em_never_decreases_log_likelihood(seed):
     n, m, T = 3, 2, 6
     model = random_model(rng, n, m, T)
     pol = random_policy(rng, T, n, m, var=0.5)
-    mu0, P0 = rng.normal(size=n), random_spd(rng, n, 0.3)
+    mu0, P0 = rng.normal(size=n), random_spd(rng, n, floor=0.3)
     y = rng.normal(size=(4, T))
     cfg = MStepConfig(exact_max_iter=20)
     ll = [float(np.sum(estep.log_likelihood(model, pol, y, mu0, P0)))]
