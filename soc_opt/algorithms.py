@@ -434,11 +434,22 @@ def _local_model(task: Task, cfg: LQRFLMConfig, dyn, cost, iteration: int):
     return noise_aware.innovation_local_model(kf, cost), kf
 
 
-def _fit_dynamics(task: Task, cfg: LQRFLMConfig, rollouts: Rollouts, prior, sampler):
-    """Step 2: the paper's fit, or the noise-aware one (``noise.fit_correction``, SPEC §10.1)."""
+def _update_prior(task: Task, cfg: LQRFLMConfig, prior, rollouts: Rollouts, sampler, rng):
+    """Step 2a: the mixture prior on the measured tuples (the paper), or on smoothed ones
+    (``noise.prior_data = "smoothed"``); returns ``(prior, smoothed rollouts or None)``."""
+    if cfg.fit.prior != "mixture":
+        return None, None
+    if cfg.noise.prior_data == "measured":
+        return fit.update_prior(prior, rollouts, cfg.fit, rng), None
+    return noise_aware.update_prior(prior, rollouts, cfg.fit, cfg.noise, noise_aware.noise_model(task), sampler, rng)
+
+
+def _fit_dynamics(task: Task, cfg: LQRFLMConfig, rollouts: Rollouts, prior, sampler, denoised=None):
+    """Step 2b: the paper's fit, or the noise-aware one (``noise.fit_correction``, SPEC §10.1)."""
     if cfg.noise.fit_correction == "none":
         return fit.fit_dynamics(rollouts, cfg.fit, prior)
-    return noise_aware.fit_local(rollouts, cfg.fit, prior, cfg.noise, noise_aware.noise_model(task), sampler)
+    return noise_aware.fit_local(rollouts, cfg.fit, prior, cfg.noise, noise_aware.noise_model(task), sampler,
+                                 denoised=denoised)
 
 
 def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
@@ -452,11 +463,14 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     timings["rollouts"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    prior = fit.update_prior(state.prior, rollouts, cfg.fit, rng) if cfg.fit.prior == "mixture" else None
-    dyn = _fit_dynamics(task, cfg, rollouts, prior, state.policy)
+    prior, denoised = _update_prior(task, cfg, state.prior, rollouts, state.policy, rng)
+    dyn = _fit_dynamics(task, cfg, rollouts, prior, state.policy, denoised)
     timings["fit"] = time.perf_counter() - t0
 
-    s_bar = rollouts.s.mean(axis=0)
+    if cfg.noise.expand_at == "measured":
+        s_bar = rollouts.s.mean(axis=0)
+    else:
+        s_bar = noise_aware.expansion_point(rollouts, dyn, noise_aware.noise_model(task), cfg.noise)
     a_bar = rollouts.a.mean(axis=0)
     cost = task.cost_expansion(s_bar, a_bar)
     local, kf = _local_model(task, cfg, dyn, cost, state.iteration)
@@ -503,7 +517,7 @@ def _mstep_constraints(em: EMConfig, policy: LinearGaussianPolicy) -> mstep.MSte
     return cons
 
 
-def _em_model(task: Task, cfg: DPSOCConfig, rollouts: Rollouts, prior, policy, recursion: int):
+def _em_model(task: Task, cfg: DPSOCConfig, rollouts: Rollouts, prior, policy, recursion: int, denoised=None):
     """The EM recursion's augmented model, initial distribution and filter (``None`` for the paper).
 
     With ``noise.estimator = "kalman"`` the model is the augmented model in ``xhat``
@@ -514,7 +528,7 @@ def _em_model(task: Task, cfg: DPSOCConfig, rollouts: Rollouts, prior, policy, r
         model = fit.fit_augmented(rollouts, base.fit, prior)
     else:
         model = noise_aware.fit_local(rollouts, base.fit, prior, base.noise, noise_aware.noise_model(task), policy,
-                                      include_y=True)
+                                      include_y=True, denoised=denoised)
     if base.noise.estimator == "none":
         mu0, P0 = _initial_distribution(task)
         return model, mu0, P0, None
@@ -525,7 +539,8 @@ def _em_model(task: Task, cfg: DPSOCConfig, rollouts: Rollouts, prior, policy, r
 
 def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | FilteredPolicy, rollouts: Rollouts,
               prior: fit.MixturePrior | None, rng: np.random.Generator,
-              recursion: int = 0) -> tuple[LinearGaussianPolicy | FilteredPolicy, EMDiagnostics]:
+              recursion: int = 0, denoised: Rollouts | None = None
+              ) -> tuple[LinearGaussianPolicy | FilteredPolicy, EMDiagnostics]:
     """One EM recursion (paper Algorithm 1): fit augmented model, generate ``Y``, E-step, DP M-step.
 
     ``rollouts`` are samples of ``policy``.  Returns the EM policy and the recursion's
@@ -535,7 +550,7 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | Filte
     """
     em = cfg.em
     t0 = time.perf_counter()
-    model, mu0, P0, kf = _em_model(task, cfg, rollouts, prior, policy, recursion)
+    model, mu0, P0, kf = _em_model(task, cfg, rollouts, prior, policy, recursion, denoised)
     t_fit = time.perf_counter() - t0
     policy = noise_aware.gains(policy)
     Y = fit.cost_observations(em.y_mode, rollouts, model, policy, mu0, P0, rng, n_samples=em.y_samples)
@@ -576,9 +591,8 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
             t0 = time.perf_counter()
             rollouts = task.rollouts(policy, cfg.baseline.samples, rng, workers=cfg.baseline.workers)
             t_roll = time.perf_counter() - t0
-            if cfg.baseline.fit.prior == "mixture":
-                prior = fit.update_prior(prior, rollouts, cfg.baseline.fit, rng)
-            new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r)
+            prior, denoised = _update_prior(task, cfg.baseline, prior, rollouts, policy, rng)
+            new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r, denoised=denoised)
             rec = _record(state.iteration, "em", task, rollouts, timings={"rollouts": t_roll}, em=diag)
             history = history + (rec,)
             best = _improved(best, float(np.mean(rec.cost)), policy, state.iteration)

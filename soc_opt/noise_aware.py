@@ -36,6 +36,7 @@ the *measured* ``s_0``, so the true ``x_0`` has covariance ``task.P0 - R = 1e-6 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -76,9 +77,12 @@ __all__ = [
     "pool_noise_action_cov",
     "moment_correction",
     "fit_local",
+    "update_prior",
+    "denoise",
     "ssm_em_fit",
     "loop_filter",
     "innovation_local_model",
+    "expansion_point",
     "filtered_em_model",
 ]
 
@@ -105,6 +109,18 @@ class NoiseConfig(Config):
     em_max_iter:     maximum EM iterations of ``"ssm_em"``.
     em_tol:          ``"ssm_em"`` stops when ``log p(s | a)`` changes by less than ``em_tol`` per
                      sequence and time step.
+    expand_at:       where LQR-FLM expands the cost (SPEC §3): ``"measured"`` (the sample mean of
+                     the measured ``s_k``: the paper) or ``"smoothed"`` (the sample mean of the RTS
+                     smoother's ``E[x_k | s, a]`` under the iteration's fitted model, which
+                     averages the sensor noise out along time as well as over samples).
+    prior_data:      what the mixture prior (SPEC §2 step 1) is fitted on: ``"measured"`` (the
+                     tuples of the measured ``s``: the paper; ``"ssm_em"`` then corrects the prior's
+                     moments for the noise) or ``"smoothed"`` (the tuples of the smoother's
+                     ``E[x | s, a]`` under a model of the data, :func:`update_prior`; the prior is
+                     then used uncorrected).  ``"smoothed"`` needs ``fit_correction = "ssm_em"``.
+    pool:            how ``time_window`` pools (:func:`pool_moments`): ``"union"`` (the moments of
+                     the union of the window's tuples) or ``"anchored"`` (step ``k``'s own mean, the
+                     window's second moments about it).
     time_window:     ``h``: the noise-aware fits pool the tuple moments of the steps ``k-h..k+h``
                      (:func:`pool_moments`); ``0``: per step (SPEC §2's time-varying fit), ``h >= T``:
                      one time-invariant model.  Needs a ``fit_correction``.
@@ -118,6 +134,9 @@ class NoiseConfig(Config):
     em_max_iter: int = 20
     em_tol: float = 1e-4
     time_window: int = 0
+    expand_at: Literal["measured", "smoothed"] = "measured"
+    prior_data: Literal["measured", "smoothed"] = "measured"
+    pool: Literal["union", "anchored"] = "union"
 
     def __post_init__(self):
         if self.estimator not in ("none", "kalman"):
@@ -134,6 +153,15 @@ class NoiseConfig(Config):
             raise ValueError(f"em_max_iter must be >= 1, got {self.em_max_iter!r}")
         if not (np.isfinite(self.em_tol) and self.em_tol >= 0):
             raise ValueError(f"em_tol must be a finite number >= 0, got {self.em_tol!r}")
+        if self.expand_at not in ("measured", "smoothed"):
+            raise ValueError(f"expand_at must be 'measured' or 'smoothed', got {self.expand_at!r}")
+        if self.prior_data not in ("measured", "smoothed"):
+            raise ValueError(f"prior_data must be 'measured' or 'smoothed', got {self.prior_data!r}")
+        if self.prior_data == "smoothed" and self.fit_correction != "ssm_em":
+            raise ValueError("prior_data = 'smoothed' fits the prior on smoothed states and needs "
+                             f"fit_correction = 'ssm_em' (got {self.fit_correction!r})")
+        if self.pool not in ("union", "anchored"):
+            raise ValueError(f"pool must be 'union' or 'anchored', got {self.pool!r}")
         if self.time_window < 0:
             raise ValueError(f"time_window must be >= 0, got {self.time_window!r}")
         if self.time_window > 0 and self.fit_correction == "none":
@@ -143,7 +171,8 @@ class NoiseConfig(Config):
     @property
     def paper(self) -> bool:
         """Whether this is the paper's method (nothing noise-aware selected)."""
-        return self.estimator == "none" and self.fit_correction == "none"
+        return (self.estimator == "none" and self.fit_correction == "none" and self.expand_at == "measured"
+                and self.prior_data == "measured")
 
     @property
     def label(self) -> str:
@@ -195,13 +224,20 @@ def sampler_noise_action_cov(policy, R) -> np.ndarray:
     return noise_action_cov(R, gains(policy).K)
 
 
-def pool_moments(mu: np.ndarray, Lam: np.ndarray, h: int) -> tuple[np.ndarray, np.ndarray]:
-    """Moments of the union of the tuples of steps ``k-h..k+h`` (clipped to ``0..T-1``), equal weights.
+def pool_moments(mu: np.ndarray, Lam: np.ndarray, h: int, mode: str = "union") -> tuple[np.ndarray, np.ndarray]:
+    """Pooled moments of the tuples of steps ``k-h..k+h`` (clipped to ``0..T-1``), equal weights.
 
-    ``mu (T, d)``, ``Lam (T, d, d)`` per step -> pooled ``(mu, Lam)``: the mean of the means, and
-    the mean of the covariances plus the spread of the step means about the pooled mean.  ``h = 0``
-    returns the inputs.  (``X_k`` pools the same way: :func:`pool_noise_action_cov`.)
+    ``mu (T, d)``, ``Lam (T, d, d)`` per step -> pooled ``(mu, Lam)``.  ``mode = "union"``: the
+    moments of the union of the tuples: the mean of the means, and the mean of the covariances plus
+    the spread of the step means about the pooled mean.  ``mode = "anchored"``: step ``k``'s own
+    mean, and the window's second moments about it (the mean of the covariances plus the spread of
+    the step means about ``mu_k``), so that the conditional model passes through step ``k``'s mean
+    (its offset ``c_k`` carries no bias from the trajectory's curvature over the window) while its
+    slopes still pool the window.  ``h = 0`` returns the inputs.  (``X_k`` pools the same way:
+    :func:`pool_noise_action_cov`.)
     """
+    if mode not in ("union", "anchored"):
+        raise ValueError(f"pool mode must be 'union' or 'anchored', got {mode!r}")
     if h <= 0:
         return mu, Lam
     T = mu.shape[0]
@@ -209,7 +245,7 @@ def pool_moments(mu: np.ndarray, Lam: np.ndarray, h: int) -> tuple[np.ndarray, n
     out_L = np.empty_like(Lam)
     for k in range(T):
         lo, hi = max(0, k - h), min(T, k + h + 1)
-        mk = mu[lo:hi].mean(axis=0)
+        mk = mu[lo:hi].mean(axis=0) if mode == "union" else mu[k]
         dev = mu[lo:hi] - mk
         out_mu[k] = mk
         out_L[k] = Lam[lo:hi].mean(axis=0) + dev.T @ dev / (hi - lo)
@@ -225,14 +261,14 @@ def pool_noise_action_cov(X: np.ndarray, h: int) -> np.ndarray:
     return np.stack([X[max(0, k - h): min(T, k + h + 1)].mean(axis=0) for k in range(T)])
 
 
-def moment_correction(R, X, n: int, m: int, min_reliability: float, time_window: int = 0):
+def moment_correction(R, X, n: int, m: int, min_reliability: float, time_window: int = 0, pool: str = "union"):
     """The ``correct`` hook of :func:`soc_opt.fit.fit_dynamics` / ``fit_augmented``: joint moments of
     ``(s_k, a_k, s_{k+1}[, y_k])`` -> moments of ``(x_k, a_k, x_{k+1}[, y_k])`` (``noisefit.correct_joint``),
     after pooling over ``time_window`` (:func:`pool_moments`)."""
     Xp = pool_noise_action_cov(np.asarray(X, dtype=float), time_window)
 
     def correct(mu, Lam):
-        mu, Lam = pool_moments(mu, Lam, time_window)
+        mu, Lam = pool_moments(mu, Lam, time_window, pool)
         cm = correct_joint(mu, Lam, n, m, R, Xp, min_reliability=min_reliability)
         return cm.mean, cm.cov
 
@@ -252,21 +288,60 @@ def _as_model(Ao, co, So, n: int, include_y: bool):
 
 
 def fit_local(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: NoiseConfig, noise: NoiseModel,
-              sampler, *, include_y: bool = False):
+              sampler, *, include_y: bool = False, denoised: Rollouts | None = None):
     """The iteration's local model under ``noise_cfg.fit_correction`` (module docstring).
 
     ``include_y``: the augmented model of DPSOC-EM (``fit.fit_augmented``), else the dynamics
-    (``fit.fit_dynamics``).  ``sampler``: the policy that sampled ``rollouts``.
+    (``fit.fit_dynamics``).  ``sampler``: the policy that sampled ``rollouts``.  ``denoised``: the
+    smoothed rollouts of :func:`update_prior` when ``prior`` was fitted on them
+    (``prior_data = "smoothed"``): SSM-EM then starts from the plain fit of ``denoised`` and uses
+    the prior uncorrected.
     """
     fitter = fit.fit_augmented if include_y else fit.fit_dynamics
     if noise_cfg.fit_correction == "none":
         return fitter(rollouts, fit_cfg, prior)
     X = sampler_noise_action_cov(sampler, noise.R)
     if noise_cfg.fit_correction == "moments":
-        hook = moment_correction(noise.R, X, rollouts.n, rollouts.m, noise_cfg.min_reliability, noise_cfg.time_window)
+        hook = moment_correction(noise.R, X, rollouts.n, rollouts.m, noise_cfg.min_reliability, noise_cfg.time_window,
+                                 noise_cfg.pool)
         return fitter(rollouts, fit_cfg, prior, correct=hook)
+    if denoised is not None:
+        return ssm_em_fit(rollouts, fit_cfg, prior, noise_cfg, noise, X, fitter(denoised, fit_cfg, prior),
+                          include_y=include_y, prior_measured=False)
     return ssm_em_fit(rollouts, fit_cfg, prior, noise_cfg, noise, X, fitter(rollouts, fit_cfg, prior),
                       include_y=include_y)
+
+
+def denoise(rollouts: Rollouts, dynamics: LinearGaussianDynamics, noise: NoiseModel,
+            noise_cfg: NoiseConfig) -> Rollouts:
+    """``rollouts`` with ``s`` replaced by the smoother's ``E[x_k | s_0..s_T, a]`` (RTS smoother of
+    ``dynamics`` with the loop filter's ``W`` floor, ``R`` and prior; ``noisefit.smooth_states``).
+    ``x``, ``a`` and the cost observations are kept (``y`` stays the measured one)."""
+    kf = loop_filter(dynamics, noise, noise_cfg, " (smoother of the prior's data)")
+    return dataclasses.replace(rollouts, s=smooth_states(kf, rollouts.s, rollouts.a).mean)
+
+
+def update_prior(prior, rollouts: Rollouts, fit_cfg: fit.FitConfig, noise_cfg: NoiseConfig, noise: NoiseModel,
+                 sampler, rng: np.random.Generator) -> tuple[fit.MixturePrior, Rollouts | None]:
+    """The mixture prior of one iteration (SPEC §2 step 1) under ``noise_cfg.prior_data``.
+
+    ``"measured"``: ``fit.update_prior`` on the measured tuples (the paper); returns
+    ``(prior, None)``.  ``"smoothed"``: the rollouts are first smoothed (:func:`denoise`) with the
+    model of the sampler's own filter when it has one (the fit of the previous iteration), else with
+    a first-pass fit (SSM-EM with a throwaway prior that includes the measured tuples, corrected for
+    the noise); the prior is fitted on the smoothed tuples, so its buffer holds estimates of the
+    true states.  Returns ``(prior, smoothed rollouts)`` for :func:`fit_local`'s ``denoised``.
+    """
+    if noise_cfg.prior_data == "measured":
+        return fit.update_prior(prior, rollouts, fit_cfg, rng), None
+    if isinstance(sampler, FilteredPolicy):
+        f = sampler.filter
+        model = LinearGaussianDynamics(f.A, f.B, f.c, f.W)
+    else:
+        first = fit.update_prior(prior, rollouts, fit_cfg, rng)
+        model = fit_local(rollouts, fit_cfg, first, noise_cfg.replace(prior_data="measured"), noise, sampler)
+    den = denoise(rollouts, model, noise, noise_cfg)
+    return fit.update_prior(prior, den, fit_cfg, rng), den
 
 
 def _smoothed_moments(sm, rollouts: Rollouts, include_y: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -298,7 +373,7 @@ def _w_floor(noise_cfg: NoiseConfig, R: np.ndarray) -> float:
 
 
 def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: NoiseConfig, noise: NoiseModel,
-               X: np.ndarray, start, *, include_y: bool = False):
+               X: np.ndarray, start, *, include_y: bool = False, prior_measured: bool = True):
     """EM with latent true state from the ``start`` model (``docs/noise.md`` §10).
 
     E-step: RTS smoother of ``x`` given the measured ``s`` and the actions (filter prior
@@ -311,6 +386,8 @@ def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Noi
     ``reg`` on the ``(x, a)`` block, conditioned with ``noisefit.condition_joint``.  With the prior
     folded in this is not exact maximum likelihood; EM stops when ``log p(s | a)`` changes by
     less than ``em_tol`` per sequence and step, or after ``em_max_iter`` iterations.
+    ``prior_measured = False``: the prior was fitted on smoothed states (:func:`update_prior`) and
+    is used without the noise correction.
     """
     n, m = rollouts.n, rollouts.m
     nz = n + m
@@ -319,8 +396,11 @@ def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Noi
     pri = None
     if prior is not None and fit_cfg.prior == "mixture":
         mu0p, S0p = prior.step_prior(fit.tuples(rollouts, include_y), include_y)
-        cm = correct_joint(mu0p, S0p, n, m, noise.R, X, min_reliability=noise_cfg.min_reliability)
-        pri = (cm.mean, cm.cov)
+        if prior_measured:
+            cm = correct_joint(mu0p, S0p, n, m, noise.R, X, min_reliability=noise_cfg.min_reliability)
+            pri = (cm.mean, cm.cov)
+        else:
+            pri = (mu0p, S0p)
     z = np.concatenate([rollouts.s[:, :-1], rollouts.a], axis=-1).reshape(-1, nz)
     scale = float(z.var(axis=0).mean())
     lam = fit_cfg.reg * (scale if scale > 0 and np.isfinite(scale) else 1.0)
@@ -334,7 +414,8 @@ def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Noi
         if abs(ll - last) < noise_cfg.em_tol * M * (T + 1):
             break
         last = ll
-        mu, Lam = pool_moments(*_smoothed_moments(sm, rollouts, include_y), noise_cfg.time_window)
+        mu, Lam = pool_moments(*_smoothed_moments(sm, rollouts, include_y), noise_cfg.time_window,
+                               noise_cfg.pool)
         if pri is not None:
             k0, n0 = fit_cfg.k0, fit_cfg.n0
             d = mu - pri[0]
@@ -358,6 +439,23 @@ def loop_filter(dynamics: LinearGaussianDynamics, noise: NoiseModel, noise_cfg: 
         return kalman_filter(LinearGaussianDynamics(dynamics.A, dynamics.B, dynamics.c, W), noise.R, noise.mu0, noise.P0)
     except NotPositiveDefiniteError as e:
         raise NotPositiveDefiniteError(f"estimator = 'kalman'{where}: {e}") from None
+
+
+def expansion_point(rollouts: Rollouts, dynamics: LinearGaussianDynamics, noise: NoiseModel,
+                    noise_cfg: NoiseConfig) -> np.ndarray:
+    """``(T+1, n)`` state trajectory around which the cost is expanded (``noise_cfg.expand_at``).
+
+    ``"measured"``: the sample mean of ``s_k`` (the paper).  ``"smoothed"``: the sample mean of
+    ``E[x_k | s_0..s_T, a]``, the RTS smoother (``noisefit.smooth_states``) of the fitted
+    ``dynamics`` with the loop filter's ``W`` floor, ``R`` and prior.  The measured mean carries
+    ``rho2 / M`` of noise per coordinate and step; a non-quadratic cost (the point costs' ``l1``
+    term) expanded there sees a gradient direction that is mostly that noise once the state is
+    within about ``sqrt(rho2 / M)`` of the target.
+    """
+    if noise_cfg.expand_at == "measured":
+        return rollouts.s.mean(axis=0)
+    kf = loop_filter(dynamics, noise, noise_cfg, " (cost expansion point)")
+    return smooth_states(kf, rollouts.s, rollouts.a).mean.mean(axis=0)
 
 
 def innovation_local_model(kf: KalmanFilter, cost: QuadraticCost) -> LocalModel:

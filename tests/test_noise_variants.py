@@ -7,7 +7,8 @@ import types
 import numpy as np
 import pytest
 
-from soc_opt import estep, fit, lqg, mstep, noise_aware
+from soc_opt import estep, fit, lqg, mstep, noise_aware, noisefit
+from soc_opt.noisefit import smooth_states
 from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig, em_update, lqr_flm_iteration, initial_state, run_algorithm
 from soc_opt.config import ConfigError
 from soc_opt.estimator import FilteredPolicy, filter_states, kalman_filter, measurement_noise
@@ -231,6 +232,60 @@ def test_pooled_moments_are_the_moments_of_the_union_of_the_windows_tuples(h):
     np.testing.assert_allclose(pX[T // 2], X[max(0, T // 2 - h): T // 2 + h + 1].mean(axis=0), rtol=1e-12)
 
 
+@pytest.mark.parametrize("h", [1, 3, 50])
+def test_anchored_pooling_keeps_the_steps_mean_and_the_windows_second_moments_about_it(h):
+    rng = np.random.default_rng(6)
+    M, T, d = 7, 9, 4
+    Xs = rng.standard_normal((M, T, d)) + (np.arange(T)[None, :, None] ** 2) * rng.standard_normal(d)
+    mu = Xs.mean(axis=0)
+    Lam = np.einsum("mti,mtj->tij", Xs - mu, Xs - mu) / M
+    am, aL = noise_aware.pool_moments(mu, Lam, h, "anchored")
+    np.testing.assert_array_equal(am, mu)
+    for k in range(T):
+        pts = Xs[:, max(0, k - h): min(T, k + h + 1)].reshape(-1, d) - mu[k]  # oracle: about step k's mean
+        np.testing.assert_allclose(aL[k], pts.T @ pts / len(pts), rtol=1e-12, atol=1e-12)
+    # conditioning the anchored moments gives a model through step k's own means
+    Ao, co, _ = noisefit.condition_joint(am, aL, 2, 1e-12)
+    np.testing.assert_allclose(np.einsum("tij,tj->ti", Ao, mu[:, :2]) + co, mu[:, 2:], rtol=1e-10, atol=1e-10)
+    with pytest.raises(ValueError, match="pool mode"):
+        noise_aware.pool_moments(mu, Lam, h, "median")
+
+
+def test_smoothed_expansion_point_is_the_mean_smoothed_state_and_closer_to_the_truth():
+    task = load_task("linear2d", overrides={"rho2": 0.1})
+    rng = np.random.default_rng(3)
+    ro = task.rollouts(_random_policy(task, rng, gain=0.0, var=1.0), 5, rng)
+    dyn, noise = task.linearize(), noise_aware.noise_model(task)
+    cfg = NoiseConfig(estimator="kalman", expand_at="smoothed")
+    got = noise_aware.expansion_point(ro, dyn, noise, cfg)
+    kf = noise_aware.loop_filter(dyn, noise, cfg)
+    np.testing.assert_allclose(got, smooth_states(kf, ro.s, ro.a).mean.mean(axis=0), rtol=1e-12)
+    np.testing.assert_array_equal(noise_aware.expansion_point(ro, dyn, noise, NoiseConfig()), ro.s.mean(axis=0))
+    truth = ro.x.mean(axis=0)
+    assert np.linalg.norm(got - truth) < 0.5 * np.linalg.norm(ro.s.mean(axis=0) - truth)
+
+
+def test_prior_on_smoothed_states_buffers_the_smoothed_tuples_and_the_loop_uses_it():
+    task = load_task("linear2d", overrides={"T": 12, "rho2": 0.1})
+    cfg = LQRFLMConfig(iterations=2, samples=8, init_var=10.0,
+                       noise=NoiseConfig(estimator="kalman", fit_correction="ssm_em", prior_data="smoothed"))
+    st = lqr_flm_iteration(task, cfg, initial_state(task, cfg, seed=0))
+    st2 = lqr_flm_iteration(task, cfg, st)  # the sampler now has a filter: it smooths with its model
+    ro = st2.last_rollouts
+    f = st.policy.filter
+    den = noise_aware.denoise(ro, LinearGaussianDynamics(f.A, f.B, f.c, f.W), noise_aware.noise_model(task), cfg.noise)
+    want = fit.tuples(den, True).reshape(-1, 2 * task.n + task.m + 1)
+    buf = st2.prior.buffer
+    np.testing.assert_allclose(buf[-len(want):], want, rtol=1e-12, atol=1e-12)
+    assert not np.allclose(buf[-len(want):, : task.n], fit.tuples(ro, True).reshape(len(want), -1)[:, : task.n])
+    # the smoothed tuples are closer to the true ones than the measured ones (a model fitted from
+    # 8 rollouts: 0.18 against 0.26 mean absolute error here)
+    true_t = fit.tuples(dataclasses.replace(ro, s=ro.x), True).reshape(len(want), -1)
+    assert (np.abs(want - true_t)[:, : task.n].mean()
+            < np.abs(fit.tuples(ro, True).reshape(len(want), -1) - true_t)[:, : task.n].mean())
+    assert isinstance(st2.policy, FilteredPolicy) and np.isfinite(st2.policy.policy.K).all()
+
+
 # --------------------------------------------------------------------------- the loop with the estimator
 
 
@@ -323,6 +378,13 @@ def test_noise_config_rejects_unknown_values_with_the_key_named():
         NoiseConfig(time_window=-1, fit_correction="moments")
     with pytest.raises(ValueError, match="time_window .* needs fit_correction"):
         NoiseConfig(time_window=5)
+    with pytest.raises(ConfigError, match="noise.expand_at"):
+        LQRFLMConfig.from_dict({"noise": {"expand_at": "true"}})
+    with pytest.raises(ConfigError, match="noise.pool"):
+        LQRFLMConfig.from_dict({"noise": {"pool": "median", "fit_correction": "ssm_em"}})
+    with pytest.raises(ValueError, match="prior_data = 'smoothed' .* needs fit_correction = 'ssm_em'"):
+        NoiseConfig(prior_data="smoothed", fit_correction="moments")
+    assert not NoiseConfig(expand_at="smoothed").paper
     cfg = LQRFLMConfig.from_dict({"noise": {"estimator": "kalman", "fit_correction": "ssm_em", "time_window": 50}})
     assert cfg.noise.label == "kalman + ssm_em, window 50" and not cfg.noise.paper
 
