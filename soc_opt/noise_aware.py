@@ -313,11 +313,12 @@ def fit_local(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Nois
 
 
 def denoise(rollouts: Rollouts, dynamics: LinearGaussianDynamics, noise: NoiseModel,
-            noise_cfg: NoiseConfig) -> Rollouts:
+            noise_cfg: NoiseConfig, where: str = " (smoother of the prior's data)") -> Rollouts:
     """``rollouts`` with ``s`` replaced by the smoother's ``E[x_k | s_0..s_T, a]`` (RTS smoother of
     ``dynamics`` with the loop filter's ``W`` floor, ``R`` and prior; ``noisefit.smooth_states``).
-    ``x``, ``a`` and the cost observations are kept (``y`` stays the measured one)."""
-    kf = loop_filter(dynamics, noise, noise_cfg, " (smoother of the prior's data)")
+    ``x``, ``a`` and the cost observations are kept (``y`` stays the measured one).  ``where``
+    names the caller in a filter error."""
+    kf = loop_filter(dynamics, noise, noise_cfg, where)
     return dataclasses.replace(rollouts, s=smooth_states(kf, rollouts.s, rollouts.a).mean)
 
 
@@ -454,8 +455,7 @@ def expansion_point(rollouts: Rollouts, dynamics: LinearGaussianDynamics, noise:
     """
     if noise_cfg.expand_at == "measured":
         return rollouts.s.mean(axis=0)
-    kf = loop_filter(dynamics, noise, noise_cfg, " (cost expansion point)")
-    return smooth_states(kf, rollouts.s, rollouts.a).mean.mean(axis=0)
+    return denoise(rollouts, dynamics, noise, noise_cfg, " (cost expansion point)").s.mean(axis=0)
 
 
 def innovation_local_model(kf: KalmanFilter, cost: QuadraticCost) -> LocalModel:

@@ -115,15 +115,19 @@ def _compare_to(cf, res, nu, config) -> dict:
     }
 
 
+def _solve_and_compare(prob, nu, cf, method: str, config):
+    """``(result, wall seconds, _compare_to(cf, result))`` of one NLP solve of the instance."""
+    t0 = time.perf_counter()
+    res = kl_step(*prob[:3], nu, *prob[3:], method=method, config=config)
+    return res, time.perf_counter() - t0, _compare_to(cf, res, nu, config)
+
+
 def _fatrop_columns(prob, nu, cf, config, run: bool) -> dict:
     row = {k: None for k in ("fatrop_status", "fatrop_iter", "fatrop_s", "fatrop_build_s", "fatrop_solve_s",
                              "fatrop_max_policy_diff", "fatrop_max_rel_eta_diff", "fatrop_worst_violation")}
     if not run:
         return row
-    t0 = time.perf_counter()
-    fr = kl_step(*prob[:3], nu, *prob[3:], method="fatrop", config=config)
-    t_fr = time.perf_counter() - t0
-    d = _compare_to(cf, fr, nu, config)
+    fr, t_fr, d = _solve_and_compare(prob, nu, cf, "fatrop", config)
     row.update({"fatrop_status": fr.status, "fatrop_iter": fr.n_iter, "fatrop_s": t_fr,
                 "fatrop_build_s": fr.solver_stats["build_s"], "fatrop_solve_s": fr.solver_stats["solve_s"],
                 "fatrop_max_policy_diff": d["max_policy_diff"], "fatrop_max_rel_eta_diff": d["max_rel_eta_diff"],
@@ -148,10 +152,7 @@ def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None, run_f
     row.update(_fatrop_columns(prob, nu, cf, config, run_fatrop))
     if not run_ipopt:
         return row
-    t0 = time.perf_counter()
-    ip = kl_step(*prob[:3], nu, *prob[3:], method="casadi", config=config)
-    t_ip = time.perf_counter() - t0
-    d = _compare_to(cf, ip, nu, config)
+    ip, t_ip, d = _solve_and_compare(prob, nu, cf, "casadi", config)
     row.update({
         "ipopt_size": (n, m, T), "ipopt_formulation": ip.solver_stats["formulation"], "ipopt_status": ip.status,
         "ipopt_iter": ip.n_iter, "ipopt_s": t_ip, "ipopt_build_s": ip.solver_stats["build_s"],
