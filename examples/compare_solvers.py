@@ -1,4 +1,4 @@
-"""Compare the closed forms with the general-purpose solvers (SPEC §5, §6).
+"""Compare the closed forms with the general-purpose solvers (docs/math.md §5, §6).
 
 M-step: closed form vs CVXPY/Clarabel vs CVXPY/SCS.
 KL-constrained LQG step: closed form (LQR backward pass + dual) vs CasADi/IPOPT.

@@ -1,4 +1,4 @@
-"""Solve one M-step with a constraint soc_opt does not ship (SPEC §5), in CVXPY.
+"""Solve one M-step with a constraint soc_opt does not ship (docs/math.md §5), in CVXPY.
 
 The surrogate Lbar_k is an exact quadratic in f = vec([K_k k_k]) (column-major) plus a linear
 term in Sigma_k, so its value, gradient and Hessian at any policy define it completely:

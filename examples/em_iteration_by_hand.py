@@ -1,4 +1,4 @@
-"""One DPSOC-EM recursion by hand on linear2d (SPEC §2–§5).
+"""One DPSOC-EM recursion by hand on linear2d (docs/math.md §2–§5).
 
 rollouts -> fit augmented model -> Y -> E-step (RTS smoother) -> DP M-step -> new policy.
 Run: .venv/bin/python examples/em_iteration_by_hand.py

@@ -1,4 +1,4 @@
-"""Paper-as-written next to noise-aware on linear2d under sensor noise (issue 9, SPEC §10).
+"""Paper-as-written next to noise-aware on linear2d under sensor noise (issue 9, docs/math.md §10).
 
 Four variants, each on the same seeds: LQR-FLM and DPSOC-EM as in the paper, and both with the
 noise-aware pieces of ``[baseline.noise]`` (a Kalman filter in the loop and a noise-aware fit;

@@ -1,6 +1,6 @@
 """soc_opt: EM-based stochastic optimal control (DPSOC-EM) with KL-constrained iLQG.
 
-See ``docs/`` and the SPEC sections cited in each module's docstring.  The submodules are
+See ``docs/`` and the ``docs/math.md`` sections cited in each module's docstring.  The submodules are
 attributes of the package (``import soc_opt; soc_opt.lqg.kl_step(...)``), imported on first use.
 """
 

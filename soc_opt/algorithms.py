@@ -1,4 +1,4 @@
-"""Algorithms (SPEC §7): LQR-FLM baseline, DPSOC-EM (paper Algorithm 1); model-based iLQG
+"""Algorithms (docs/math.md §7): LQR-FLM baseline, DPSOC-EM (paper Algorithm 1); model-based iLQG
 lives in :mod:`soc_opt.ilqg` (re-exported here: :class:`ILQGConfig`, :func:`ilqg`).
 
 The loop is written as a pure step function on an explicit :class:`RunState`
@@ -6,12 +6,12 @@ The loop is written as a pure step function on an explicit :class:`RunState`
 checkpointed after every iteration and resumed bit-for-bit, and so that
 DPSOC-EM can fork from the baseline's state at ``i_switch``.
 
-One LQR-FLM iteration (SPEC §7):
+One LQR-FLM iteration (docs/math.md §7):
 
 1. sample ``M`` rollouts of the current policy ``p_i`` on the task;
-2. fit linear-Gaussian dynamics (mixture prior + NIW posterior, SPEC §2);
+2. fit linear-Gaussian dynamics (mixture prior + NIW posterior, docs/math.md §2);
 3. expand the cost to second order around the sample mean trajectory;
-4. adapt the KL budget from predicted vs actual improvement (SPEC §6, GPS rule);
+4. adapt the KL budget from predicted vs actual improvement (docs/math.md §6, GPS rule);
 5. KL-constrained LQG step against the reference policy -> ``p_{i+1}``.
 
 DPSOC-EM replaces the reference at iteration ``i_switch`` by the EM policy:
@@ -19,7 +19,7 @@ DPSOC-EM replaces the reference at iteration ``i_switch`` by the EM policy:
 DP M-step}; the LQG step of that iteration then uses the EM policy as its KL
 reference and as the sampling policy (paper eq. constrainObjective).
 
-Noise-aware variants (SPEC §10, ``[baseline.noise]``, :mod:`soc_opt.noise_aware`): a
+Noise-aware variants (docs/math.md §10, ``[baseline.noise]``, :mod:`soc_opt.noise_aware`): a
 bias-corrected fit in step 2, and with ``estimator = "kalman"`` policies that act on a Kalman
 filter estimate (:class:`~soc_opt.estimator.FilteredPolicy`), steps 4–5 and the EM phase on the
 innovation form.  The defaults are the paper's methods.
@@ -71,7 +71,7 @@ __all__ = [
 
 
 class PaperScale(NamedTuple):
-    """The scale of the paper's experiments (SPEC §9.5), defined here once.
+    """The scale of the paper's experiments (docs/math.md §9.5), defined here once.
 
     iterations: baseline iterations per run (``LQRFLMConfig.iterations``).
     samples:    rollouts per iteration ``M`` (``LQRFLMConfig.samples``).
@@ -98,7 +98,7 @@ class LoopKLStepConfig(lqg.KLStepConfig):
 
 @dataclass(frozen=True)
 class LQRFLMConfig(Config):
-    """LQR-FLM baseline ("iLQG" in the paper), SPEC §7.
+    """LQR-FLM baseline ("iLQG" in the paper), docs/math.md §7.
 
     iterations:  number of sample -> fit -> LQG rounds (default: the paper's, ``PAPER.iterations``).
     samples:     rollouts per iteration ``M`` (default: the paper's, ``PAPER.samples``).
@@ -109,10 +109,10 @@ class LQRFLMConfig(Config):
     kl_method:   KL-step solver, "closed_form" (LQR backward pass + dual) or "casadi" (IPOPT).
     adapt_step:  adapt ``mult`` from predicted vs actual improvement (GPS rule, see lqg.adapt_step).
     workers:     parallel rollout workers (results do not depend on it).
-    fit:         dynamics-fitting configuration (SPEC §2).
-    kl:          KL-step solver and step-adaptation configuration (SPEC §6), the loop's
+    fit:         dynamics-fitting configuration (docs/math.md §2).
+    kl:          KL-step solver and step-adaptation configuration (docs/math.md §6), the loop's
                  :class:`LoopKLStepConfig` (dual solved to ``kl_rtol = 1e-6``).
-    noise:       noise-aware variants (SPEC §10: corrected fit, estimator in the loop); the
+    noise:       noise-aware variants (docs/math.md §10: corrected fit, estimator in the loop); the
                  defaults are the paper's method (:class:`soc_opt.noise_aware.NoiseConfig`).
     """
 
@@ -141,16 +141,16 @@ class LQRFLMConfig(Config):
 
 @dataclass(frozen=True)
 class EMConfig(Config):
-    """The EM phase of DPSOC-EM (SPEC §3–§5, paper Algorithm 1).
+    """The EM phase of DPSOC-EM (docs/math.md §3–§5, paper Algorithm 1).
 
     n_em:          EM recursions at the switch (each samples ``M`` rollouts of the current EM policy).
-    y_mode:        cost observations ``Y``: "model" (the paper), "measured", "optimistic" (SPEC §3).
+    y_mode:        cost observations ``Y``: "model" (the paper), "measured", "optimistic" (docs/math.md §3).
     y_samples:     number of ``Y`` sequences drawn in "model" mode (default: ``samples``).
     method:        M-step solver, "closed_form" or "cvxpy" (``mstep.maximize(method=...)``).
     variant:       "time_varying" (the Proposition's DP sweep) or "time_invariant".
     objective:     "surrogate" (the paper's Lbar) or "exact" (exact EM).
     cov_floor_scale:  ``Sigma_k >= scale * Sigma_k^i`` (covariance floor relative to the
-                   current policy, SPEC §5); ignored when ``entropy_floor`` is true.
+                   current policy, docs/math.md §5); ignored when ``entropy_floor`` is true.
     entropy_floor: use the entropy floor ``log det Sigma_k >= log det Sigma_k^i`` instead.
     trust_region:  optional Frobenius trust region on ``[K k]`` around the current policy (cvxpy only).
     min_norm:      minimum-norm M-step where the maximiser is not unique.
@@ -183,7 +183,7 @@ class EMConfig(Config):
 
 @dataclass(frozen=True)
 class EvalConfig(Config):
-    """Evaluation of the final policies by ``soc-opt compare`` (SPEC §9.5).
+    """Evaluation of the final policies by ``soc-opt compare`` (docs/math.md §9.5).
 
     samples:     fresh rollouts per final policy (default: ``baseline.samples``).
     seed_offset: the evaluation generator is seeded with ``seed_offset + seed``: the same stream
@@ -269,7 +269,7 @@ class BestPolicy(NamedTuple):
 
 
 class PreviousStep(NamedTuple):
-    """The previous KL step, for the step-size adaptation (SPEC §6)."""
+    """The previous KL step, for the step-size adaptation (docs/math.md §6)."""
 
     model: lqg.LocalModel  # fitted dynamics, cost expansion and initial distribution (innovation form
     #                        with the estimator)
@@ -278,7 +278,7 @@ class PreviousStep(NamedTuple):
 
 @dataclass(frozen=True)
 class EMDiagnostics:
-    """Diagnostics of one EM recursion (paper Algorithm 1; SPEC §4–§5).
+    """Diagnostics of one EM recursion (paper Algorithm 1; docs/math.md §4–§5).
 
     recursion:     index of the recursion within the EM phase.
     surrogate_old, surrogate_new: ``sum_k Lbar_k`` of the sampled and of the EM policy, both under
@@ -314,7 +314,7 @@ class IterationRecord:
     iteration: int
     phase: Literal["baseline", "em"]
     cost: np.ndarray  # (M,) true-state total cost per sample
-    cost_measured: np.ndarray  # (M,) measured-state total cost per sample (SPEC Y)
+    cost_measured: np.ndarray  # (M,) measured-state total cost per sample (docs/math.md §0 Y)
     kl: float
     nu: float
     mult: float
@@ -426,7 +426,7 @@ def _record(iteration, phase, task, rollouts, *, kl=0.0, nu=0.0, mult=1.0, timin
 
 def _local_model(task: Task, cfg: LQRFLMConfig, dyn, cost, iteration: int):
     """The KL step's model and the new policy's filter: the fit as is (the paper), or its
-    innovation form with the filter of ``dyn`` (``noise.estimator = "kalman"``, SPEC §10.2)."""
+    innovation form with the filter of ``dyn`` (``noise.estimator = "kalman"``, docs/math.md §10.2)."""
     if cfg.noise.estimator == "none":
         mu0, P0 = _initial_distribution(task)
         return lqg.LocalModel(dyn, cost, mu0, P0), None
@@ -445,7 +445,7 @@ def _update_prior(task: Task, cfg: LQRFLMConfig, prior, rollouts: Rollouts, samp
 
 
 def _fit_dynamics(task: Task, cfg: LQRFLMConfig, rollouts: Rollouts, prior, sampler, denoised=None):
-    """Step 2b: the paper's fit, or the noise-aware one (``noise.fit_correction``, SPEC §10.1)."""
+    """Step 2b: the paper's fit, or the noise-aware one (``noise.fit_correction``, docs/math.md §10.1)."""
     if cfg.noise.fit_correction == "none":
         return fit.fit_dynamics(rollouts, cfg.fit, prior)
     return noise_aware.fit_local(rollouts, cfg.fit, prior, cfg.noise, noise_aware.noise_model(task), sampler,
@@ -507,7 +507,7 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
 
 
 def _mstep_constraints(em: EMConfig, policy: LinearGaussianPolicy) -> mstep.MStepConstraints:
-    """The M-step's feasible set relative to the current policy (SPEC §5)."""
+    """The M-step's feasible set relative to the current policy (docs/math.md §5)."""
     if em.entropy_floor:
         cons = mstep.MStepConstraints(entropy_floor=np.linalg.slogdet(policy.cov)[1].tolist())
     else:
@@ -545,7 +545,7 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | Filte
 
     ``rollouts`` are samples of ``policy``.  Returns the EM policy and the recursion's
     :class:`EMDiagnostics` (surrogate and ``log p(Y)`` before/after, timings).  With the
-    estimator (SPEC §10.2) the E-/M-step run on the augmented model in ``xhat``, ``policy``'s gains
+    estimator (docs/math.md §10.2) the E-/M-step run on the augmented model in ``xhat``, ``policy``'s gains
     read as acting on the new filter's estimate, and the EM policy is returned with that filter.
     """
     em = cfg.em

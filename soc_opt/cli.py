@@ -273,7 +273,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--i-switch", dest="i_switch", type=int, help="override i_switch")
     c.set_defaults(func=_cmd_compare)
 
-    v = sub.add_parser("verify", help="check the paper's claims (SPEC §9, 1-4) numerically")
+    v = sub.add_parser("verify", help="check the paper's claims (docs/math.md §9, 1-4) numerically")
     v.add_argument("--json", action="store_true")
     v.add_argument("--seed", type=int, default=0)
     v.add_argument("--instances", type=int, default=20)

@@ -1,4 +1,4 @@
-"""Side-by-side comparison of LQR-FLM and DPSOC-EM on the same seeds (SPEC §9.5).
+"""Side-by-side comparison of LQR-FLM and DPSOC-EM on the same seeds (docs/math.md §9.5).
 
 For each seed the baseline runs first; DPSOC-EM starts from a copy of the baseline's state at
 ``i_switch`` (same policy, prior and RNG state), so both methods share their first
@@ -66,7 +66,7 @@ def evaluate_policy(task: Task, policy: LinearGaussianPolicy, samples: int, seed
     """``samples`` fresh rollouts of ``policy`` from the evaluation stream of ``seed``.
 
     The generator is seeded with ``evaluation.seed_offset + seed``, so that every method is
-    evaluated on the same noise, distinct from its training samples (SPEC §9.5).
+    evaluated on the same noise, distinct from its training samples (docs/math.md §9.5).
     """
     rng = np.random.default_rng(evaluation.seed_offset + seed)
     return task.rollouts(policy, samples, rng, workers=workers)

@@ -137,21 +137,21 @@ iterations = {iterations}
 samples = {samples}
 kl_budget = 0.5
 
-[baseline.fit]            # dynamics fitting (SPEC §2)
+[baseline.fit]            # dynamics fitting (docs/math.md §2)
 prior = "mixture"
 n_components = 20
 
-[baseline.kl]             # KL-step dual solver and step adaptation (SPEC §6)
+[baseline.kl]             # KL-step dual solver and step adaptation (docs/math.md §6)
 kl_rtol = 1e-6
 min_mult = 0.1
 max_mult = 5.0
 
-[em]                      # EM phase (SPEC §3-§5)
+[em]                      # EM phase (docs/math.md §3-§5)
 n_em = 1
 y_mode = "model"
 cov_floor_scale = 0.5
 
-[em.mstep]                # M-step solver tolerances (SPEC §5)
+[em.mstep]                # M-step solver tolerances (docs/math.md §5)
 solver = "CLARABEL"
 
 [evaluation]              # final-policy evaluation of `soc-opt compare`

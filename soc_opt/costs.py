@@ -1,4 +1,4 @@
-"""Cost terms with analytic derivatives (SPEC §0, §6, §8).
+"""Cost terms with analytic derivatives (docs/math.md §0, §6, §8).
 
 Every term is a stage cost ``l_k(s_k, a_k)`` for ``k = 0..T-1``; the state
 ``s_T`` after the last action is never charged (the :class:`QuadraticCost`
@@ -14,7 +14,7 @@ Terms (each multiplied by ``weight * r_k`` with the ramp ``r`` below):
   both live in the state, e.g. a hook and a moving door handle).
 * :class:`TorqueCost` -- ``1/2 a^T diag(wu) a``.
 * :class:`StateCost` -- ``1/2 sum_i w_i (s_{idx_i} - s*_i)^2``.
-* :class:`QuadraticStateActionCost` -- the SPEC §0 cost
+* :class:`QuadraticStateActionCost` -- the docs/math.md §0 cost
   ``(s - s*)^T Qs (s - s*) + (a - a*)^T Qa (a - a*)`` (no factor 1/2).
 
 Ramps over ``k = 0..T-1`` with ``t_k = (k + 1) / T`` (the GPS definitions):
@@ -301,7 +301,7 @@ def _matrix(name: str, Q, d: int) -> np.ndarray:
 
 
 class QuadraticStateActionCost(CostTerm):
-    """SPEC §0: ``(s - s*)^T Qs (s - s*) + (a - a*)^T Qa (a - a*)`` (no factor 1/2).
+    """docs/math.md §0: ``(s - s*)^T Qs (s - s*) + (a - a*)^T Qa (a - a*)`` (no factor 1/2).
 
     ``Qs``/``Qa`` may be scalars (times identity), diagonals or full matrices.
     """

@@ -1,4 +1,4 @@
-"""soc_opt tasks as Gymnasium environments (SPEC §0, §8; ``docs/gym.md``).
+"""soc_opt tasks as Gymnasium environments (docs/math.md §0, §8; ``docs/gym.md``).
 
 Importing this module registers, in Gymnasium's registry:
 
@@ -20,7 +20,7 @@ agent's actions instead of a linear-Gaussian policy:
   :meth:`Task.draw_noise` (``M = 1``: ``eps``, then ``w`` -- unused, the agent acts --, then
   the process noise of linear tasks), exactly as ``task.rollouts(policy, 1,
   np.random.default_rng(s))`` does;
-* the observation is the *measured* state ``s_k = x_k + eps_k`` (SPEC §0; ``rho2`` as
+* the observation is the *measured* state ``s_k = x_k + eps_k`` (docs/math.md §0; ``rho2`` as
   configured by the task), ``float64 (n,)``;
 * ``step(a_k)`` advances the task's own simulator (:meth:`LinearTask.simulator`,
   :meth:`MujocoTask.simulator`) by one control step; the reward is ``-Y_k``, the task's

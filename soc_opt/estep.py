@@ -1,7 +1,7 @@
-"""E-step: Kalman filter and RTS smoother on the closed loop (SPEC §4).
+"""E-step: Kalman filter and RTS smoother on the closed loop (docs/math.md §4).
 
 Under the current policy ``a_k = K_k s_k + k_k + L_k w_k`` the action is
-integrated out of the augmented model (SPEC §1), giving the closed loop
+integrated out of the augmented model (docs/math.md §1), giving the closed loop
 
     zeta_k = (s_{k+1}, y_k) | s_k ~ N(M_k s_k + m_k, S_k),
     M_k = As_k + Bs_k K_k,  m_k = Bs_k k_k + co_k,  S_k = So_k + Bs_k Sigma_k Bs_k^T,
@@ -67,7 +67,7 @@ def _check_pair(model: AugmentedModel, policy: LinearGaussianPolicy) -> None:
 
 
 def closed_loop(model: AugmentedModel, policy: LinearGaussianPolicy) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Closed-loop augmented model ``zeta_k | s_k ~ N(M_k s_k + m_k, S_k)`` (SPEC §4).
+    """Closed-loop augmented model ``zeta_k | s_k ~ N(M_k s_k + m_k, S_k)`` (docs/math.md §4).
 
     Returns:
         Mk: (T, n+1, n)    ``As_k + Bs_k K_k``
@@ -111,7 +111,7 @@ def _validate(model, policy, y, mu0, P0) -> tuple[np.ndarray, bool, np.ndarray, 
 
 @dataclass(frozen=True)
 class Filtered:
-    """Output of :func:`kalman_filter` (SPEC §4).
+    """Output of :func:`kalman_filter` (docs/math.md §4).
 
     For one observation sequence:
         pred_mean: (T+1, n)    ``E[s_k | y_0..y_{k-1}]`` (``k = 0``: ``mu0``; ``k = T``: given all of ``Y``)
@@ -209,7 +209,7 @@ def _unbatch(x: np.ndarray, batched: bool, M: int, shared: bool = False) -> np.n
 
 
 def kalman_filter(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> Filtered:
-    """Kalman filter on the closed loop with correlated process/measurement noise (SPEC §4).
+    """Kalman filter on the closed loop with correlated process/measurement noise (docs/math.md §4).
 
     Model (closed loop, :func:`closed_loop`): given ``s_k``,
     ``(s_{k+1}, y_k) ~ N(M_k s_k + m_k, S_k)`` with blocks ``Ms_k, My_k`` (rows of ``M_k``),
@@ -256,7 +256,7 @@ def log_likelihood(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, 
 
 
 def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> Smoothed:
-    """Rauch–Tung–Striebel smoother on the closed loop (SPEC §4).
+    """Rauch–Tung–Striebel smoother on the closed loop (docs/math.md §4).
 
     Runs :func:`kalman_filter` and then, backwards from ``s_hat_T = m_T``, ``P^s_T = P_T``
     (the last prediction already conditions on all of ``Y``), for ``k = T-1..0``:
@@ -274,7 +274,7 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
 
     Args:
         model: the augmented model :class:`~soc_opt.models.AugmentedModel` of
-            ``zeta_k = (s_{k+1}, y_k)`` given ``(s_k, a_k)`` (SPEC §1), horizon ``T``, state size ``n``.
+            ``zeta_k = (s_{k+1}, y_k)`` given ``(s_k, a_k)`` (docs/math.md §1), horizon ``T``, state size ``n``.
         policy: the :class:`~soc_opt.models.LinearGaussianPolicy` closing the loop,
             ``K (T, m, n)``, ``k (T, m)``, ``cov (T, m, m)``.
         y: the cost observations ``y_0..y_{T-1}``: ``(T,)`` for one sequence or ``(M, T)`` for
@@ -326,7 +326,7 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
 
 @dataclass(frozen=True)
 class Moments:
-    """Smoothed second moments per step, averaged over observation sequences (SPEC §5).
+    """Smoothed second moments per step, averaged over observation sequences (docs/math.md §5).
 
     With ``zeta_k = (s_{k+1}, y_k)`` and ``stilde_k = (s_k, 1)``:
         Szz: (T, n+1, n+1)  E[zeta_k zeta_k^T | Y]

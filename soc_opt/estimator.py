@@ -1,6 +1,6 @@
-"""State estimator in the loop: time-varying Kalman filter and the filtered closed loop (SPEC §10.2).
+"""State estimator in the loop: time-varying Kalman filter and the filtered closed loop (docs/math.md §10.2).
 
-Model (SPEC §10): ``x_{k+1} = A_k x_k + B_k a_k + c_k + w_k``, ``w_k ~ N(0, W_k)``;
+Model (docs/math.md §10): ``x_{k+1} = A_k x_k + B_k a_k + c_k + w_k``, ``w_k ~ N(0, W_k)``;
 ``s_k = x_k + eps_k``, ``eps_k ~ N(0, R)``; ``x_0 ~ N(mu0, P0)``.  The filter
 (``docs/noise.md`` §2)::
 
@@ -11,7 +11,7 @@ Model (SPEC §10): ``x_{k+1} = A_k x_k + B_k a_k + c_k + w_k``, ``w_k ~ N(0, W_k
 The gains do not depend on data, so a filtered policy is ``(K, k, Sigma)`` acting on ``xhat``
 plus its :class:`KalmanFilter`.  In innovation form ``xhat`` is a Markov linear-Gaussian process
 (:func:`innovation_dynamics`), the cost on the true state is the cost on ``xhat`` plus
-``1/2 tr(C_xx P_k)`` (:func:`cost_correction`), and the augmented model of SPEC §1 carries over
+``1/2 tr(C_xx P_k)`` (:func:`cost_correction`), and the augmented model of docs/math.md §1 carries over
 with a modified noise covariance (:func:`innovation_augmented`).
 
 Public functions:
@@ -73,7 +73,7 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 
 def measurement_noise(rho2, n: int) -> np.ndarray:
-    """``R = rho2 I`` (SPEC §10); ``ValueError`` naming ``rho2`` if it is negative or not finite."""
+    """``R = rho2 I`` (docs/math.md §10); ``ValueError`` naming ``rho2`` if it is negative or not finite."""
     try:
         r = float(rho2)
     except (TypeError, ValueError):
@@ -100,7 +100,7 @@ def check_noise_covariance(name: str, S, shape: tuple) -> np.ndarray:
 
 @dataclass(frozen=True)
 class KalmanFilter:
-    """A time-varying Kalman filter and its data-independent gains (SPEC §10.2).
+    """A time-varying Kalman filter and its data-independent gains (docs/math.md §10.2).
 
     The filter's model:
         A:   (T, n, n), B: (T, n, m), c: (T, n), W: (T, n, n)   ``x_{k+1} = A x + B a + c + w``
@@ -163,7 +163,7 @@ class KalmanFilter:
 
 
 def kalman_filter(dynamics: LinearGaussianDynamics, R, mu0, P0) -> KalmanFilter:
-    """Gains of the time-varying Kalman filter of ``dynamics`` with measurement noise ``R`` (SPEC §10.2).
+    """Gains of the time-varying Kalman filter of ``dynamics`` with measurement noise ``R`` (docs/math.md §10.2).
 
     ``R``, ``P0`` and ``dynamics.cov`` (``W``) must be symmetric positive semidefinite and every
     innovation covariance ``S_k = P^-_k + R`` positive definite; errors name the matrix and the
@@ -209,7 +209,7 @@ def _check_step(kf: KalmanFilter, k: int) -> int:
 
 
 def filter_step(kf: KalmanFilter, k: int, s_k, xhat_prev=None, a_prev=None) -> np.ndarray:
-    """One causal filter update: ``xhat_k`` from ``s_k`` and ``(xhat_{k-1}, a_{k-1})`` (SPEC §10.2).
+    """One causal filter update: ``xhat_k`` from ``s_k`` and ``(xhat_{k-1}, a_{k-1})`` (docs/math.md §10.2).
 
     ``s_k (..., n)``; for ``k = 0`` the prediction is ``mu0`` and ``xhat_prev``, ``a_prev`` must be
     ``None``; for ``k >= 1`` they are ``(..., n)`` and ``(..., m)`` with the same leading axes as
@@ -291,7 +291,7 @@ def filter_states(kf: KalmanFilter, s, a) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FilteredPolicy:
-    """A linear-Gaussian policy acting on the filtered state, saved with its filter (SPEC §10.2).
+    """A linear-Gaussian policy acting on the filtered state, saved with its filter (docs/math.md §10.2).
 
     ``a_k = K_k xhat_k + k_k + L_k w_k`` with ``xhat_k`` from ``filter``.
 
@@ -356,8 +356,8 @@ class FilteredPolicy:
 def innovation_dynamics(kf: KalmanFilter) -> LinearGaussianDynamics:
     """The filtered state as a Markov model: ``xhat_{k+1} ~ N(A xhat_k + B a_k + c, G S G^T)``.
 
-    ``cov_k = G_{k+1} S_{k+1} G_{k+1}^T`` (``= P^-_{k+1} - P_{k+1}``), ``k = 0..T-1`` (SPEC §10.2,
-    ``docs/noise.md`` §3); the KL step (SPEC §6) runs unchanged on it.
+    ``cov_k = G_{k+1} S_{k+1} G_{k+1}^T`` (``= P^-_{k+1} - P_{k+1}``), ``k = 0..T-1`` (docs/math.md §10.2,
+    ``docs/noise.md`` §3); the KL step (docs/math.md §6) runs unchanged on it.
     """
     if not isinstance(kf, KalmanFilter):
         raise TypeError(f"kf must be a KalmanFilter, got {type(kf).__name__}")

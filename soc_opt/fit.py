@@ -1,10 +1,10 @@
-"""Dynamics fitting and cost observations (SPEC §2, §3).
+"""Dynamics fitting and cost observations (docs/math.md §2, §3).
 
 Step 1 of DPSOC-EM: from ``M`` rollouts fit the time-varying augmented model
 
     zeta_k | z_k ~ N(Ao_k z_k + co_k, So_k),   z_k = (s_k, a_k),  zeta_k = (s_{k+1}, y_k)
 
-(SPEC §1) from the *measured* states ``s`` (controllers only ever see ``s``).
+(docs/math.md §1) from the *measured* states ``s`` (controllers only ever see ``s``).
 Per time step the tuples ``D_k^m = (s_k, a_k, s_{k+1}, y_k)`` (dimension
 ``2n+m+1``; ``2n+m`` for :func:`fit_dynamics`, which drops ``y``) are
 summarised by a joint Gaussian ``N(mu_k, Lambda_k)`` that is then conditioned
@@ -19,7 +19,7 @@ Two estimators of the joint Gaussian:
   ``zeta`` on the centred ``z`` with penalty ``M lam ||Ao||^2`` and an
   unpenalised intercept ``co_k = mean(zeta) - Ao_k mean(z)``; ``So_k`` is the
   mean squared residual (ML normalisation, ``1/M``) plus the ridge term.
-* **Mixture prior** (SPEC §2 steps 1-3): a Gaussian mixture over the tuples of
+* **Mixture prior** (docs/math.md §2 steps 1-3): a Gaussian mixture over the tuples of
   all time steps (and a bounded buffer of tuples from earlier iterations),
   fitted by variational Bayes with ``sklearn.mixture.BayesianGaussianMixture``
   (Dirichlet prior on the weights, normal-Wishart priors on the components,
@@ -35,7 +35,7 @@ Two estimators of the joint Gaussian:
       Phi0_k = n0 * S0_k             (a scatter matrix: n0 pseudo-observations
                                       with covariance S0_k),
 
-  and the posterior of SPEC §2 step 3
+  and the posterior of docs/math.md §2 step 3
 
       mu_k     = (k0 mu0_k + M mu_emp) / (k0 + M)
       Lambda_k = (Phi0_k + M Lambda_emp + k0 M/(k0+M) (mu_emp - mu0_k)(mu_emp - mu0_k)^T) / (M + n0).
@@ -46,7 +46,7 @@ Two estimators of the joint Gaussian:
   tuples the mixture was fitted on (this is the normalisation of the reference
   GPS code, where both are ~1).  With ``M = 0`` the posterior is
   ``(mu0_k, S0_k)``; with the default ``n0 = 1``, ``Phi0_k = S0_k`` is exactly
-  the SPEC's "second moment about mu0_k".
+  the "second moment about mu0_k" of docs/math.md §2.
 
 **Regulariser.**  ``lam = reg * scale`` is added to the diagonal of the
 ``(s, a)`` block of ``Lambda_k`` before conditioning, where ``scale`` is the
@@ -61,7 +61,7 @@ with a Cholesky solve of the ``(s, a)`` block; ``So_k = Lambda_{zeta zeta} - Ao_
 its eigenvalues are floored at ``min_eig * mean(diag Lambda_{zeta zeta})``
 (absolute floor ``1e-12``) so that the result is positive definite.
 
-**Cost observations** (SPEC §3): :func:`cost_observations` with mode
+**Cost observations** (docs/math.md §3): :func:`cost_observations` with mode
 ``"model"`` (sampled from the fitted augmented model under the policy; the
 Gaussian ``y`` samples are not clipped to ``(0, 1]``), ``"measured"`` (the
 rollouts' ``y``) or ``"optimistic"`` (``y = 1``).
@@ -110,7 +110,7 @@ _ABS_EIG_FLOOR = 1e-12
 
 @dataclass(frozen=True)
 class FitConfig(Config):
-    """Hyperparameters of the dynamics fit (SPEC §2).
+    """Hyperparameters of the dynamics fit (docs/math.md §2).
 
     Fields (defaults in brackets):
         prior:                ``"mixture"`` (VB mixture prior + NIW posterior) or ``"none"``
@@ -217,7 +217,7 @@ def update_prior(
     config: FitConfig = FitConfig(),
     rng: np.random.Generator | None = None,
 ) -> MixturePrior:
-    """Fit the VB mixture prior on the new tuples plus ``prior``'s buffer (SPEC §2 step 1).
+    """Fit the VB mixture prior on the new tuples plus ``prior``'s buffer (docs/math.md §2 step 1).
 
     The mixture is fitted on all tuples of all steps of ``rollouts`` together
     with the tuples buffered by ``prior`` (earlier iterations).  The returned
@@ -345,7 +345,7 @@ def joint_posterior(
 
 
 def _condition(mu: np.ndarray, Lam: np.ndarray, nz: int, min_eig: float):
-    """Condition ``N(mu, Lam)`` on its first ``nz`` coordinates -> ``(Ao, co, So)`` (SPEC §2 step 4).
+    """Condition ``N(mu, Lam)`` on its first ``nz`` coordinates -> ``(Ao, co, So)`` (docs/math.md §2 step 4).
 
     All ``T`` steps at once: one stacked Cholesky factorisation of the ``(s, a)`` blocks,
     batched solves and products, one stacked eigendecomposition for the floor.
@@ -392,7 +392,7 @@ def _fit(rollouts, config, prior, include_y, correct=None):
     X = tuples(rollouts, include_y)
     with single_thread_blas():
         mu, Lam = joint_posterior(X, nz, config, use_prior, include_y)
-        if correct is not None:  # noise-aware fit (SPEC §10.1): moments of the true tuples
+        if correct is not None:  # noise-aware fit (docs/math.md §10.1): moments of the true tuples
             mu, Lam = correct(mu, Lam)
         return _condition(mu, Lam, nz, config.min_eig)
 
@@ -400,13 +400,13 @@ def _fit(rollouts, config, prior, include_y, correct=None):
 def fit_augmented(
     rollouts: Rollouts, config: FitConfig = FitConfig(), prior: MixturePrior | None = None, *, correct=None
 ) -> AugmentedModel:
-    """Fit ``zeta_k = (s_{k+1}, y_k) | (s_k, a_k)`` per time step (SPEC §1, §2).
+    """Fit ``zeta_k = (s_{k+1}, y_k) | (s_k, a_k)`` per time step (docs/math.md §1, §2).
 
     Uses the NIW posterior built from ``prior`` when ``config.prior == "mixture"``
     and a prior is given; otherwise per-step regularised least squares.
     ``correct(mu (T, d), Lam (T, d, d)) -> (mu, Lam)``, if given, maps the per-step joint
     moments (after the ridge) before conditioning: the hook of the bias-corrected fit
-    (SPEC §10.1, :func:`soc_opt.noise_aware.moment_correction`).
+    (docs/math.md §10.1, :func:`soc_opt.noise_aware.moment_correction`).
     """
     Ao, co, So = _fit(rollouts, config, prior, include_y=True, correct=correct)
     return AugmentedModel(Ao, co, So, rollouts.n)
@@ -415,7 +415,7 @@ def fit_augmented(
 def fit_dynamics(
     rollouts: Rollouts, config: FitConfig = FitConfig(), prior: MixturePrior | None = None, *, correct=None
 ) -> LinearGaussianDynamics:
-    """Fit ``s_{k+1} | (s_k, a_k) ~ N(A s + B a + c, W)`` per step (the ``y`` column dropped; SPEC §2, §6).
+    """Fit ``s_{k+1} | (s_k, a_k) ~ N(A s + B a + c, W)`` per step (the ``y`` column dropped; docs/math.md §2, §6).
 
     With a mixture prior, ``y`` is marginalised out of the mixture.  ``correct``: as in
     :func:`fit_augmented`.
@@ -449,7 +449,7 @@ def cost_observations(
     rng: np.random.Generator | None = None,
     n_samples: int | None = None,
 ) -> np.ndarray:
-    """Cost observation sequences ``Y (M', T)`` for the E-step (SPEC §3).
+    """Cost observation sequences ``Y (M', T)`` for the E-step (docs/math.md §3).
 
     Modes:
         ``"model"``:      ``M' = n_samples`` (default ``rollouts.M``) sequences sampled forward from

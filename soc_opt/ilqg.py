@@ -1,4 +1,4 @@
-"""Model-based iLQG on a known model (SPEC §7), as a resumable step function.
+"""Model-based iLQG on a known model (docs/math.md §7), as a resumable step function.
 
 One iLQG iteration linearises the task along the nominal trajectory (``task.linearize``: MuJoCo
 finite differences, or the exact model of a linear task), expands the cost to second order,
@@ -35,7 +35,7 @@ __all__ = ["ILQGConfig", "ILQGRecord", "ILQGState", "check_task", "initial_ilqg_
 
 @dataclass(frozen=True)
 class ILQGConfig(Config):
-    """Model-based iLQG on a known model (SPEC §7); the ``[ilqg]`` table of a run configuration.
+    """Model-based iLQG on a known model (docs/math.md §7); the ``[ilqg]`` table of a run configuration.
 
     iterations:  maximum outer iterations (``soc-opt run --method ilqg --iterations N`` overrides it).
     mu_init:     initial Levenberg–Marquardt regulariser added to the action Hessian.
@@ -271,7 +271,7 @@ def run_ilqg(task: Task, cfg: ILQGConfig = ILQGConfig(), state: ILQGState | None
 
 def ilqg(task: Task, x0: np.ndarray | None = None, u_init: np.ndarray | None = None, cfg: ILQGConfig = ILQGConfig(),
          on_iteration: Callable[[int, float, float], None] | None = None):
-    """Model-based iLQG on a known model (SPEC §7), in one call.
+    """Model-based iLQG on a known model (docs/math.md §7), in one call.
 
     Derivatives from ``task.linearize`` (MuJoCo: ``mujoco.mjd_transitionFD``, or central
     differences of the whole step for the RK4 integrator), Levenberg–Marquardt regularisation

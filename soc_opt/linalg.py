@@ -1,4 +1,4 @@
-"""Small batched linear-algebra kernels shared by the solvers (SPEC §0 conventions).
+"""Small batched linear-algebra kernels shared by the solvers (docs/math.md §0 conventions).
 
 Everything works on stacks of matrices (leading axes are batch axes).  Covariances are
 factored by Cholesky and solved with triangular solves, never inverted explicitly.

@@ -1,9 +1,9 @@
-"""Exact LQG reference for a known linear system with measurement noise (SPEC §10.3).
+"""Exact LQG reference for a known linear system with measurement noise (docs/math.md §10.3).
 
 For ``x_{k+1} = A x + B a + c + w`` (``w ~ N(0, W)``), ``s = x + eps`` (``eps ~ N(0, R)``),
 ``x_0 ~ N(mu0, P0)`` and a quadratic cost on ``(x, a)``, the optimum over causal policies of the
 measurements is the Kalman filter of the true model (:mod:`soc_opt.estimator`) plus the LQR gains
-(SPEC §6 with ``nu = inf``) acting on ``xhat`` (separation principle).
+(docs/math.md §6 with ``nu = inf``) acting on ``xhat`` (separation principle).
 
 The expected cost of any filtered policy, including one whose filter model differs from the true
 system, is exact from the ``2n``-dimensional Gaussian of ``(x_k, xhat_k)`` (``docs/noise.md`` §9)::
@@ -113,7 +113,7 @@ def _check(dynamics, R, fpolicy, mu0, P0):
 
 
 def closed_loop_moments(dynamics: LinearGaussianDynamics, R, fpolicy: FilteredPolicy, mu0, P0) -> ClosedLoopMoments:
-    """Exact Gaussian of ``(x_k, xhat_k)`` under ``fpolicy`` on the true system ``dynamics`` (SPEC §10.3).
+    """Exact Gaussian of ``(x_k, xhat_k)`` under ``fpolicy`` on the true system ``dynamics`` (docs/math.md §10.3).
 
     ``R`` is the true measurement noise and ``(mu0, P0)`` the true distribution of ``x_0``; the
     filter (its model, noise and prior) is the policy's own and may differ from them.
@@ -174,7 +174,7 @@ def expected_cost(dynamics: LinearGaussianDynamics, cost: QuadraticCost, R, fpol
 
 
 def lqg(dynamics: LinearGaussianDynamics, cost: QuadraticCost, R, mu0, P0, *, filter_P0=None) -> LQGSolution:
-    """The LQG optimum: filter of the true model and prior, LQR gains on ``xhat`` (SPEC §10.3).
+    """The LQG optimum: filter of the true model and prior, LQR gains on ``xhat`` (docs/math.md §10.3).
 
     ``filter_P0`` replaces ``P0`` in the filter only.  It is needed in one case: without
     measurement noise (``R = 0``) and with a deterministic start (``P0 = 0``) the innovation

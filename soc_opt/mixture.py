@@ -1,4 +1,4 @@
-"""The variational-Bayes mixture prior over transition tuples (SPEC §2 steps 1-2).
+"""The variational-Bayes mixture prior over transition tuples (docs/math.md §2 steps 1-2).
 
 :class:`MixturePrior` is the fitted mixture (pruned components, point estimates) with the
 tuple buffer and the variational posterior (:class:`VBState`) from which the next fit is
@@ -99,7 +99,7 @@ def _check_vb(vb: VBState, D: int) -> VBState:
 
 @dataclass(frozen=True)
 class MixturePrior:
-    """A Gaussian mixture over tuples ``(s_k, a_k, s_{k+1}, y_k)`` (SPEC §2 step 1).
+    """A Gaussian mixture over tuples ``(s_k, a_k, s_{k+1}, y_k)`` (docs/math.md §2 step 1).
 
     Fields:
         weights:     (C,)       mixture weights (sum to 1, pruned components removed).
@@ -190,7 +190,7 @@ class MixturePrior:
         """Per-step NIW centre ``mu0 (T, d)`` and covariance ``S0 (T, d, d)`` from tuples ``X (M, T, d)``.
 
         ``w_c^k`` is the mean responsibility of the ``M`` step-``k`` tuples;
-        ``S0_k`` is the mixture's second moment about ``mu0_k`` (SPEC §2 step 2),
+        ``S0_k`` is the mixture's second moment about ``mu0_k`` (docs/math.md §2 step 2),
         computed for all steps at once with batched products.
         """
         Mr, T, d = X.shape

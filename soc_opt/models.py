@@ -1,4 +1,4 @@
-"""Model and data types shared by every module (SPEC §0, §1, §6).
+"""Model and data types shared by every module (docs/math.md §0, §1, §6).
 
 All types are frozen dataclasses whose arrays are validated once, at
 construction: shapes, finiteness, symmetry and positive definiteness of
@@ -93,7 +93,7 @@ def _freeze(*arrays: np.ndarray) -> None:
 
 @dataclass(frozen=True)
 class LinearGaussianPolicy:
-    """Time-varying linear-Gaussian policy ``a_k = K_k s_k + k_k + L_k w_k`` (SPEC §0).
+    """Time-varying linear-Gaussian policy ``a_k = K_k s_k + k_k + L_k w_k`` (docs/math.md §0).
 
     Fields:
         K:   (T, m, n) feedback gains.
@@ -187,7 +187,7 @@ class LinearGaussianPolicy:
 
 @dataclass(frozen=True)
 class AugmentedModel:
-    """Joint model of ``zeta_k = (s_{k+1}, y_k)`` given ``z_k = (s_k, a_k)`` (SPEC §1).
+    """Joint model of ``zeta_k = (s_{k+1}, y_k)`` given ``z_k = (s_k, a_k)`` (docs/math.md §1).
 
     ``zeta_k | z_k ~ N(Ao_k z_k + co_k, So_k)``.
 
@@ -247,7 +247,7 @@ class AugmentedModel:
 
 @dataclass(frozen=True)
 class LinearGaussianDynamics:
-    """``s_{k+1} ~ N(A_k s_k + B_k a_k + c_k, W_k)`` (SPEC §6).
+    """``s_{k+1} ~ N(A_k s_k + B_k a_k + c_k, W_k)`` (docs/math.md §6).
 
     Fields:
         A:   (T, n, n)
@@ -293,7 +293,7 @@ class LinearGaussianDynamics:
 
 @dataclass(frozen=True)
 class QuadraticCost:
-    """Stage costs ``l_k(z) = 1/2 z^T C_k z + z^T c_k + c0_k`` with ``z = (s_k, a_k)`` (SPEC §6).
+    """Stage costs ``l_k(z) = 1/2 z^T C_k z + z^T c_k + c0_k`` with ``z = (s_k, a_k)`` (docs/math.md §6).
 
     There is no terminal cost: the state ``s_T`` is not charged.
 
@@ -346,7 +346,7 @@ class QuadraticCost:
 
 @dataclass(frozen=True)
 class Rollouts:
-    """``M`` sampled trajectories of a task under a policy (SPEC §0, §2).
+    """``M`` sampled trajectories of a task under a policy (docs/math.md §0, §2).
 
     Fields:
         x:    (M, T+1, n) true simulator states.
@@ -413,7 +413,7 @@ class Rollouts:
 
 @dataclass(frozen=True)
 class Smoothed:
-    """Output of the RTS smoother (SPEC §4).
+    """Output of the RTS smoother (docs/math.md §4).
 
     For one observation sequence:
         mean:   (T+1, n)    ``s_hat_k = E[s_k | Y]``

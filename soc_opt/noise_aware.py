@@ -1,12 +1,12 @@
-"""Noise-aware LQR-FLM and DPSOC-EM: SPEC §10 wired into the loop (``docs/noise.md`` §10).
+"""Noise-aware LQR-FLM and DPSOC-EM: docs/math.md §10 wired into the loop (``docs/noise.md`` §10).
 
 Selected by the ``[baseline.noise]`` table (:class:`NoiseConfig`).  The defaults
 (``estimator = "none"``, ``fit_correction = "none"``) are the paper's methods, bit for bit: the
 loop then calls exactly what it called before this module existed.
 
-``fit_correction`` (SPEC §10.1), how the local model is fitted from the measured rollouts:
+``fit_correction`` (docs/math.md §10.1), how the local model is fitted from the measured rollouts:
 
-* ``"none"``: the paper's fit (SPEC §2), ``s_{k+1}`` regressed on ``(s_k, a_k)``.
+* ``"none"``: the paper's fit (docs/math.md §2), ``s_{k+1}`` regressed on ``(s_k, a_k)``.
 * ``"moments"``: the NIW posterior moments of each step's tuple ``(s_k, a_k, s_{k+1}[, y_k])``
   are mapped to moments of the true tuple ``(x_k, a_k, x_{k+1}[, y_k])`` by
   :func:`soc_opt.noisefit.correct_joint` before conditioning (``fit.fit_dynamics(correct=...)``),
@@ -22,7 +22,7 @@ loop then calls exactly what it called before this module existed.
 fit (:func:`pool_moments`): with ``M`` rollouts of a few tens of steps and ``rho2`` comparable to
 the spread of the states, per-step moments cannot resolve ``A_k`` (``docs/noise.md`` §10).
 
-``estimator = "kalman"`` (SPEC §10.2): the policy is a
+``estimator = "kalman"`` (docs/math.md §10.2): the policy is a
 :class:`~soc_opt.estimator.FilteredPolicy` acting on ``xhat``, whose filter is built from the
 model fitted in the iteration that produced it (:func:`loop_filter`); rollouts run it online.
 The KL step and the step adaptation work on the innovation form (:func:`innovation_local_model`),
@@ -89,7 +89,7 @@ __all__ = [
 
 @dataclass(frozen=True)
 class NoiseConfig(Config):
-    """Noise-aware variants of LQR-FLM and DPSOC-EM (SPEC §10; ``docs/noise.md`` §10).
+    """Noise-aware variants of LQR-FLM and DPSOC-EM (docs/math.md §10; ``docs/noise.md`` §10).
 
     Defaults select the paper's methods (no correction, no estimator).
 
@@ -109,11 +109,11 @@ class NoiseConfig(Config):
     em_max_iter:     maximum EM iterations of ``"ssm_em"``.
     em_tol:          ``"ssm_em"`` stops when ``log p(s | a)`` changes by less than ``em_tol`` per
                      sequence and time step.
-    expand_at:       where LQR-FLM expands the cost (SPEC §3): ``"measured"`` (the sample mean of
+    expand_at:       where LQR-FLM expands the cost (docs/math.md §3): ``"measured"`` (the sample mean of
                      the measured ``s_k``: the paper) or ``"smoothed"`` (the sample mean of the RTS
                      smoother's ``E[x_k | s, a]`` under the iteration's fitted model, which
                      averages the sensor noise out along time as well as over samples).
-    prior_data:      what the mixture prior (SPEC §2 step 1) is fitted on: ``"measured"`` (the
+    prior_data:      what the mixture prior (docs/math.md §2 step 1) is fitted on: ``"measured"`` (the
                      tuples of the measured ``s``: the paper; ``"ssm_em"`` then corrects the prior's
                      moments for the noise) or ``"smoothed"`` (the tuples of the smoother's
                      ``E[x | s, a]`` under a model of the data, :func:`update_prior`; the prior is
@@ -122,7 +122,7 @@ class NoiseConfig(Config):
                      the union of the window's tuples) or ``"anchored"`` (step ``k``'s own mean, the
                      window's second moments about it).
     time_window:     ``h``: the noise-aware fits pool the tuple moments of the steps ``k-h..k+h``
-                     (:func:`pool_moments`); ``0``: per step (SPEC §2's time-varying fit), ``h >= T``:
+                     (:func:`pool_moments`); ``0``: per step (docs/math.md §2's time-varying fit), ``h >= T``:
                      one time-invariant model.  Needs a ``fit_correction``.
     """
 
@@ -183,7 +183,7 @@ class NoiseConfig(Config):
 
 
 class NoiseModel(NamedTuple):
-    """The known noise model of a task (SPEC §10).
+    """The known noise model of a task (docs/math.md §10).
 
     Fields:
         R:   (n, n) measurement noise ``rho2 I``
@@ -324,7 +324,7 @@ def denoise(rollouts: Rollouts, dynamics: LinearGaussianDynamics, noise: NoiseMo
 
 def update_prior(prior, rollouts: Rollouts, fit_cfg: fit.FitConfig, noise_cfg: NoiseConfig, noise: NoiseModel,
                  sampler, rng: np.random.Generator) -> tuple[fit.MixturePrior, Rollouts | None]:
-    """The mixture prior of one iteration (SPEC §2 step 1) under ``noise_cfg.prior_data``.
+    """The mixture prior of one iteration (docs/math.md §2 step 1) under ``noise_cfg.prior_data``.
 
     ``"measured"``: ``fit.update_prior`` on the measured tuples (the paper); returns
     ``(prior, None)``.  ``"smoothed"``: the rollouts are first smoothed (:func:`denoise`) with the
@@ -431,7 +431,7 @@ def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Noi
 
 def loop_filter(dynamics: LinearGaussianDynamics, noise: NoiseModel, noise_cfg: NoiseConfig,
                 where: str = "") -> KalmanFilter:
-    """The Kalman filter of a fitted model (SPEC §10.2): ``W_k`` floored at ``filter_w_floor * rho2``,
+    """The Kalman filter of a fitted model (docs/math.md §10.2): ``W_k`` floored at ``filter_w_floor * rho2``,
     measurement noise ``R``, prior of the true ``x_0``.  A noise model that leaves an innovation
     covariance singular raises ``NotPositiveDefiniteError`` naming the step (and ``where``)."""
     floor = _w_floor(noise_cfg, noise.R)

@@ -1,4 +1,4 @@
-"""Dynamics fitting from noisy measurements (SPEC §10.1; math in ``docs/noise.md`` §7–8).
+"""Dynamics fitting from noisy measurements (docs/math.md §10.1; math in ``docs/noise.md`` §7–8).
 
 Model: ``x_{k+1} = A_k x_k + B_k a_k + c_k + w_k``, ``s_k = x_k + eps_k``, ``eps_k ~ N(0, R)`` with
 ``R`` known.  Regressing ``s_{k+1}`` on ``z_k = (s_k, a_k)`` is biased (errors in variables, and
@@ -9,7 +9,7 @@ Model: ``x_{k+1} = A_k x_k + B_k a_k + c_k + w_k``, ``s_k = x_k + eps_k``, ``eps
   ``Cov(zt) = Cov(z) - [[R, X], [X^T, 0]]`` kept PD by a reliability floor,
   ``W = Cov(s') - R - [A B] Cov(zt) [A B]^T`` (floored).  :func:`correct_joint` applies the
   correction to joint tuple moments ``(mu, Lambda)`` of ``(s_k, a_k, s_{k+1}[, y_k])`` (the form the
-  NIW posterior of SPEC §2 takes), returning the moments of the true tuple
+  NIW posterior of docs/math.md §2 takes), returning the moments of the true tuple
   ``(x_k, a_k, x_{k+1}[, y_k])``, so that the usual conditioning gives the corrected model.
 * **SSM-EM** (:func:`ssm_em`): maximum likelihood of the linear-Gaussian state-space model with
   latent ``x`` and known ``R`` by EM; E-step :func:`smooth_states` (Kalman filter of
@@ -60,7 +60,7 @@ _ABS_EIG_FLOOR = 1e-12
 
 @dataclass(frozen=True)
 class NoiseFitConfig(Config):
-    """Hyperparameters of the noise-aware fits (SPEC §10.1, ``docs/noise.md`` §7–8).
+    """Hyperparameters of the noise-aware fits (docs/math.md §10.1, ``docs/noise.md`` §7–8).
 
     Fields (defaults in brackets):
         min_reliability: floor of the reliabilities ``1 - mu_i`` (generalised eigenvalues of
@@ -183,7 +183,7 @@ class CorrectedMoments(NamedTuple):
 
 
 def correct_joint(mu, Lam, n: int, m: int, R, X, *, min_reliability: float = 0.05) -> CorrectedMoments:
-    """Remove the measurement noise from joint tuple moments (SPEC §10.1, ``docs/noise.md`` §7).
+    """Remove the measurement noise from joint tuple moments (docs/math.md §10.1, ``docs/noise.md`` §7).
 
     ``mu (T, d)``, ``Lam (T, d, d)`` are moments (empirical or NIW posterior) of
     ``(s_k, a_k, s_{k+1}[, y_k])`` with ``d = 2n+m`` or ``2n+m+1``; ``R (n, n)``; ``X (T, n, m)``
@@ -259,7 +259,7 @@ def naive_fit(s, a, config: NoiseFitConfig = NoiseFitConfig()) -> LinearGaussian
 
 
 def corrected_fit(s, a, R, X, config: NoiseFitConfig = NoiseFitConfig()) -> LinearGaussianDynamics:
-    """Bias-corrected per-step regression (SPEC §10.1): ``x_{k+1} ~ N(A x + B a + c, W)``.
+    """Bias-corrected per-step regression (docs/math.md §10.1): ``x_{k+1} ~ N(A x + B a + c, W)``.
 
     ``s (M, T+1, n)``, ``a (M, T, m)``, ``R (n, n)``, ``X (T, n, m)`` from :func:`noise_action_cov`
     (or :func:`estimate_noise_action_cov`).
@@ -374,7 +374,7 @@ def _em_start(dyn: LinearGaussianDynamics) -> LinearGaussianDynamics:
 
 def ssm_em(s, a, R, config: NoiseFitConfig = NoiseFitConfig(), *, X=None,
            init: LinearGaussianDynamics | None = None, mu0=None, P0=None) -> SSMFit:
-    """EM for the linear-Gaussian state-space model with latent ``x`` and known ``R`` (SPEC §10.1).
+    """EM for the linear-Gaussian state-space model with latent ``x`` and known ``R`` (docs/math.md §10.1).
 
     Start: ``init``, else :func:`corrected_fit` when the sampler's ``X`` is given, else
     :func:`naive_fit`, with the eigenvalues of each ``W_k`` floored at half their mean (``W = 0`` is

@@ -1,4 +1,4 @@
-"""Figures and the Markdown report of a method comparison (SPEC §9.5, paper figures).
+"""Figures and the Markdown report of a method comparison (docs/math.md §9.5, paper figures).
 
 Inputs are plain arrays gathered by :func:`soc_opt.compare.compare`; this module only draws
 and writes.  Figures (PNG):
@@ -160,7 +160,7 @@ def plot_metric(values: dict, path: Path, title: str, ylabel: str) -> Path:
 
 
 def claims_table(per_seed: dict) -> list[dict]:
-    """SPEC §9.5 claims from per-seed final-policy statistics.
+    """docs/math.md §9.5 claims from per-seed final-policy statistics.
 
     ``per_seed[method]`` is a dict of arrays over seeds: ``cost`` (mean total cost of the final
     policy), ``state_spread`` (mean over time of the std over samples of the end-effector points),
@@ -209,7 +209,7 @@ def write_markdown(path: Path, *, title: str, setup: dict, claims: list[dict], f
     lines = [f"# {title}", "", "## Setup", ""]
     lines += [f"- **{k}**: {v}" for k, v in setup.items()]
     n_seeds = claims[0]["seeds"] if claims else 0
-    lines += ["", f"## Claims (SPEC §9.5), final policies, {over_seeds(n_seeds)}", "",
+    lines += ["", f"## Claims (docs/math.md §9.5), final policies, {over_seeds(n_seeds)}", "",
               "| claim | LQR-FLM | DPSOC-EM | seeds where DPSOC-EM lower | held |", "|---|---|---|---|---|"]
 
     def cell(mean, std, n):

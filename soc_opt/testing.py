@@ -3,7 +3,7 @@
 Every generator takes a ``numpy.random.Generator`` first and draws from it only, in a fixed
 order.  That order is part of the contract: seeded tests, benchmark tables and the
 ``soc-opt verify`` output depend on it, so a change of order (or of an extra draw) changes
-their numbers.  Shapes follow SPEC §0 (time-major, ``T`` steps, state ``n``, action ``m``).
+their numbers.  Shapes follow docs/math.md §0 (time-major, ``T`` steps, state ``n``, action ``m``).
 
 Covariances are built as Gram matrices plus a floor, or from a random orthogonal basis and a
 prescribed spectrum, and symmetrised.  Nothing here is used by the algorithms themselves.
@@ -60,7 +60,7 @@ def random_spd_spectrum(rng: np.random.Generator, d: int, lo: float, hi: float) 
     return symmetrize((Q * w) @ Q.T)
 
 
-# --------------------------------------------------------------------------- augmented model (SPEC §1)
+# --------------------------------------------------------------------------- augmented model (docs/math.md §1)
 
 
 def _null_space_rows(rng: np.random.Generator, m: int, b_rank: int, b_null) -> np.ndarray:
@@ -83,7 +83,7 @@ def random_augmented_model(
     b_rank: int | None = None,
     b_null: np.ndarray | None = None,
 ) -> AugmentedModel:
-    """A random augmented model ``zeta_k | z_k ~ N(Ao_k z_k + co_k, So_k)`` (SPEC §1).
+    """A random augmented model ``zeta_k | z_k ~ N(Ao_k z_k + co_k, So_k)`` (docs/math.md §1).
 
     ``A_k = 0.9 Q_k`` plus a small perturbation (``Q_k`` orthogonal, so the state block is
     stable-ish), ``B_k`` and the cost row ``[Ay_k, By_k]`` standard normal scaled by
@@ -158,7 +158,7 @@ def random_estep_instance(
     rho: float = 0.85,
     policy_var: float = 0.3,
 ) -> tuple[AugmentedModel, LinearGaussianPolicy, np.ndarray, np.ndarray]:
-    """A stable augmented model, a policy and an initial state ``(model, policy, mu0, P0)`` (SPEC §1, §4).
+    """A stable augmented model, a policy and an initial state ``(model, policy, mu0, P0)`` (docs/math.md §1, §4).
 
     ``A_k`` has spectral norm ``rho``; ``B_k ~ 0.5 N/sqrt(n)``, cost row ``[Ay, By]`` scaled
     ``1/sqrt(n)``, ``1/sqrt(m)``; ``co_k ~ N(0, I)``; ``So_k = random_spd(scale=0.7)`` with the
@@ -188,7 +188,7 @@ def random_estep_instance(
 
 
 def random_closed_loop(rng: np.random.Generator, n: int, m: int, T: int) -> tuple[AugmentedModel, LinearGaussianPolicy]:
-    """A stable augmented model with weak action coupling and a policy ``(model, policy)`` (SPEC §1).
+    """A stable augmented model with weak action coupling and a policy ``(model, policy)`` (docs/math.md §1).
 
     ``A_k = 0.95 Q_k`` (orthogonal ``Q_k``), ``B_k`` and the cost row ``0.1 N(0, 1)``,
     ``So_k = L L^T + 0.01 I`` with ``L ~ 0.1 N``, ``co_k ~ 0.1 N``; policy ``K ~ 0.1 N``,
@@ -207,7 +207,7 @@ def random_closed_loop(rng: np.random.Generator, n: int, m: int, T: int) -> tupl
 
 def random_smoothed(rng: np.random.Generator, n: int, T: int, *, singular_step: int | None = None,
                     M: int | None = None) -> Smoothed:
-    """Smoothed-state moments that are the blocks of a random joint Gaussian over ``(s_0..s_T)`` (SPEC §4).
+    """Smoothed-state moments that are the blocks of a random joint Gaussian over ``(s_0..s_T)`` (docs/math.md §4).
 
     The joint covariance is ``L L^T`` with ``L = N/sqrt(n) + 0.3 I`` (``(T+1) n`` square); the
     means are ``N(0, 1)``.  ``singular_step`` zeroes the rows of ``L`` of that step, so ``s_j`` is
@@ -241,7 +241,7 @@ def random_ltv_system(rng: np.random.Generator, n: int, m: int, T: int, *, varia
     ``A_k`` is a rotation scaled to spectral radius 0.9 plus a smooth (sinusoidal in ``k``)
     perturbation of relative size ``variation``; ``B_k``, ``c_k`` and ``W_k`` vary smoothly too
     (``variation = 0`` gives a time-invariant system).  Returns ``dict(A (T,n,n), B (T,n,m),
-    c (T,n), W (T,n,n))`` (SPEC §2).
+    c (T,n), W (T,n,n))`` (docs/math.md §2).
     """
     Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
     A0 = 0.9 * Q
@@ -263,7 +263,7 @@ def random_ltv_system(rng: np.random.Generator, n: int, m: int, T: int, *, varia
 
 def random_linear_dynamics(rng: np.random.Generator, n: int, m: int, T: int, *, gain: float = 0.9,
                            perturbation: float = 0.1) -> LinearGaussianDynamics:
-    """Time-varying dynamics ``s' ~ N(A_k s + B_k a + c_k, W_k)`` (SPEC §6).
+    """Time-varying dynamics ``s' ~ N(A_k s + B_k a + c_k, W_k)`` (docs/math.md §6).
 
     ``A_k = gain Q_k + perturbation N/sqrt(n)`` (``Q_k`` orthogonal), ``B_k ~ N/sqrt(n)``,
     ``c_k ~ 0.1 N``, ``W_k = G G^T + 0.01 I`` with ``G ~ 0.1 N``.
@@ -290,7 +290,7 @@ def random_quadratic_cost(
     action_shift: float = 0.0,
     c0: np.ndarray | None = None,
 ) -> QuadraticCost:
-    """Quadratic stage costs ``1/2 z^T C_k z + z^T c_k + c0_k``, ``z = (s, a)`` (SPEC §6).
+    """Quadratic stage costs ``1/2 z^T C_k z + z^T c_k + c0_k``, ``z = (s, a)`` (docs/math.md §6).
 
     ``C_k = G G^T (/ (n+m) if normalize) + floor I - action_shift I_action`` with ``G ~ N(0, 1)``;
     ``c_k ~ N(0, I)``; ``c0_k ~ N(0, 1)`` unless ``c0`` (``(T,)``) is given.  ``action_shift > 0``
@@ -318,7 +318,7 @@ def random_kl_step_problem(
     ref_var: float = 0.5,
     convex: bool = True,
 ) -> tuple[LinearGaussianDynamics, QuadraticCost, LinearGaussianPolicy, np.ndarray, np.ndarray]:
-    """A KL-constrained LQG step instance ``(dynamics, cost, reference, mu0, P0)`` (SPEC §6).
+    """A KL-constrained LQG step instance ``(dynamics, cost, reference, mu0, P0)`` (docs/math.md §6).
 
     :func:`random_linear_dynamics` (gain 0.9, perturbation 0.1), :func:`random_quadratic_cost`
     (PD action block, or shifted by ``-2 I`` when not ``convex``), a reference policy with
@@ -342,7 +342,7 @@ def random_trajectory(rng: np.random.Generator, n: int, m: int, T: int) -> tuple
 
 
 def random_gaussian_quadratic(rng: np.random.Generator, d: int):
-    """A Gaussian ``P = N(mu, S)`` and a quadratic ``J(x) = 1/2 x^T A x + b^T x + c`` (SPEC §9, claim 4).
+    """A Gaussian ``P = N(mu, S)`` and a quadratic ``J(x) = 1/2 x^T A x + b^T x + c`` (docs/math.md §9, claim 4).
 
     ``mu ~ N(0, I)``, ``S`` eigenvalues in ``[0.3, 2]``, ``A = R R^T/d + 0.1 I`` (cost-like,
     ``J`` bounded below), ``b ~ N(0, I)``, ``c ~ N(0, 1)``.  Returns ``(mu, S, A, b, c)``.

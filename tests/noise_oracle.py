@@ -1,4 +1,4 @@
-"""Brute-force Gaussian oracle for the noise-aware tests (SPEC §10).
+"""Brute-force Gaussian oracle for the noise-aware tests (docs/math.md §10).
 
 Every random variable of a linear-Gaussian closed loop is an affine function of a finite vector of
 independent standard normals ``xi``: ``v = const + coef @ xi``.  Building the closed loop with

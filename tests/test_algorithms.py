@@ -1,4 +1,4 @@
-"""Tests for soc_opt/algorithms.py: LQR-FLM, DPSOC-EM, model-based iLQG (SPEC §7)."""
+"""Tests for soc_opt/algorithms.py: LQR-FLM, DPSOC-EM, model-based iLQG (docs/math.md §7)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Tests of the E-step (SPEC §4): closed loop, Kalman filter, RTS smoother, moments.
+"""Tests of the E-step (docs/math.md §4): closed loop, Kalman filter, RTS smoother, moments.
 
 The oracle is brute-force Gaussian conditioning: every variable of the trajectory
 (states, actions, observations) is written as an affine map of independent noises

@@ -1,4 +1,4 @@
-"""Tests of soc_opt.estimator (SPEC §10.2) against brute-force Gaussian conditioning."""
+"""Tests of soc_opt.estimator (docs/math.md §10.2) against brute-force Gaussian conditioning."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Tests of soc_opt.fit (SPEC §2, §3).
+"""Tests of soc_opt.fit (docs/math.md §2, §3).
 
 Oracles: the known system matrices and the OLS / Wishart standard errors,
 ridge regression written here with numpy, a direct re-implementation of the
@@ -246,7 +246,7 @@ def test_least_squares_matches_ridge_for_random_shapes(n, m, M, seed):
 
 
 def _oracle_fit(ro: Rollouts, prior: MixturePrior, cfg: FitConfig):
-    """SPEC §2 steps 2-4 written out step by step with scipy densities and np.linalg.solve."""
+    """docs/math.md §2 steps 2-4 written out step by step with scipy densities and np.linalg.solve."""
     X = tuples(ro)
     M, Tn, D = X.shape
     nz = ro.n + ro.m

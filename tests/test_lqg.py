@@ -1,4 +1,4 @@
-"""Tests of ``soc_opt.lqg`` (SPEC §6): LQR, moments, KL, the KL-constrained LQG step.
+"""Tests of ``soc_opt.lqg`` (docs/math.md §6): LQR, moments, KL, the KL-constrained LQG step.
 
 Oracles: ``scipy.linalg.solve_discrete_are`` (LQR), Monte Carlo with tolerances from the
 sample standard errors (moments, expected cost, KL), CasADi/IPOPT on the same problem
@@ -232,7 +232,7 @@ def test_backward_pass_minimises_the_lagrangian():
 
 
 def _dense_backward(dyn, cost, ref, eta):
-    """Oracle for the backward pass at fixed multipliers (SPEC §6), written directly in
+    """Oracle for the backward pass at fixed multipliers (docs/math.md §6), written directly in
     ``z = (s, 1, a)`` with the KL term ``eta H`` (``-log phat = z^T H z / 2 + const``) and dense
     solves: ``(K, k, Sigma)`` per step; ``eta = 0`` gives the LQR step, ``eta = inf`` the reference."""
     T, n, m = dyn.T, dyn.n, dyn.m

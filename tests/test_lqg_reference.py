@@ -1,4 +1,4 @@
-"""Tests of soc_opt.lqg_reference (SPEC §10.3): exact closed-loop moments, Monte Carlo, R -> 0, optimality."""
+"""Tests of soc_opt.lqg_reference (docs/math.md §10.3): exact closed-loop moments, Monte Carlo, R -> 0, optimality."""
 
 from __future__ import annotations
 
@@ -170,7 +170,7 @@ def test_bad_reference_inputs_are_rejected_by_name():
 
 
 def test_kl_step_runs_unchanged_on_the_filtered_loop():
-    """SPEC §10.2: the KL step on the innovation form predicts the true closed-loop cost of its policy."""
+    """docs/math.md §10.2: the KL step on the innovation form predicts the true closed-loop cost of its policy."""
     n, m, T = 3, 2, 6
     rng, _, dyn, cost, R, mu0, P0 = _problem(n, m, T, seed=7)
     kf = kalman_filter(dyn, R, mu0, P0)

@@ -1,4 +1,4 @@
-"""Tests of the M-step (SPEC §5, §9 claims 1-2).
+"""Tests of the M-step (docs/math.md §5, §9 claims 1-2).
 
 Instances are built directly (no smoother): a random augmented model with PD ``So`` and a
 random joint Gaussian over ``(s_0, ..., s_T)`` whose blocks give the smoothed means,
@@ -72,7 +72,7 @@ def instance(seed, n=3, m=2, T=4, **kw):
 
 
 def quad_terms(model, mom):
-    """Test-side ``H_k``, ``R_k``, ``Stilde_k`` written from SPEC §5."""
+    """Test-side ``H_k``, ``R_k``, ``Stilde_k`` written from docs/math.md §5."""
     B = model.Bs
     Atil = np.concatenate([model.As, model.co[..., None]], axis=-1)
     Soi = np.linalg.inv(model.So)
@@ -342,7 +342,7 @@ def _compare(seed, n, m, T, cons, variant, solver, tol):
 def test_cvxpy_clarabel_matches_closed_form(seed, n, m, cons, variant):
     assume(m <= n + 1)  # B is (n+1) x m: full column rank needs m <= n+1
     cf, cv = _compare(seed, n, m, 3, cons, variant, "CLARABEL", 1e-6)
-    assert rel_err(cv.policy.cov, cf.policy.cov) <= 1e-6  # the maximiser, Sigma included (SPEC §5)
+    assert rel_err(cv.policy.cov, cf.policy.cov) <= 1e-6  # the maximiser, Sigma included (docs/math.md §5)
     assert all(s == "optimal" for s in cv.status)
 
 
@@ -350,7 +350,7 @@ def test_cvxpy_clarabel_matches_closed_form(seed, n, m, cons, variant):
 @pytest.mark.parametrize("variant", ["time_varying", "time_invariant"])
 def test_cvxpy_clarabel_entropy_floor_covariance(variant, n, m):
     """The entropy-floor maximiser alpha H^-1 lies on the curved boundary log det Sigma = c, where
-    the value is flat to first order; Clarabel must still return Sigma to 1e-6 (SPEC §5), with
+    the value is flat to first order; Clarabel must still return Sigma to 1e-6 (docs/math.md §5), with
     the default MStepConfig tolerances and per-step entropy floors."""
     T = 4
     model, sm, y, mom, rng = instance(11, n, m, T=T)
@@ -795,7 +795,7 @@ def test_exact_em_floor_clipping_is_the_constrained_gaussian_mle():
 
 @pytest.mark.parametrize("seed", [41, 42, 43])
 def test_exact_em_never_decreases_log_likelihood(seed):
-    """SPEC §9 claim 2 end to end with the smoother: log p(Y) is non-decreasing over 50 exact-EM
+    """docs/math.md §9 claim 2 end to end with the smoother: log p(Y) is non-decreasing over 50 exact-EM
     iterations (generalized EM: each M-step runs at most 20 inner iterations, each of which
     cannot decrease the exact objective)."""
     from soc_opt import estep

@@ -1,4 +1,4 @@
-"""Tests for the noise-aware variants in the loop (SPEC §10; soc_opt/noise_aware.py, the
+"""Tests for the noise-aware variants in the loop (docs/math.md §10; soc_opt/noise_aware.py, the
 estimator in task rollouts, the fit hook, and their wiring in soc_opt/algorithms.py)."""
 
 import dataclasses
@@ -38,7 +38,7 @@ def _noisy_filter(task, rng):
 
 
 def _paper_iteration(task, cfg, state):
-    """The paper's LQR-FLM iteration recomposed from its primitives (SPEC §7), independent of the loop."""
+    """The paper's LQR-FLM iteration recomposed from its primitives (docs/math.md §7), independent of the loop."""
     rng = np.random.default_rng()
     rng.bit_generator.state = state.rng_state
     ro = task.rollouts(state.policy, cfg.samples, rng)

@@ -1,4 +1,4 @@
-"""Tests of soc_opt.noisefit (SPEC §10.1): exact population correction, consistency, SSM-EM."""
+"""Tests of soc_opt.noisefit (docs/math.md §10.1): exact population correction, consistency, SSM-EM."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Tests for soc_opt.verification (SPEC §9, claims 1-4).
+"""Tests for soc_opt.verification (docs/math.md §9, claims 1-4).
 
 The closed forms of claim 4 are checked against independent numerical integration
 (scipy.integrate.quad / dblquad); run_all is checked for well-formed, JSON-serialisable

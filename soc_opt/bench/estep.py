@@ -1,4 +1,4 @@
-"""E-step benchmark: smoother wall time on random closed loops (SPEC §4)."""
+"""E-step benchmark: smoother wall time on random closed loops (docs/math.md §4)."""
 
 from __future__ import annotations
 

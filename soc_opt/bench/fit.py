@@ -1,4 +1,4 @@
-"""Dynamics-fitting benchmark and accuracy tables (SPEC §2).
+"""Dynamics-fitting benchmark and accuracy tables (docs/math.md §2).
 
 ``run()`` times the fit with and without the VB mixture prior on a synthetic
 time-varying linear-Gaussian system of the ``peg`` task's size and appends the

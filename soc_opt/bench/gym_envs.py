@@ -1,6 +1,6 @@
 """LQR-FLM on Gymnasium MuJoCo environments (``gym:<EnvId>`` tasks; docs/gym.md).
 
-``run()`` loads each environment as a task, runs LQR-FLM (SPEC §7) for ``iterations``
+``run()`` loads each environment as a task, runs LQR-FLM (docs/math.md §7) for ``iterations``
 iterations and reports the mean sampled cost (``-reward`` summed over ``T`` steps, on the
 true states) at the first and the last iteration, the best, and the time per iteration.
 ``soc-opt bench --only gym_envs`` prints the table of docs/gym.md (a few minutes per

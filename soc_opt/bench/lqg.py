@@ -1,4 +1,4 @@
-"""KL-constrained LQG step: closed-form dual vs CasADi/IPOPT and fatrop (SPEC §6).
+"""KL-constrained LQG step: closed-form dual vs CasADi/IPOPT and fatrop (docs/math.md §6).
 
 ``run()`` builds random, stable, convex instances (time-varying dynamics with process noise,
 quadratic costs with a PD action block, a PD reference policy) and solves the KL step with

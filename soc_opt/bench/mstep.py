@@ -1,4 +1,4 @@
-"""M-step solver comparison: closed form vs CVXPY/Clarabel vs CVXPY/SCS (SPEC §5).
+"""M-step solver comparison: closed form vs CVXPY/Clarabel vs CVXPY/SCS (docs/math.md §5).
 
 For each size ``(n, m)`` a random well-posed instance is built (augmented model with PD ``So``;
 smoothed moments from a random joint Gaussian over ``(s_0..s_T)``) and the time-varying

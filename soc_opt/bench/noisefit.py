@@ -1,4 +1,4 @@
-"""Bias of the dynamics fit under measurement noise: naive / corrected / SSM-EM (SPEC §10.1).
+"""Bias of the dynamics fit under measurement noise: naive / corrected / SSM-EM (docs/math.md §10.1).
 
 ``run()`` simulates a known time-varying linear system with noisy measurements
 (``rho^2 = 0.1``) under a feedback policy, fits ``A, B`` with the three estimators of

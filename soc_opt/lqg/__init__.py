@@ -1,4 +1,4 @@
-"""LQR and the KL-constrained LQG step (SPEC §6).
+"""LQR and the KL-constrained LQG step (docs/math.md §6).
 
 Problem.  Dynamics ``s_{k+1} ~ N(A_k s_k + B_k a_k + c_k, W_k)`` (``k = 0..T-1``), stage
 costs ``l_k(z) = 1/2 z^T C_k z + z^T c_k + c0_k`` on ``z = (s_k, a_k)`` (no terminal cost:

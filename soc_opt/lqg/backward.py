@@ -1,4 +1,4 @@
-"""Backward pass of the KL-constrained LQG step for fixed multipliers, and LQR (SPEC §6).
+"""Backward pass of the KL-constrained LQG step for fixed multipliers, and LQR (docs/math.md §6).
 
 Closed form for fixed ``eta`` (``eta_k > 0``).  ``E_p[l] + eta (KL - nu)`` equals
 ``E_p[l - eta log phat] - eta H(p) - eta nu``; a backward pass with the quadratic

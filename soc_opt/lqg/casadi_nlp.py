@@ -1,5 +1,5 @@
 """The KL-constrained LQG step as a nonlinear program solved by IPOPT (method ``"casadi"``,
-SPEC §6).
+docs/math.md §6).
 
 The same problem as an NLP over ``(K_k, k_k, L_k)`` with single-shooting moments, solved by
 IPOPT (:func:`kl_step_casadi`), in one of two formulations (``KLStepConfig.casadi_nlp``, by
@@ -245,7 +245,7 @@ def _casadi_symbolic(prob: KLProblem, kind: np.ndarray, scalar: bool, ub, opts: 
 
 
 def stage_terms(ca, D: dict, n: int, mu, P, K, kk, S, logdetS):
-    """CasADi expressions of one step (SPEC §6): ``(E[l], KL or None, E[s'], Cov(s'))`` for the state
+    """CasADi expressions of one step (docs/math.md §6): ``(E[l], KL or None, E[s'], Cov(s'))`` for the state
     moments ``(mu, P)``, the policy ``(K, kk, S)`` and the step's data ``D`` (keys ``A, B, c, W, C, cl,
     c0, Kh, kh, R = Sh^-1, logdetSh``); ``KL`` only when ``logdetS`` (``log|S|``) is given.  Shared by
     the symbolic IPOPT NLP and the fatrop stages."""

@@ -1,4 +1,4 @@
-"""Dual solvers of the KL-constrained LQG step (method ``"closed_form"``, SPEC §6).
+"""Dual solvers of the KL-constrained LQG step (method ``"closed_form"``, docs/math.md §6).
 
 Each solver counts its backward passes (one backward pass = one policy; each is followed by
 one forward pass for the moments and ``KL_k``):

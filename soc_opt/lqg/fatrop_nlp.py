@@ -1,5 +1,5 @@
 """The KL-constrained LQG step as a multiple-shooting optimal control problem solved by fatrop
-(method ``"fatrop"``, SPEC §6).
+(method ``"fatrop"``, docs/math.md §6).
 
 fatrop (a CasADi ``nlpsol`` plugin) is an interior-point method whose linear solver is a Riccati
 recursion over the stages of an optimal control problem.  It needs that structure explicitly

@@ -1,5 +1,5 @@
 """Moments of a linear-Gaussian closed loop in closed form: forward pass, expected cost and
-the expected KL against a reference policy (SPEC §6)."""
+the expected KL against a reference policy (docs/math.md §6)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Shared types, input validation and the per-step problem arrays of the KL-constrained LQG
-step (SPEC §6; the problem is stated in :mod:`soc_opt.lqg`).
+step (docs/math.md §6; the problem is stated in :mod:`soc_opt.lqg`).
 
 The bottom of the package: imports nothing from its siblings.
 """
@@ -54,7 +54,7 @@ class Marginals(NamedTuple):
 
 @dataclass(frozen=True)
 class KLStepConfig(Config):
-    """Hyperparameters of :func:`kl_step` and :func:`adapt_step` (SPEC §6).
+    """Hyperparameters of :func:`kl_step` and :func:`adapt_step` (docs/math.md §6).
 
     Dual solver (closed form):
         kl_rtol, kl_atol: stop when ``|KL - nu| <= kl_rtol * nu + kl_atol`` for every active

@@ -1,4 +1,4 @@
-"""The KL-constrained LQG step (SPEC §6): the entry :func:`kl_step` and its closed-form path.
+"""The KL-constrained LQG step (docs/math.md §6): the entry :func:`kl_step` and its closed-form path.
 
 ``method="closed_form"`` solves the dual over the multipliers (:mod:`.dual`) with one backward
 pass per trial multiplier (:mod:`.backward`); ``method="casadi"`` solves the primal NLP with
@@ -24,7 +24,7 @@ from .problem import KLStepConfig, KLStepResult, check_dims, check_init, check_n
 def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: LinearGaussianPolicy, nu, mu0, P0,
             method: Literal["closed_form", "casadi", "fatrop"] = "closed_form", config: KLStepConfig | None = None,
             *, eta0=None) -> KLStepResult:
-    """KL-constrained LQG step (SPEC §6): ``min sum_k E[l_k]  s.t.  KL_k <= nu_k`` (or ``sum KL <= nu``).
+    """KL-constrained LQG step (docs/math.md §6): ``min sum_k E[l_k]  s.t.  KL_k <= nu_k`` (or ``sum KL <= nu``).
 
     Args:
         dynamics, cost: the local linear-Gaussian model and quadratic cost expansion.

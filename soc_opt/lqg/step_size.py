@@ -1,4 +1,4 @@
-"""Step-size adaptation of the KL budget (GPS, SPEC §6 last bullet) under the Laplace
+"""Step-size adaptation of the KL budget (GPS, docs/math.md §6 last bullet) under the Laplace
 approximation: :func:`laplace_improvements` and :func:`adapt_step`."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The ``"structured"`` NLP formulation of the KL step (SPEC §6): rescaled single shooting with
+"""The ``"structured"`` NLP formulation of the KL step (docs/math.md §6): rescaled single shooting with
 analytic adjoint derivatives and a per-step block-diagonal Hessian (:class:`StructuredNLP`),
 exposed to CasADi through buffer callbacks.  Solved by :func:`.casadi_nlp._casadi_structured`."""
 

@@ -1,4 +1,4 @@
-"""M-step: the paper's surrogate ``Lbar_k``, the exact-EM objective, and their maximisers (SPEC §5).
+"""M-step: the paper's surrogate ``Lbar_k``, the exact-EM objective, and their maximisers (docs/math.md §5).
 
 Every public name is importable from ``soc_opt.mstep``.  Modules, each importing only those
 listed after it:

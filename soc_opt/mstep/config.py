@@ -1,4 +1,4 @@
-"""Solver choice, tolerances and iteration limits of the M-step (:class:`MStepConfig`, SPEC §5)."""
+"""Solver choice, tolerances and iteration limits of the M-step (:class:`MStepConfig`, docs/math.md §5)."""
 
 from __future__ import annotations
 

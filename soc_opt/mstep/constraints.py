@@ -1,4 +1,4 @@
-"""The feasible set of the M-step and its closed-form covariance rules (SPEC §5).
+"""The feasible set of the M-step and its closed-form covariance rules (docs/math.md §5).
 
 :class:`MStepConstraints` is the user-facing set; :meth:`MStepConstraints.resolve` turns it into
 per-step arrays (:class:`Resolved`) for an action dimension ``m`` and ``T`` steps.
@@ -158,7 +158,7 @@ class Resolved:
 
 @dataclass(frozen=True)
 class MStepConstraints(Config):
-    """The feasible set ``Phi`` of the M-step (SPEC §5).  All fields default to "absent".
+    """The feasible set ``Phi`` of the M-step (docs/math.md §5).  All fields default to "absent".
 
     Fields:
         cov_floor: ``Sigma_k >= Sigma_min`` (Loewner order).  A scalar ``v`` means ``v I``; a matrix

@@ -1,5 +1,5 @@
 """The M-step as CVXPY problems: building (DPP), caching, solving, and the surrogate's CVXPY
-maximisers (SPEC §5: "the same objective as a disciplined concave program ... built once with
+maximisers (docs/math.md §5: "the same objective as a disciplined concave program ... built once with
 ``cp.Parameter``s and re-solved per time step").
 
 Forms

@@ -1,4 +1,4 @@
-"""Errors of the M-step (SPEC §5).
+"""Errors of the M-step (docs/math.md §5).
 
 The bottom of the package: imported by every other module of :mod:`soc_opt.mstep`, imports
 none of them.

@@ -1,4 +1,4 @@
-"""Maximisation of the exact-EM objective (``objective="exact"``, SPEC §5) by inner EM iterations.
+"""Maximisation of the exact-EM objective (``objective="exact"``, docs/math.md §5) by inner EM iterations.
 
 The objective ``exact_k = E[log N(zeta; M s + m, S)]`` (action integrated out) is defined in
 :mod:`soc_opt.mstep.objectives`; maximising ``sum_k exact_k`` is the M-step under which

@@ -1,4 +1,4 @@
-"""The M-step's entry points :func:`maximize` and :func:`maximize_moments` (SPEC §5), and the
+"""The M-step's entry points :func:`maximize` and :func:`maximize_moments` (docs/math.md §5), and the
 surrogate's closed-form maximisers.
 
 Time-varying sweep and time-invariant variant
@@ -90,7 +90,7 @@ def maximize(
     config: MStepConfig | None = None,
     return_result: bool = False,
 ) -> LinearGaussianPolicy | MStepResult:
-    """The DP M-step (SPEC §5): maximise ``Lbar_k`` (or the exact objective) over the feasible set.
+    """The DP M-step (docs/math.md §5): maximise ``Lbar_k`` (or the exact objective) over the feasible set.
 
     Args:
         model: the augmented model (``Ao, co, So``).

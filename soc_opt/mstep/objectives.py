@@ -1,5 +1,5 @@
 """The paper's surrogate ``Lbar_k``, the exact-EM objective, their derivatives and the uniqueness
-of the surrogate's maximiser (SPEC §5).
+of the surrogate's maximiser (docs/math.md §5).
 
 Notation (time step ``k``; the index is dropped inside formulas)
 -----------------------------------------------------------------
@@ -31,7 +31,7 @@ The time-invariant variant's normal equations ``sum_k H_k F Stilde_k = sum_k R_k
 
 Exact-EM objective (``objective="exact"``)
 ------------------------------------------
-``exact_k = E[log N(zeta; M s + m, S)]`` with the action integrated out (SPEC §4):
+``exact_k = E[log N(zeta; M s + m, S)]`` with the action integrated out (docs/math.md §4):
 ``M stilde = (Atil + B F) stilde``, ``S = So + B Sigma B^T``.  Since
 ``N(zeta; M s + m, S) = int N(a; F stilde, Sigma) N(zeta; Atil stilde + B a, So) da``, Jensen's
 inequality gives ``Lbar_k - (n+1)/2 log(2 pi) <= exact_k``: the paper's surrogate is (up to this
@@ -181,7 +181,7 @@ def surrogate(model: AugmentedModel, smoothed: Smoothed, y: np.ndarray, policy: 
 
 
 def exact_objective_from_moments(model: AugmentedModel, mom: Moments, policy: LinearGaussianPolicy) -> np.ndarray:
-    """``E[log N(zeta_k; M_k s_k + m_k, S_k)]`` (T,), the action integrated out (SPEC §4, §5).
+    """``E[log N(zeta_k; M_k s_k + m_k, S_k)]`` (T,), the action integrated out (docs/math.md §4, §5).
 
     ``S_k = So_k + B Sigma_k B^T``; includes ``-(n+1)/2 log(2 pi)``.  The paper's surrogate is a
     Jensen lower bound: ``Lbar_k - (n+1)/2 log(2 pi) <= exact_k``, with equality iff the action
@@ -207,7 +207,7 @@ def surrogate_grad_hess(model: AugmentedModel, mom: Moments, k: int, policy: Lin
     """Analytic gradient and Hessian of ``Lbar_k`` w.r.t. ``vec([K_k k_k])`` and gradient w.r.t. ``Sigma_k``.
 
     The Hessian ``-(Stilde_k kron H_k)`` is negative definite iff ``B_k`` has full column rank and
-    ``P_k > 0`` (SPEC §9 claim 1).
+    ``P_k > 0`` (docs/math.md §9 claim 1).
     """
     check_moments(model, mom)
     check_policy(model, policy)

@@ -1,5 +1,5 @@
 """Tasks: ``linear2d``, MuJoCo tasks built from an MJCF file plus a TOML config, and Gymnasium
-MuJoCo environments (``gym:<EnvId>``) (SPEC §0, §8).
+MuJoCo environments (``gym:<EnvId>``) (docs/math.md §0, §8).
 
 A task owns the simulator, the state definition, the cost and the metrics.  Every
 built-in task is a TOML file under ``problems/`` loaded through the same

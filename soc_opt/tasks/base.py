@@ -1,5 +1,5 @@
 """The task interface (:class:`Task`), the shared base class of the built-in tasks and
-:class:`SimulationError` (SPEC §0, §8; docs/architecture.md, "tasks").
+:class:`SimulationError` (docs/math.md §0, §8; docs/architecture.md, "tasks").
 
 :class:`TaskBase` holds what every task shares: cost terms built from the config,
 metrics, the initial distribution of ``s_0`` and the initial policy.
@@ -51,7 +51,7 @@ class RolloutNoise:
 
     eps: (M, T+1, n) measurement noise ``s_k - x_k`` (already scaled by ``sqrt(rho2)``).
     w:   (M, T, m)   standard normal policy noise (``a_k = K_k s_k + k_k + L_k w_k``; ``xhat_k``
-                     in place of ``s_k`` for a filtered policy, SPEC §10.2).
+                     in place of ``s_k`` for a filtered policy, docs/math.md §10.2).
     xi:  (M, T, n)   process noise added to the transition (scaled), or ``None`` when the
                      task has none (MuJoCo tasks).
     """
@@ -271,7 +271,7 @@ class TaskBase:
         return LinearGaussianPolicy.zeros(self.T, self.n, self.m, var)
 
     def draw_noise(self, M: int, rng: np.random.Generator) -> RolloutNoise:
-        """The noise of ``M`` rollouts drawn from ``rng``: ``eps`` then ``w`` (SPEC §0).
+        """The noise of ``M`` rollouts drawn from ``rng``: ``eps`` then ``w`` (docs/math.md §0).
 
         :meth:`rollouts` draws through this method, so a caller replaying a rollout step by
         step (e.g. :class:`soc_opt.envs.SocOptEnv`) gets the same numbers from the same
@@ -289,7 +289,7 @@ class TaskBase:
     def _check_policy(self, policy) -> tuple[LinearGaussianPolicy, FilteredPolicy | None]:
         """``(gains, filtered)`` of a rollout policy, checked against the task's ``(T, m, n)``.
 
-        A :class:`~soc_opt.estimator.FilteredPolicy` (SPEC §10.2) acts on the filter's estimate
+        A :class:`~soc_opt.estimator.FilteredPolicy` (docs/math.md §10.2) acts on the filter's estimate
         ``xhat_k``, run online inside the rollout; ``gains`` is its linear-Gaussian part.  A plain
         :class:`LinearGaussianPolicy` acts on the measured ``s_k`` (``filtered`` is ``None``).
         """

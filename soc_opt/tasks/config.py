@@ -1,4 +1,4 @@
-"""Task configuration: the TOML schema of a task (SPEC §0, §8; ``docs/tasks.md``).
+"""Task configuration: the TOML schema of a task (docs/math.md §0, §8; ``docs/tasks.md``).
 
 :class:`TaskConfig` is the top level; ``cost`` entries are parsed into the term
 configs by their ``type`` key (:data:`TERM_TYPES`).
@@ -94,7 +94,7 @@ class StateTermConfig(Config):
 
 @dataclass(frozen=True)
 class QuadraticTermConfig(Config):
-    """``type = "quadratic"``: SPEC §0 ``(s-s*)^T Qs (s-s*) + (a-a*)^T Qa (a-a*)``.
+    """``type = "quadratic"``: docs/math.md §0 ``(s-s*)^T Qs (s-s*) + (a-a*)^T Qa (a-a*)``.
 
     ``Qs``/``Qa``: scalar (times identity), diagonal list or full matrix.
     """

@@ -1,4 +1,4 @@
-"""Gymnasium MuJoCo environments as tasks: ``gym:<EnvId>`` (SPEC §8 "any MuJoCo model"; docs/gym.md).
+"""Gymnasium MuJoCo environments as tasks: ``gym:<EnvId>`` (docs/math.md §8 "any MuJoCo model"; docs/gym.md).
 
 A :class:`GymMujocoTask` is a :class:`MujocoTask` built on the environment's own
 ``env.unwrapped.model``: rollouts and the finite-difference linearisation are the MuJoCo
@@ -9,7 +9,7 @@ task's, with the environment's ``frame_skip`` as ``substeps``.
 * Actions: every actuator, in the model's order (the environment's action vector).
 * Initial state ``x_0``: the environment's state after ``env.reset(seed=gym.reset_seed +
   condition)``, positions *and* velocities; fixed for the run (measurement noise ``rho2``
-  is the only initial randomness, SPEC §0).
+  is the only initial randomness, docs/math.md §0).
 * Cost: ``l(s_k, a_k) = -r(s_k, a_k)``, the environment's reward for taking ``a_k`` in state
   ``s_k`` (:class:`EnvReward`: reset the data, ``set_state``, ``env.unwrapped.step``), so it
   needs no reimplementation of any reward.  Its quadratic expansion (:class:`RewardCost`)
@@ -115,7 +115,7 @@ class RewardCost(CostSum):
     ``g_i = (f(+i) - f(-i)) / 2h_i``, ``H_ii = (f(+i) - 2 f + f(-i)) / h_i^2`` and
     ``H_ij = (f(+i+j) + f(-i-j) - f(+i) - f(-i) - f(+j) - f(-j) + 2 f) / (2 h_i h_j)`` (all
     second-order accurate).  :meth:`CostSum.expand` turns them into the absolute quadratic
-    form (SPEC §6).
+    form (docs/math.md §6).
     """
 
     name = "reward"

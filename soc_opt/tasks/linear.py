@@ -1,4 +1,4 @@
-"""The linear-Gaussian task (``kind = "linear"``, e.g. ``linear2d``; SPEC §8)."""
+"""The linear-Gaussian task (``kind = "linear"``, e.g. ``linear2d``; docs/math.md §8)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ __all__ = ["LinearTask", "LinearSimulator"]
 
 
 class LinearTask(TaskBase):
-    """A discrete-time linear-Gaussian system (``kind = "linear"``; e.g. ``linear2d``, SPEC §8)."""
+    """A discrete-time linear-Gaussian system (``kind = "linear"``; e.g. ``linear2d``, docs/math.md §8)."""
 
     kind = "linear"
 
@@ -77,7 +77,7 @@ class LinearTask(TaskBase):
         """``M`` rollouts (vectorised; ``workers`` is ignored).  Draw order: ``eps``, ``w``, process noise.
 
         A :class:`~soc_opt.estimator.FilteredPolicy` acts on ``xhat_k``, its filter run online
-        (causal: ``xhat_k`` from ``s_0..s_k`` and ``a_0..a_{k-1}``, SPEC §10.2); the draws are the
+        (causal: ``xhat_k`` from ``s_0..s_k`` and ``a_0..a_{k-1}``, docs/math.md §10.2); the draws are the
         same as for a plain policy.
         """
         policy, filtered = self._check_policy(policy)

@@ -1,5 +1,5 @@
 """Finite-difference linearisation of a :class:`~soc_opt.tasks.MujocoTask` in task coordinates
-(SPEC §7, model-based iLQG; ``docs/tasks.md``, "Linearisation").
+(docs/math.md §7, model-based iLQG; ``docs/tasks.md``, "Linearisation").
 
 Per control step the physics transition is differentiated at each of the ``substeps`` physics
 steps along the nominal substep trajectory and chained; the result is mapped to task

@@ -1,4 +1,4 @@
-"""Finding and building tasks: built-in names, TOML files, config objects (SPEC §8; ``docs/tasks.md``).
+"""Finding and building tasks: built-in names, TOML files, config objects (docs/math.md §8; ``docs/tasks.md``).
 
 Every task built here carries ``task.provenance``, what a run directory records in its
 ``task.json`` (:mod:`soc_opt.rundir`): the resolved task configuration, the SHA-256 of every MJCF

@@ -1,6 +1,6 @@
-"""MuJoCo tasks: an MJCF model plus a :class:`TaskConfig` (SPEC §0, §8 "any MuJoCo model").
+"""MuJoCo tasks: an MJCF model plus a :class:`TaskConfig` (docs/math.md §0, §8 "any MuJoCo model").
 
-State of a MuJoCo task (``x`` true, ``s = x + eps`` measured, SPEC §0)::
+State of a MuJoCo task (``x`` true, ``s = x + eps`` measured, docs/math.md §0)::
 
     [ qpos(state.joints), qvel(state.joints),
       point positions (3 per state.sites), point velocities (3 per point, world frame),
@@ -15,7 +15,7 @@ Rollouts: from ``x_0`` (``q0`` + condition offset, zero velocity) the action
 as ``ctrl`` for ``substeps`` calls of ``mj_step`` (``dt = timestep * substeps``).
 All noise (``eps`` then ``w``) is drawn from the Generator before simulating,
 so results do not depend on ``workers``.  The stage cost ``Y_k`` is evaluated on
-the measured ``s_k`` (SPEC §0) and ``y_k = exp(-y_scale * Y_k)``.
+the measured ``s_k`` (docs/math.md §0) and ``y_k = exp(-y_scale * Y_k)``.
 
 The finite-difference linearisation in task coordinates (:meth:`MujocoTask.linearize`) is in
 :mod:`soc_opt.tasks.linearize`.
@@ -57,7 +57,7 @@ _BAD_WARNINGS = ("mjWARN_CONTACTFULL", "mjWARN_CNSTRFULL", "mjWARN_BADQPOS", "mj
 
 
 class MujocoTask(TaskBase):
-    """A task from an MJCF model plus a :class:`TaskConfig` (SPEC §8 "any MuJoCo model")."""
+    """A task from an MJCF model plus a :class:`TaskConfig` (docs/math.md §8 "any MuJoCo model")."""
 
     kind = "mujoco"
 
@@ -352,7 +352,7 @@ class MujocoTask(TaskBase):
                 np.add(xk, ei[k], out=sk)
                 if filtered is None:
                     dot(K[k], sk, out=ak)
-                else:  # act on the online estimate xhat_k (SPEC §10.2)
+                else:  # act on the online estimate xhat_k (docs/math.md §10.2)
                     xhat = filtered.estimate(k, sk) if k == 0 else filtered.estimate(k, sk, xhat, ai[k - 1])
                     dot(K[k], xhat, out=ak)
                 ak += oi[k]
@@ -385,7 +385,7 @@ class MujocoTask(TaskBase):
         )
 
     def rollouts(self, policy: LinearGaussianPolicy, M: int, rng, noise: bool = True, workers: int = 1, x0=None) -> Rollouts:
-        """``M`` sampled trajectories (SPEC §0).
+        """``M`` sampled trajectories (docs/math.md §0).
 
         Noise ``eps (M,T+1,n) ~ N(0, rho2 I)`` then ``w (M,T,m) ~ N(0, I)`` is drawn from
         ``rng`` up front (``noise=False``: both zero, the policy mean on the true state).
@@ -396,7 +396,7 @@ class MujocoTask(TaskBase):
         before MuJoCo clamps it to ``ctrlrange``.  Raises :class:`SimulationError`
         naming the sample and step on divergence.  A :class:`~soc_opt.estimator.FilteredPolicy`
         acts on ``xhat_k``, its filter run online on the measurements and the recorded actions
-        (SPEC §10.2); the draws are the same as for a plain policy.
+        (docs/math.md §10.2); the draws are the same as for a plain policy.
         """
         policy, filtered = self._check_policy(policy)
         rng = as_rng(rng)

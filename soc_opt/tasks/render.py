@@ -1,4 +1,4 @@
-"""Pictures of trajectories: offscreen MuJoCo filmstrips with a matplotlib fallback (SPEC §8).
+"""Pictures of trajectories: offscreen MuJoCo filmstrips with a matplotlib fallback (docs/math.md §8).
 
 The frames are rendered in a subprocess running :mod:`soc_opt.tasks.render_worker`, so
 that a broken GL driver cannot take the caller down.

@@ -1,4 +1,4 @@
-"""Numerical checks of the paper's claims (SPEC §9, claims 1-4).
+"""Numerical checks of the paper's claims (docs/math.md §9, claims 1-4).
 
 Each check draws random instances from a ``numpy.random.Generator`` seeded by
 the caller, evaluates the claim on every instance against a stated tolerance

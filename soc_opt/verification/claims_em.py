@@ -1,6 +1,6 @@
-"""Claims 2 and 3 (SPEC §5, §9): EM monotonicity in ``log p(Y)`` and surrogate increase => cost decrease.
+"""Claims 2 and 3 (docs/math.md §5, §9): EM monotonicity in ``log p(Y)`` and surrogate increase => cost decrease.
 
-Claim 2 (EM lemma, SPEC §5 "exact-EM option"): exact EM never decreases ``log p(Y)``.
+Claim 2 (EM lemma, docs/math.md §5 "exact-EM option"): exact EM never decreases ``log p(Y)``.
 Claim 3 (Theorem IV.1 of the earlier paper): an M-step that increases the surrogate
 ``L = sum_k Lbar_k`` does not increase the expected cost ``E[V|Y]``.
 """
@@ -168,7 +168,7 @@ _CLAIM3_VARIANTS = (("floor", "model"), ("fixed", "model"), ("optimistic", "opti
 def expected_stage_costs(smoothed: Smoothed, policy: LinearGaussianPolicy, Qs, s_star, Qa, a_star) -> np.ndarray:
     """``E[Y_k(s_k, a_k)]``, ``k = 0..T-1``, with ``s_k ~ N(s_hat_k, P_k)`` (smoothed) and ``a_k ~ policy(.|s_k)``.
 
-    ``Y_k = (s - s*)^T Qs (s - s*) + (a - a*)^T Qa (a - a*)`` (SPEC §0); closed form
+    ``Y_k = (s - s*)^T Qs (s - s*) + (a - a*)^T Qa (a - a*)`` (docs/math.md §0); closed form
     ``tr(Qs P) + (s_hat - s*)^T Qs (s_hat - s*) + tr(Qa (K P K^T + Sigma)) + (K s_hat + k - a*)^T Qa (K s_hat + k - a*)``.
     """
     T = policy.T
@@ -245,7 +245,7 @@ def claim3_cost_decrease(seed: int = 0, instances: int = 20, *, rollouts: int = 
     """Claim 3: if ``L(phi^{i+1}) >= L(phi^i)`` then ``E[V_{phi^{i+1}}|Y] <= E[V_{phi^i}|Y]``.
 
     Per instance: a random stable linear system ``s_{k+1} = A s + B a + c + w`` (``A = 0.95 x``
-    orthogonal, ``w ~ N(0, W)``), quadratic stage cost ``Y_k`` (SPEC §0, ``a* = 0``), a random
+    orthogonal, ``w ~ N(0, W)``), quadratic stage cost ``Y_k`` (docs/math.md §0, ``a* = 0``), a random
     policy ``phi^i``, ``rollouts`` rollouts under ``phi^i`` with ``y_k = exp(-Y_k)`` (costs scaled
     so that ``Y_k = O(1)``), an augmented model fitted by per-step least squares
     (:func:`_ls_augmented`), one ``Y`` sampled from the fitted model under ``phi^i`` (the paper's
@@ -255,7 +255,7 @@ def claim3_cost_decrease(seed: int = 0, instances: int = 20, *, rollouts: int = 
 
     Rows: (3a) covariance floor ``cov_floor I`` (``Sigma^{i+1} = cov_floor I``); (3b) covariance
     floor ``Sigma^i`` itself (``phi^i`` has one covariance for all steps), so only ``[K k]``
-    change (isolates the feedback/offset update); (3c) as 3a with ``Y = 1`` (SPEC §3 mode
+    change (isolates the feedback/offset update); (3c) as 3a with ``Y = 1`` (docs/math.md §3 mode
     ``optimistic``) instead of the model-sampled ``Y``.
     """
     rng = child_rng(seed, 3)
@@ -331,7 +331,7 @@ def _claim3_rows(acc: dict, *, rollouts: int, cov_floor: float, rel_tol: float) 
          "as 3a but with the floor Sigma >= Sigma^i, so Sigma^{i+1} = Sigma^i and only [K k] change "
          "(the covariance reduction no longer lowers the cost by itself)"),
         ("optimistic", "3c same, optimistic Y = 1",
-         f"as 3a (cov floor {cov_floor:g} I) but conditioning on the 'optimal event' y_k = 1 (SPEC §3 "
+         f"as 3a (cov floor {cov_floor:g} I) but conditioning on the 'optimal event' y_k = 1 (docs/math.md §3 "
          "mode 'optimistic') instead of a Y sampled from the fitted model"),
     ):
         r = acc[lab]

@@ -1,4 +1,4 @@
-"""Claim 1: uniqueness of the M-step maximiser (Theorem "uniqueness", SPEC §5, §9).
+"""Claim 1: uniqueness of the M-step maximiser (Theorem "uniqueness", docs/math.md §5, §9).
 
 With theta_k = [K_k k_k] (m x (n+1)), stilde = (s, 1), Stilde_k = E[stilde stilde^T | Y],
 B_k = [B_k; By_k] and H_k = B_k^T So_k^{-1} B_k, the surrogate is
@@ -37,7 +37,7 @@ def surrogate_hessian(model: AugmentedModel, Sss_k: np.ndarray, k: int) -> np.nd
 
 
 def _lbar(model: AugmentedModel, mom, k: int, K: np.ndarray, kk: np.ndarray, Sigma: np.ndarray) -> float:
-    """Independent evaluation of the paper's ``Lbar_k`` (SPEC §5) from moments."""
+    """Independent evaluation of the paper's ``Lbar_k`` (docs/math.md §5) from moments."""
     B = model.Bs[k]
     C = np.concatenate([model.As[k] + B @ K, (model.co[k] + B @ kk)[:, None]], axis=1)
     E = mom.Szz[k] - C @ mom.Szs[k].T - mom.Szs[k] @ C.T + C @ mom.Sss[k] @ C.T + B @ Sigma @ B.T

@@ -1,4 +1,4 @@
-"""Pieces shared by the claim checks (SPEC §9): the result row, RNG streams, small helpers."""
+"""Pieces shared by the claim checks (docs/math.md §9): the result row, RNG streams, small helpers."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ class ClaimResult:
         margin_meaning: what the margin is and which sign/size means "held".
         counterexample: a small instance (arrays as nested lists) where the statement
                         failed, or, for the ill-posed rows, the explicit non-uniqueness
-                        example the SPEC asks for; ``None`` otherwise.
+                        example docs/math.md §9.1 asks for; ``None`` otherwise.
         notes:          tolerances, auxiliary numbers, caveats.
     """
 

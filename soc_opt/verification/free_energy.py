@@ -1,4 +1,4 @@
-"""Claim 4: free energy / relative entropy duality (Lemma "radon", SPEC §9), with its Gaussian closed forms.
+"""Claim 4: free energy / relative entropy duality (Lemma "radon", docs/math.md §9), with its Gaussian closed forms.
 
 P = N(mu, S), J(x) = 1/2 x^T A x + b^T x + c.  With S = L L^T,
   N = I - rho L^T A L   (must be positive definite for E_P[exp(rho J)] < inf),

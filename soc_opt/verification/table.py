@@ -1,4 +1,4 @@
-"""Rendering of the verification rows (SPEC §9): a plain-text table and a JSON-safe dict."""
+"""Rendering of the verification rows (docs/math.md §9): a plain-text table and a JSON-safe dict."""
 
 from __future__ import annotations
 
