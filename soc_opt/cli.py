@@ -81,8 +81,9 @@ def _cmd_tasks(args) -> int:
 
 
 def _run_method(args, task, out: Path) -> int:
-    """One method (``RUNNERS``) in a resumable run directory; figures and a filmstrip at the end."""
+    """One registered method in a resumable run directory; figures and a filmstrip at the end."""
     from .experiment import load_run_config, run_experiment
+    from .methods.registry import get_method
 
     cfg = load_run_config(args.task, args.config, paper=args.paper,
                           overrides={"iterations": args.iterations, "samples": args.samples,
@@ -98,20 +99,8 @@ def _run_method(args, task, out: Path) -> int:
         _print(f"filmstrip of the last iteration's first sample: {res.path} ({res.backend}"
                + (f"; {res.message}" if res.message else "") + ")")
     _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=max(state.iteration - 1, 0))
-    if args.method == "ilqg":
-        np.savez_compressed(out / "policy.npz", **state.policy.to_dict())
-        why = {"converged": "converged (relative decrease below tol)", "no_descent": "no descent step found",
-               "running": "iteration limit"}[state.status]
-        _print(f"iLQG: cost {state.costs[0]:.6g} -> {state.costs[-1]:.6g} in {len(state.costs) - 1} accepted "
-               f"iterations ({why}); final policy {out / 'policy.npz'}; run directory {out}")
-        return 0
-    best = state.best
-    _print(f"done: best mean cost {best.mean_cost:.6g} (iteration {best.iteration}); run directory {out}")
+    _print(get_method(args.method).finish(state, out))
     return 0
-
-
-#: ``soc-opt run --method``: one runner per method.
-RUNNERS = {"dpsoc-em": _run_method, "lqr-flm": _run_method, "ilqg": _run_method}
 
 
 def _cmd_run(args) -> int:
@@ -123,14 +112,15 @@ def _cmd_run(args) -> int:
         raise ConfigError("--restart and --previous-checkpoint exclude each other: choose one")
     task = load_task(args.task)
     out = Path(args.out or f"runs/{Path(args.task).stem}-{args.method}-seed{args.seed}")
-    return RUNNERS[args.method](args, task, out)
+    return _run_method(args, task, out)
 
 
 def _write_run_figures(task, method: str, state, out: Path) -> None:
     from . import report
     from .compare import point_names, point_targets
+    from .methods.registry import get_method
 
-    phase = "ilqg" if method == "ilqg" else "baseline"
+    phase = get_method(method).cost_phase
     costs = {method: [np.asarray(r.cost) for r in state.history if r.phase == phase]}
     if costs[method]:
         report.plot_costs(costs, out / "cost_per_iteration.png", f"{task.name}: total cost per iteration")
@@ -240,6 +230,8 @@ def _cmd_config_doc(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .methods.registry import METHODS
+
     p = argparse.ArgumentParser(prog="soc-opt", description="EM-based stochastic optimal control (DPSOC-EM).")
     p.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = p.add_subparsers(dest="command", required=True)
@@ -248,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("task", help="built-in task (linear2d, peg, door) or a task TOML file")
         sp.add_argument("--config", help="algorithm configuration TOML (see docs/configuration.md)")
         sp.add_argument("--paper", action="store_true",
-                        help="the paper's scale: its iterations, samples and EM switch (soc_opt.algorithms.PAPER)")
+                        help="the paper's scale: its iterations, samples and EM switch (soc_opt.methods.config.PAPER)")
         sp.add_argument("--iterations", type=int, help="override baseline.iterations")
         sp.add_argument("--samples", type=int, help="override baseline.samples")
         sp.add_argument("--workers", type=int, help="parallel rollout workers")
@@ -260,7 +252,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("run", help="run one method on a task, writing a resumable run directory")
     common_algo(r)
-    r.add_argument("--method", choices=list(RUNNERS), default="dpsoc-em")
+    r.add_argument("--method", choices=list(METHODS), default="dpsoc-em")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--previous-checkpoint", dest="previous_checkpoint", action="store_true",
                    help="resume from the checkpoint before the last (when the last one is damaged)")

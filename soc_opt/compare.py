@@ -4,7 +4,7 @@ For each seed the baseline runs first; DPSOC-EM starts from a copy of the baseli
 ``i_switch`` (same policy, prior and RNG state), so both methods share their first
 ``i_switch`` iterations exactly and differ only from the EM phase on.  Each method's final
 policy is then evaluated on ``evaluation.samples`` fresh rollouts drawn with the same evaluation
-seed for both methods (:func:`evaluate_policy`, :class:`~soc_opt.algorithms.EvalConfig`).  Everything is written under ``out/``; a rerun with the same ``out`` resumes.
+seed for both methods (:func:`evaluate_policy`, :class:`~soc_opt.methods.config.EvalConfig`).  Everything is written under ``out/``; a rerun with the same ``out`` resumes.
 ``out`` is locked while the comparison runs (:func:`soc_opt.rundir.lock_directory`), and each
 method's run directory checks its contract (:mod:`soc_opt.rundir`).
 """
@@ -18,9 +18,11 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from . import report
-from . import algorithms
-from .algorithms import DPSOCConfig, EvalConfig, RunState
 from .experiment import fork_state, run_experiment
+from .methods.config import DPSOCConfig, EvalConfig
+from .methods.dpsoc_em import DPSOC_EM
+from .methods.lqr_flm import LQR_FLM
+from .methods.state import RunState
 from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory
 from .models import LinearGaussianPolicy, Rollouts
 from .progress import Progress, as_progress
@@ -30,7 +32,9 @@ if TYPE_CHECKING:
 
 __all__ = ["compare", "evaluate_policy", "spreads", "point_names", "point_targets", "action_names"]
 
-METHODS = ("lqr-flm", "dpsoc-em")
+#: The compared pair: the baseline and the method forked from its state at ``i_switch`` (registry names).
+BASELINE, FORKED = LQR_FLM, DPSOC_EM
+METHODS = (BASELINE.name, FORKED.name)
 
 
 def point_names(task) -> list[str] | None:
@@ -104,7 +108,7 @@ def compare(
     ``progress``: a :class:`soc_opt.progress.Progress` (a bar over the seeds above each run's
     bar over its iterations, or plain lines), a callable printing lines, or ``None``.
     """
-    cfg.check_for("dpsoc-em")
+    FORKED.check_config(cfg)
     progress = as_progress(progress)
     out = Path(out)
     with lock_directory(out):
@@ -124,8 +128,8 @@ def _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, re
                           per_seed, histories, eval_ro, restart)
             if seeds_bar is not None:
                 final = {m: float(np.mean(per_seed[m]["cost"][-1])) for m in METHODS}
-                seeds_bar.advance(f"seed {seed}: final cost LQR-FLM {final['lqr-flm']:.4g}, "
-                                  f"DPSOC-EM {final['dpsoc-em']:.4g}",
+                seeds_bar.advance(f"seed {seed}: final cost LQR-FLM {final[BASELINE.name]:.4g}, "
+                                  f"DPSOC-EM {final[FORKED.name]:.4g}",
                                   **{f"cost {m}": v for m, v in final.items()})
     finally:
         if seeds_bar is not None:
@@ -148,7 +152,7 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
             atomic_write_bytes(_p, encode_checkpoint(st))
 
     # Baseline, with a copy of its state kept at i_switch for DPSOC-EM to start from.
-    base = run_experiment(task, "lqr-flm", cfg, seed, sdir / "lqr-flm", task_name=task_name,
+    base = run_experiment(task, BASELINE.name, cfg, seed, sdir / BASELINE.name, task_name=task_name,
                           progress=progress, on_iteration=keep_fork, bar_level=level, restart=restart)
     try:
         fork = decode_checkpoint(fork_path) if fork_path.exists() else None
@@ -157,16 +161,16 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
     if fork is None or fork.iteration != cfg.i_switch:
         # i_switch == 0, a baseline resumed past i_switch without its fork, or a damaged fork:
         # replay the deterministic baseline prefix in memory.
-        st = algorithms.initial_state(task, cfg.baseline, seed)
+        st = BASELINE.initial_state(task, cfg, seed)
         while st.iteration < cfg.i_switch:
-            st = algorithms.lqr_flm_iteration(task, cfg.baseline, st)
+            st = BASELINE.iterate(task, cfg, st)
         atomic_write_bytes(fork_path, encode_checkpoint(st))
         fork = st
     em = run_experiment(
-        task, "dpsoc-em", cfg, seed, sdir / "dpsoc-em", task_name=task_name, progress=progress,
+        task, FORKED.name, cfg, seed, sdir / FORKED.name, task_name=task_name, progress=progress,
         start_state=fork_state(fork), bar_level=level, restart=restart,
     )
-    for meth, st in (("lqr-flm", base), ("dpsoc-em", em)):
+    for meth, st in ((BASELINE.name, base), (FORKED.name, em)):
         ro = evaluate_policy(task, st.policy, eval_samples, seed, workers, cfg.evaluation)
         eval_ro[meth].append(ro)
         for k, v in spreads(task, ro).items():
@@ -208,7 +212,7 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> 
     acts = {m: np.concatenate([ro.a for ro in eval_ro[m]]) for m in METHODS}
     figs["Actions per actuator of the final policies (over samples and time)"] = report.plot_actions(
         acts, out / "actions.png", f"{name}: actions per actuator", names=action_names(task))
-    first_metrics = metric_hist["lqr-flm"][0][0] if metric_hist["lqr-flm"] and metric_hist["lqr-flm"][0] else {}
+    first_metrics = metric_hist[BASELINE.name][0][0] if metric_hist[BASELINE.name] and metric_hist[BASELINE.name][0] else {}
     extra_tables = {}
     for key in first_metrics:
         vals = {m: np.array([[row[key] for row in seed_rows] for seed_rows in metric_hist[m]]) for m in METHODS}
@@ -226,7 +230,7 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> 
             ["metric", "LQR-FLM", "DPSOC-EM"], []))[1].append(
             [key] + [report.mean_std(vals[m]) for m in METHODS])
     em_rows = []
-    for seed, hist in zip(seeds, histories["dpsoc-em"]):
+    for seed, hist in zip(seeds, histories[FORKED.name]):
         for r in hist:
             if r.em is not None:
                 e = r.em

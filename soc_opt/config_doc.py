@@ -3,7 +3,7 @@
 ``soc-opt config-doc --out docs/configuration.md`` (or :func:`render`) writes it: the TOML layout
 of a run configuration, then one section per :class:`~soc_opt.config.Config` class with its
 docstring and a table of every field (key, type, default).  The run configuration's tables are
-found by walking :class:`~soc_opt.algorithms.DPSOCConfig`'s nested configs, so a sub-config added
+found by walking :class:`~soc_opt.methods.config.DPSOCConfig`'s nested configs, so a sub-config added
 there appears here without editing this module; library-only configs are listed in
 :data:`LIBRARY`.
 """
@@ -125,7 +125,7 @@ dataclass (`soc_opt.config.Config`). Each is loadable from TOML with strict chec
 unknown key or a value of the wrong type is rejected with a message naming the key, before any
 simulation starts (`soc_opt.config.ConfigError`; the CLI exits with status 2).
 
-The run configuration `soc_opt.algorithms.DPSOCConfig` holds every sub-configuration of a run;
+The run configuration `soc_opt.methods.config.DPSOCConfig` holds every sub-configuration of a run;
 an algorithm configuration file for `soc-opt run|compare TASK --config FILE` has this layout
 (any table or key may be left out; every key is listed below):
 
@@ -170,7 +170,7 @@ A run directory remembers the sections its method reads and refuses to resume wi
 
 Precedence (`soc_opt.experiment.load_run_config`, used by the CLI): the task's default file
 `problems/experiments/<task>.toml` (if any), replaced by `--config FILE` when given; then
-`--paper` (the paper scale `soc_opt.algorithms.PAPER`: {iterations} iterations, {samples} samples,
+`--paper` (the paper scale `soc_opt.methods.config.PAPER`: {iterations} iterations, {samples} samples,
 switch at {i_switch}), then the flags `--iterations`, `--samples`, `--workers`, `--i-switch`
 (for `--method ilqg` only `--iterations`, which sets `ilqg.iterations`).
 
@@ -183,7 +183,7 @@ The reference below is generated from the classes' docstrings, types and default
 
 def render() -> str:
     """The full text of ``docs/configuration.md``."""
-    from .algorithms import PAPER, DPSOCConfig
+    from .methods.config import PAPER, DPSOCConfig
 
     sections = [_INTRO.format(**PAPER._asdict())]
     for table, cls in config_tables(DPSOCConfig):

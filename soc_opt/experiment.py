@@ -21,10 +21,11 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from . import algorithms
-from . import ilqg as ilqg_mod
-from .algorithms import DPSOCConfig, RunState
 from .config import ConfigError, read_toml
+from .methods.base import run_method
+from .methods.config import DPSOCConfig
+from .methods.registry import METHODS, get_method
+from .methods.state import RunState
 from .progress import Progress, as_progress
 from .rundir import CHECKPOINT, CheckpointError, RunDirectory, RunDirectoryError, differences, lock_directory
 from .tblog import MISSING_MESSAGE, RunLog
@@ -37,20 +38,10 @@ __all__ = ["EXPERIMENTS", "load_run_config", "RunDirectory", "RunDirectoryError"
 
 #: Default run configurations of the built-in tasks: ``EXPERIMENTS / "<task>.toml"``.
 EXPERIMENTS = Path(__file__).resolve().parent.parent / "problems" / "experiments"
-#: Keys of ``load_run_config(overrides=...)`` that set a top-level field; the others set ``baseline``'s
-#: (for ``method = "ilqg"``: ``iterations`` sets ``ilqg.iterations``).
-_TOP_LEVEL = {"i_switch"}
-
-
 def _read_run_config(path: Path, method: str) -> DPSOCConfig:
     """A run configuration file; an iLQG file in the old top-level layout gets a hint."""
     data = read_toml(path)
-    if method == "ilqg":
-        misplaced = sorted(set(data) & set(ilqg_mod.ILQGConfig.__dataclass_fields__)
-                           - set(DPSOCConfig.__dataclass_fields__))
-        if misplaced:
-            raise ConfigError(f"{path}: iLQG settings {', '.join(map(repr, misplaced))} belong in an [ilqg] "
-                              "table of the run configuration (docs/configuration.md)")
+    get_method(method).check_file(data, path)
     try:
         return DPSOCConfig.from_dict(data)
     except ConfigError as e:
@@ -62,13 +53,14 @@ def load_run_config(task_name: str, config_file: str | Path | None = None, *, pa
     """The validated run configuration of ``task_name`` for ``method``.
 
     Precedence: ``config_file`` if given, else the task's default ``EXPERIMENTS/<stem>.toml`` (if
-    any), else the defaults; then the paper scale (``paper``: :data:`soc_opt.algorithms.PAPER`);
-    then ``overrides`` (``i_switch`` or any ``baseline`` field; ``None`` values are skipped; for
-    ``method = "ilqg"`` only ``iterations``, which sets ``ilqg.iterations``).  Every value is
-    checked (types, finiteness, ranges) and then the method's own requirements
-    (:meth:`DPSOCConfig.check_for`: ``i_switch`` matters for DPSOC-EM only).  Invalid values raise
-    :class:`ConfigError` naming the key.
+    any), else the defaults; then the paper scale (``paper``: :data:`soc_opt.methods.config.PAPER`)
+    and ``overrides`` as the method applies them (``Method.apply_overrides``: for the sample-based
+    methods ``i_switch`` or any ``baseline`` field; for iLQG only ``iterations``, which sets
+    ``ilqg.iterations``; ``None`` values are skipped).  Every value is checked (types, finiteness,
+    ranges) and then the method's own requirements (``Method.check_config``: ``i_switch`` matters
+    for DPSOC-EM only).  Invalid values raise :class:`ConfigError` naming the key.
     """
+    meth = get_method(method)
     if config_file is not None:
         cfg = _read_run_config(Path(config_file), method)
     else:
@@ -76,30 +68,12 @@ def load_run_config(task_name: str, config_file: str | Path | None = None, *, pa
         cfg = _read_run_config(default, method) if default.is_file() else DPSOCConfig()
     set_values = {k: v for k, v in (overrides or {}).items() if v is not None}
     try:
-        if method == "ilqg":
-            cfg = _ilqg_overrides(cfg, set_values, paper)
-        else:
-            if paper:
-                cfg = algorithms.with_paper_scale(cfg)
-            base_changes = {k: v for k, v in set_values.items() if k not in _TOP_LEVEL}
-            top_changes = {k: v for k, v in set_values.items() if k in _TOP_LEVEL}
-            base = cfg.baseline.replace(**base_changes) if base_changes else cfg.baseline
-            cfg = cfg.replace(baseline=base, **top_changes)
+        cfg = meth.apply_overrides(cfg, set_values, paper)
     except ConfigError:
         raise
     except (TypeError, ValueError) as e:
         raise ConfigError(str(e)) from e
-    cfg.check_for(method)
-    return cfg
-
-
-def _ilqg_overrides(cfg: DPSOCConfig, values: dict, paper: bool) -> DPSOCConfig:
-    unused = sorted(k for k in values if k != "iterations") + (["paper"] if paper else [])
-    if unused:
-        raise ConfigError(f"--{unused[0].replace('_', '-')} does not apply to --method ilqg "
-                          "(it sets the sample-based methods); iLQG reads the [ilqg] table and --iterations")
-    if "iterations" in values:
-        cfg = cfg.replace(ilqg=cfg.ilqg.replace(iterations=values["iterations"]))
+    meth.check_config(cfg)
     return cfg
 
 
@@ -117,11 +91,12 @@ def fork_state(state: RunState) -> RunState:
 
 def _contract(meta: dict) -> dict:
     """What of a ``config.json`` a resumed run must match: method, seed (not for the deterministic
-    iLQG) and the configuration sections the method reads (:data:`~soc_opt.algorithms.RUN_SECTIONS`)."""
+    iLQG) and the configuration sections the method reads (``Method.sections``)."""
     method = meta.get("method")
-    sections = algorithms.RUN_SECTIONS.get(method, tuple(meta.get("config", {})))
+    meth = METHODS.get(method)
+    sections = meth.sections if meth is not None else tuple(meta.get("config", {}))
     out = {"method": method, "config": {k: v for k, v in meta.get("config", {}).items() if k in sections}}
-    if method != "ilqg":
+    if meth is None or meth.seeded:
         out["seed"] = meta.get("seed")
     return out
 
@@ -139,9 +114,9 @@ def _task_record(task: Task, task_name: str | None) -> dict | None:
 def _check_inputs(task: Task, method: str, cfg: DPSOCConfig, seed: int) -> None:
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
-    cfg.check_for(method)
-    if method == "ilqg":
-        ilqg_mod.check_task(task)
+    meth = get_method(method)
+    meth.check_config(cfg)
+    meth.check_task(task)
 
 
 def _progress_line(method: str, seed: int, total: int, st, dt: float, elapsed: float) -> str:
@@ -150,17 +125,7 @@ def _progress_line(method: str, seed: int, total: int, st, dt: float, elapsed: f
     metrics = " ".join(f"{k}={v:.4g}" for k, v in rec.metrics.items())
     times = f"time {dt:.1f}s (total {elapsed:.0f}s)"
     where = f"iter {rec.iteration:2d} ({rec.iteration + 1}/{total})"
-    if method == "ilqg":
-        step = f"step {rec.alpha:g}" if rec.accepted else "no descent step"
-        return f"[ilqg] {where} cost {np.mean(rec.cost):.6g}  {step}  mu {rec.mu:.1e}  {metrics}  {times}"
-    em = [r for r in st.history if r.em is not None and r.iteration == rec.iteration]
-    em_txt = ""
-    if em:
-        e = em[-1].em
-        em_txt = (f" | EM: cost {np.mean(em[-1].cost):.4g}, surrogate {e.surrogate_old:.4g}->{e.surrogate_new:.4g},"
-                  f" logp(Y) {e.loglik_old:.4g}->{e.loglik_new:.4g}")
-    return (f"[{method} seed {seed}] {where} cost {np.mean(rec.cost):10.4g} ± {np.std(rec.cost):.3g}"
-            f"  KL {rec.kl:.3g}/{rec.nu:.3g}  {metrics}  {times}{em_txt}")
+    return get_method(method).progress_line(seed, where, st, metrics, times)
 
 
 def run_experiment(
@@ -180,8 +145,9 @@ def run_experiment(
 ):
     """Run one method on one task and seed, writing every iteration to ``out`` (resumable).
 
-    ``method``: ``"lqr-flm"``, ``"dpsoc-em"`` (returns a :class:`~soc_opt.algorithms.RunState`) or
-    ``"ilqg"`` (reads ``cfg.ilqg``; returns an :class:`~soc_opt.ilqg.ILQGState`).  Everything is
+    ``method``: a name in :data:`soc_opt.methods.registry.METHODS` (``"lqr-flm"``, ``"dpsoc-em"``:
+    returns a :class:`~soc_opt.methods.state.RunState`; ``"ilqg"``: reads ``cfg.ilqg``, returns an
+    :class:`~soc_opt.ilqg.ILQGState`).  Everything is
     validated before ``out`` is touched.  With ``out``, the run holds the directory's lock, checks
     its contract and resumes from its checkpoint (:mod:`soc_opt.rundir`); ``restart`` discards a
     previous run's files first; ``previous_checkpoint`` resumes from the checkpoint before the last
@@ -207,8 +173,7 @@ def run_experiment(
         state = start_state
         if saved is not None:
             state = saved
-            total = cfg.ilqg.iterations if method == "ilqg" else cfg.baseline.iterations
-            if prog and (state.iteration >= total or getattr(state, "status", "running") != "running"):
+            if prog and get_method(method).finished(cfg, state):
                 prog.message(f"{method} run in {rd.path} already finished ({state.iteration} iterations)")
             elif prog:
                 prog.message(f"resuming {method} in {rd.path}: {state.iteration} iterations done "
@@ -236,10 +201,11 @@ def run_experiment(
 
 
 def _run(task, method, cfg, seed, rd: RunDirectory | None, state, user_callback, prog, bar_level, tb):
-    total = cfg.ilqg.iterations if method == "ilqg" else cfg.baseline.iterations
+    meth = get_method(method)
+    total = meth.total_iterations(cfg)
     t_start = t_last = time.perf_counter()
     logged = len(state.history) if state is not None else 0
-    desc = "ilqg" if method == "ilqg" else f"{method} seed {seed}"
+    desc = f"{method} seed {seed}" if meth.seeded else method
     bar = prog.bar(total, desc, initial=state.iteration if state is not None else 0, level=bar_level) if prog else None
 
     def on_iteration(st):
@@ -255,15 +221,13 @@ def _run(task, method, cfg, seed, rd: RunDirectory | None, state, user_callback,
         if bar is not None:
             now = time.perf_counter()
             rec = st.history[-1]
-            shown = {"mu": float(rec.mu)} if method == "ilqg" else {"KL": float(rec.kl)}
+            shown = meth.progress_fields(rec)
             bar.advance(_progress_line(method, seed, total, st, now - t_last, now - t_start),
                         cost=float(np.mean(rec.cost)), **shown, **headline_metric(rec.metrics))
             t_last = now
 
     try:
-        if method == "ilqg":
-            return ilqg_mod.run_ilqg(task, cfg.ilqg, state=state, on_iteration=on_iteration)
-        return algorithms.run_algorithm(task, method, cfg, seed=seed, state=state, on_iteration=on_iteration)
+        return run_method(meth, task, cfg, seed, state, on_iteration)
     finally:
         if bar is not None:
             bar.close()

@@ -7,7 +7,7 @@ and searches for a descent step: an LQR backward pass with the Levenberg–Marqu
 An accepted step lowers ``mu``; a failed backward pass or line search raises it, up to
 ``mu_max``.
 
-The loop is written like the sample-based methods (:mod:`soc_opt.algorithms`): an explicit
+The loop is written like the sample-based methods (:mod:`soc_opt.methods`): an explicit
 :class:`ILQGState` and a pure step :func:`ilqg_iteration`, so that ``soc-opt run --method ilqg``
 checkpoints after every iteration and a resumed run ends with the same numbers as an
 uninterrupted one (iLQG draws no random numbers).  :func:`ilqg` is the one-call form.
@@ -24,13 +24,15 @@ import numpy as np
 
 from . import lqg
 from .config import Config, ConfigError
+from .methods.base import MethodBase
+from .methods.state import BestPolicy
 from .models import LinearGaussianPolicy, Rollouts
 
 if TYPE_CHECKING:
     from .tasks import Task
 
 __all__ = ["ILQGConfig", "ILQGRecord", "ILQGState", "check_task", "initial_ilqg_state", "ilqg_iteration",
-           "run_ilqg", "ilqg"]
+           "run_ilqg", "ilqg", "ILQG", "ILQG_METHOD"]
 
 
 @dataclass(frozen=True)
@@ -145,10 +147,8 @@ class ILQGState:
 
     @property
     def best(self):
-        """The lowest-cost iterate so far (:class:`~soc_opt.algorithms.BestPolicy`; iLQG only
+        """The lowest-cost iterate so far (:class:`~soc_opt.methods.state.BestPolicy`; iLQG only
         accepts descent steps, so it is the current one), or None before the first iteration."""
-        from .algorithms import BestPolicy
-
         if not self.history:
             return None
         costs = [float(np.mean(r.cost)) for r in self.history]
@@ -289,3 +289,62 @@ def ilqg(task: Task, x0: np.ndarray | None = None, u_init: np.ndarray | None = N
     check_task(task)
     st = run_ilqg(task, cfg, initial_ilqg_state(task, cfg, u_init), on_iteration=report)
     return st.policy, list(st.costs)
+
+
+class ILQG(MethodBase):
+    """iLQG as a :class:`~soc_opt.methods.base.Method`: reads the ``[ilqg]`` table; deterministic
+    (the seed is not part of a run's identity); stops early on convergence or without descent."""
+
+    name = "ilqg"
+    sections: tuple[str, ...] = ("ilqg",)
+    seeded = False
+    sample_based = False
+    cost_phase = "ilqg"
+
+    def check_task(self, task: Task) -> None:
+        check_task(task)
+
+    def check_file(self, data: dict, path) -> None:
+        misplaced = sorted(set(data) & set(ILQGConfig.__dataclass_fields__))
+        if misplaced:
+            raise ConfigError(f"{path}: iLQG settings {', '.join(map(repr, misplaced))} belong in an [ilqg] "
+                              "table of the run configuration (docs/configuration.md)")
+
+    def apply_overrides(self, cfg, values: dict, paper: bool):
+        unused = sorted(k for k in values if k != "iterations") + (["paper"] if paper else [])
+        if unused:
+            raise ConfigError(f"--{unused[0].replace('_', '-')} does not apply to --method ilqg "
+                              "(it sets the sample-based methods); iLQG reads the [ilqg] table and --iterations")
+        if "iterations" in values:
+            cfg = cfg.replace(ilqg=cfg.ilqg.replace(iterations=values["iterations"]))
+        return cfg
+
+    def total_iterations(self, cfg) -> int:
+        return cfg.ilqg.iterations
+
+    def initial_state(self, task: Task, cfg, seed: int) -> ILQGState:
+        return initial_ilqg_state(task, cfg.ilqg)
+
+    def iterate(self, task: Task, cfg, state: ILQGState) -> ILQGState:
+        return ilqg_iteration(task, cfg.ilqg, state)
+
+    def finished(self, cfg, state: ILQGState) -> bool:
+        return state.iteration >= cfg.ilqg.iterations or state.status != "running"
+
+    def progress_fields(self, record: ILQGRecord) -> dict[str, float]:
+        return {"mu": float(record.mu)}
+
+    def progress_line(self, seed: int, where: str, state: ILQGState, metrics: str, times: str) -> str:
+        rec = state.history[-1]
+        step = f"step {rec.alpha:g}" if rec.accepted else "no descent step"
+        return f"[ilqg] {where} cost {np.mean(rec.cost):.6g}  {step}  mu {rec.mu:.1e}  {metrics}  {times}"
+
+    def finish(self, state: ILQGState, out) -> str:
+        np.savez_compressed(out / "policy.npz", **state.policy.to_dict())
+        why = {"converged": "converged (relative decrease below tol)", "no_descent": "no descent step found",
+               "running": "iteration limit"}[state.status]
+        return (f"iLQG: cost {state.costs[0]:.6g} -> {state.costs[-1]:.6g} in {len(state.costs) - 1} accepted "
+                f"iterations ({why}); final policy {out / 'policy.npz'}; run directory {out}")
+
+
+ILQG_METHOD = ILQG()

@@ -32,6 +32,7 @@ __all__ = ["plot_costs", "plot_ee", "plot_actions", "plot_metric", "claims_table
 
 COLORS = {"lqr-flm": "tab:blue", "dpsoc-em": "tab:red"}
 LABELS = {"lqr-flm": "LQR-FLM (baseline)", "dpsoc-em": "DPSOC-EM"}
+LINESTYLES = {"lqr-flm": "--"}
 
 
 def _boxes(ax, data, pos, width: float, color: str) -> None:
@@ -85,7 +86,7 @@ def plot_ee(points: dict, dt: float, path: Path, title: str, point_names=None, t
     for meth, pts in points.items():
         t = np.arange(pts.shape[1]) * dt
         mean, std = pts.mean(axis=0), pts.std(axis=0)
-        ls = "--" if meth == "lqr-flm" else "-"
+        ls = LINESTYLES.get(meth, "-")
         for p in range(P):
             for j, c in enumerate(used):
                 ax = axes[p, j]
@@ -150,7 +151,7 @@ def plot_metric(values: dict, path: Path, title: str, ylabel: str) -> Path:
     for meth, v in values.items():
         v = np.asarray(v, float)
         it = np.arange(v.shape[1])
-        ls = "--" if meth == "lqr-flm" else "-"
+        ls = LINESTYLES.get(meth, "-")
         ax.plot(it, v.mean(0), ls + "o", ms=3, color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
         ax.fill_between(it, v.mean(0) - v.std(0), v.mean(0) + v.std(0), color=COLORS.get(meth, "gray"), alpha=0.2)
     ax.set_xlabel("iteration")

@@ -17,7 +17,7 @@ A run directory (``soc-opt run|compare --out DIR``) holds
 
 **Contract.**  ``config.json`` and ``task.json`` are the contract of the run: a run started
 again on the directory resumes only if the method, seed, the configuration sections that method
-reads (:data:`soc_opt.algorithms.RUN_SECTIONS`), the resolved task configuration and the MJCF
+reads (``Method.sections``, :mod:`soc_opt.methods.registry`), the resolved task configuration and the MJCF
 files are the same; otherwise :class:`RunDirectoryError` lists what differs.  A directory with no
 finished iteration (no checkpoint) holds nothing to protect: its contract is replaced.
 
@@ -353,7 +353,7 @@ class RunDirectory:
     def save(self, state) -> None:
         """Write the iteration's files, then the checkpoint (atomically, last; the previous one kept).
 
-        ``state`` is a :class:`~soc_opt.algorithms.RunState` or :class:`~soc_opt.ilqg.ILQGState`
+        ``state`` is a :class:`~soc_opt.methods.state.RunState` or :class:`~soc_opt.ilqg.ILQGState`
         (``iteration``, ``policy``, ``history``, ``best``, ``last_rollouts``).
         """
         it = state.iteration

@@ -55,7 +55,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .algorithms import DPSOCConfig, RunState
+from .methods.config import DPSOCConfig
+from .methods.registry import check_config, sample_based, sections_of
+from .methods.state import RunState
 from .config import ConfigError, read_toml
 
 __all__ = [
@@ -74,7 +76,8 @@ __all__ = [
     "write_json",
 ]
 
-METHODS = ("lqr-flm", "dpsoc-em")
+#: The methods a sweep can run: the registry's sample-based ones.
+METHODS = sample_based()
 TOP_KEYS = ("name", "tasks", "methods", "seeds", "config", "paper", "eval_samples", "common", "grid", "settings")
 OVERRIDE_KEYS = ("i_switch", "baseline", "em", "task")
 RESULT = "result.json"
@@ -379,12 +382,12 @@ def _config(task_ref, cfg_file, paper, common, setting, method) -> DPSOCConfig:
 
     base = load_config(task_ref, cfg_file, paper=paper, method="dpsoc-em").to_dict()
     d = _merge(_merge(base, common), setting)
-    if method == "lqr-flm":  # the switch point is unused by the baseline (as in `soc-opt run`)
+    if "i_switch" not in sections_of(method):  # the switch point is unused (as in `soc-opt run`)
         it = _lookup(d, ("baseline", "iterations"))
         if isinstance(d.get("i_switch"), int) and isinstance(it, int) and it >= 1:
             d["i_switch"] = min(d["i_switch"], it - 1)
     cfg = DPSOCConfig.from_dict(d)
-    cfg.check_for(method)  # method-specific rules (i_switch < iterations for DPSOC-EM), before any trial
+    check_config(method, cfg)  # method-specific rules (i_switch < iterations for DPSOC-EM), before any trial
     return cfg
 
 

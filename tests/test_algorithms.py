@@ -10,6 +10,7 @@ from soc_opt.algorithms import (
     ILQGConfig,
     LQRFLMConfig,
     ilqg,
+    check_config,
     run_algorithm,
 )
 from soc_opt.tasks import load_task
@@ -102,8 +103,8 @@ def test_unknown_method_is_rejected():
 def test_dpsoc_em_rejects_a_switch_outside_the_run_before_sampling():
     cfg = DPSOCConfig(i_switch=14, baseline=LQRFLMConfig(iterations=14))
     with pytest.raises(ValueError, match="i_switch"):
-        cfg.check_for("dpsoc-em")
-    cfg.check_for("lqr-flm")  # the baseline never switches
+        check_config("dpsoc-em", cfg)
+    check_config("lqr-flm", cfg)  # the baseline never switches
     task = load_task("linear2d", overrides={"T": 5})
     with pytest.raises(ValueError, match="i_switch"):
         run_algorithm(task, "dpsoc-em", cfg.replace(baseline=LQRFLMConfig(iterations=1, samples=2)), seed=0)

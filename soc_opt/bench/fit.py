@@ -283,12 +283,13 @@ def peg_sequence(
     rollouts the iteration fitted on, ``test`` are ``n_test`` further rollouts of the
     same policy (an independent stream, seed ``seed + 1``).
     """
-    from ..algorithms import initial_state, lqr_flm_iteration
-    from ..cli import load_config
+    from ..experiment import load_run_config
+    from ..methods.lqr_flm import initial_state, lqr_flm_iteration
     from ..tasks import load_task
 
     t = load_task(task)
-    base = load_config(task, None, True, {"iterations": iterations, "samples": samples}).baseline
+    base = load_run_config(task, None, paper=True, overrides={"iterations": iterations, "samples": samples},
+                           method="lqr-flm").baseline
     cfg = base.replace(fit=base.fit.replace(**_GENERATOR_FIT))
     state = initial_state(t, cfg, seed)
     test_rng = np.random.default_rng(seed + 1)

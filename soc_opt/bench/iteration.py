@@ -1,6 +1,6 @@
 """Wall time per iteration of each method at the paper's scale, split into phases (issue 10).
 
-Runs LQR-FLM and DPSOC-EM on a task with the paper's settings (:data:`soc_opt.algorithms.PAPER`:
+Runs LQR-FLM and DPSOC-EM on a task with the paper's settings (:data:`soc_opt.methods.config.PAPER`:
 14 iterations x 20 samples, EM phase after iteration 4) and reports, per phase, the median and
 the range over the iterations: rollouts, fitting (mixture prior refit + local model), LQG step,
 and the wall time of the whole iteration (measured between two ``on_iteration`` calls, so it
@@ -51,12 +51,12 @@ def run(task: str = "peg", seed: int = 0, iterations: int | None = None, samples
             state, wall = _timed_run(t, method, cfg, seed)
             base = [r for r in state.history if r.phase == "baseline"]
             label = f"{method} ({task}, {cfg.baseline.iterations} it x {cfg.baseline.samples} samples)"
-            if method == "lqr-flm":
+            em = [r for r in state.history if r.em is not None]
+            if not em:  # the baseline: no EM phase
                 for phase in ("rollouts", "fit", "lqg"):
                     rows.append(_row(label, phase, [r.timings.get(phase, np.nan) for r in base]))
                 rows.append(_row(label, "iteration (wall)", wall))
                 continue
-            em = [r for r in state.history if r.em is not None]
             if em:
                 for phase, vals in (("rollouts", [r.timings["rollouts"] for r in em]),
                                     ("fit augmented", [r.em.time_fit_augmented for r in em]),

@@ -1,0 +1,125 @@
+"""The :class:`Method` protocol: what the CLI, experiments, compare and sweeps need of a method.
+
+A method is an object with a name, the run-configuration sections it reads, and pure functions
+on an explicit state (docs/math.md §7): ``initial_state`` then ``iterate`` until ``finished``.
+Everything that used to be a ``method == "..."`` branch in the drivers is one of the hooks below;
+:class:`MethodBase` gives the defaults of a sample-based method, so a new method overrides only
+what differs.  Register an instance in :data:`soc_opt.methods.registry.METHODS`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Protocol, runtime_checkable
+
+from ..config import ConfigError
+
+if TYPE_CHECKING:
+    from ..tasks import Task
+
+__all__ = ["Method", "MethodBase", "run_method"]
+
+
+@runtime_checkable
+class Method(Protocol):
+    """One optimisation method.
+
+    name:       the method's name (``soc-opt run --method NAME``, run directories, sweeps).
+    sections:   the top-level keys of the run configuration it reads (what a resumed run must match).
+    seeded:     whether the seed is part of a run's identity (False for a deterministic method).
+    sample_based: whether it learns from sampled rollouts (``soc-opt compare`` and sweeps run these).
+    cost_phase: the ``IterationRecord.phase`` of the records drawn as "cost per iteration".
+    """
+
+    name: str
+    sections: tuple[str, ...]
+    seeded: bool
+    sample_based: bool
+    cost_phase: str
+
+    def check_config(self, cfg) -> None:
+        """Method-specific checks of a run configuration (``ConfigError`` naming the key)."""
+
+    def check_task(self, task: Task) -> None:
+        """Raise ``ConfigError`` (before any simulation) if the method cannot run on ``task``."""
+
+    def check_file(self, data: dict, path: Path) -> None:
+        """Extra checks of a run-configuration file's raw table (e.g. a hint for misplaced keys)."""
+
+    def apply_overrides(self, cfg, values: dict, paper: bool):
+        """``cfg`` with command-line overrides (``--iterations``, ``--samples``, ``--paper``...) applied."""
+
+    def total_iterations(self, cfg) -> int:
+        """The iteration budget of a run."""
+
+    def initial_state(self, task: Task, cfg, seed: int) -> Any:
+        """The state before the first iteration."""
+
+    def iterate(self, task: Task, cfg, state) -> Any:
+        """One iteration: a new state (pure; the state holds the RNG)."""
+
+    def finished(self, cfg, state) -> bool:
+        """Whether the run is over (iteration budget, convergence)."""
+
+    def progress_fields(self, record) -> dict[str, float]:
+        """The numbers a progress bar shows next to the cost."""
+
+    def progress_line(self, seed: int, where: str, state, metrics: str, times: str) -> str:
+        """One console line after an iteration."""
+
+    def finish(self, state, out: Path) -> str:
+        """Write the method's own final files into ``out``; the closing console line."""
+
+
+class MethodBase:
+    """Defaults shared by the methods: no extra checks, the run ends at :meth:`total_iterations`."""
+
+    name: str = ""
+    sections: tuple[str, ...] = ()
+    seeded: bool = True
+    sample_based: bool = False
+    cost_phase: str = "baseline"
+
+    def check_config(self, cfg) -> None:
+        pass
+
+    def check_task(self, task) -> None:
+        pass
+
+    def check_file(self, data: dict, path: Path) -> None:
+        """Extra checks of a run-configuration file's raw table (e.g. a hint for misplaced keys)."""
+
+    def total_iterations(self, cfg) -> int:
+        raise NotImplementedError
+
+    def finished(self, cfg, state) -> bool:
+        return state.iteration >= self.total_iterations(cfg)
+
+    def progress_fields(self, record) -> dict[str, float]:
+        return {}
+
+    def finish(self, state, out: Path) -> str:
+        best = state.best
+        return f"done: best mean cost {best.mean_cost:.6g} (iteration {best.iteration}); run directory {out}"
+
+
+def run_method(method: Method, task, cfg, seed: int = 0, state=None,
+               on_iteration: Callable[[Any], None] | None = None):
+    """Iterate ``method`` from ``state`` (or a fresh start) until it is finished.
+
+    ``on_iteration`` is called with the new state after every iteration (checkpoints, progress).
+    """
+    method.check_config(cfg)
+    method.check_task(task)
+    if state is None:
+        state = method.initial_state(task, cfg, seed)
+    while not method.finished(cfg, state):
+        state = method.iterate(task, cfg, state)
+        if on_iteration is not None:
+            on_iteration(state)
+    return state
+
+
+def unknown_method(name, known) -> ConfigError:
+    """The error for a method name not in the registry."""
+    return ConfigError(f"unknown method {name!r}; use one of {', '.join(map(repr, known))}")

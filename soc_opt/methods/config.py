@@ -1,0 +1,186 @@
+"""The run configuration (docs/math.md §7): one TOML file holds every method's sections.
+
+:class:`DPSOCConfig` is the whole file; :class:`LQRFLMConfig` (``[baseline]``), :class:`EMConfig`
+(``[em]``), :class:`EvalConfig` (``[evaluation]``) and :class:`~soc_opt.ilqg.ILQGConfig`
+(``[ilqg]``) its sections.  Which sections a method reads is declared by the method itself
+(:attr:`soc_opt.methods.base.Method.sections`); method-specific checks run through the registry
+(:func:`soc_opt.methods.registry.check_config`), so this module knows no method by name.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
+
+from .. import fit, lqg, mstep
+from ..config import Config
+from ..ilqg import ILQGConfig
+from ..noise_aware import NoiseConfig
+
+__all__ = ["PaperScale", "PAPER", "LoopKLStepConfig", "LQRFLMConfig", "EMConfig", "EvalConfig", "DPSOCConfig",
+           "with_paper_scale"]
+
+
+class PaperScale(NamedTuple):
+    """The scale of the paper's experiments (docs/math.md §9.5), defined here once.
+
+    iterations: baseline iterations per run (``LQRFLMConfig.iterations``).
+    samples:    rollouts per iteration ``M`` (``LQRFLMConfig.samples``).
+    i_switch:   EM phase after this many baseline iterations (``DPSOCConfig.i_switch``).
+    """
+
+    iterations: int = 14
+    samples: int = 20
+    i_switch: int = 4
+
+
+PAPER = PaperScale()
+
+
+@dataclass(frozen=True)
+class LoopKLStepConfig(lqg.KLStepConfig):
+    """:class:`soc_opt.lqg.KLStepConfig` as used by the LQR-FLM loop: the same fields and defaults,
+    except that the dual is solved to ``kl_rtol = 1e-6`` (a budget is a step size, not a quantity to
+    hit to 1e-10); any ``[baseline.kl]`` table starts from these defaults.
+    """
+
+    kl_rtol: float = 1e-6
+
+
+@dataclass(frozen=True)
+class LQRFLMConfig(Config):
+    """LQR-FLM baseline ("iLQG" in the paper), docs/math.md §7.
+
+    iterations:  number of sample -> fit -> LQG rounds (default: the paper's, ``PAPER.iterations``).
+    samples:     rollouts per iteration ``M`` (default: the paper's, ``PAPER.samples``).
+    init_var:    initial policy covariance ``Sigma = init_var * I``.
+    kl_budget:   base KL budget per time step; the total budget is ``kl_budget * T * mult``.
+    kl_mode:     "total" (one budget ``nu = sum nu_k``, one multiplier: the GPS form) or
+                 "per_step" (``nu_k = kl_budget * mult`` with one multiplier per step).
+    kl_method:   KL-step solver, "closed_form" (LQR backward pass + dual) or "casadi" (IPOPT).
+    adapt_step:  adapt ``mult`` from predicted vs actual improvement (GPS rule, see lqg.adapt_step).
+    workers:     parallel rollout workers (results do not depend on it).
+    fit:         dynamics-fitting configuration (docs/math.md §2).
+    kl:          KL-step solver and step-adaptation configuration (docs/math.md §6), the loop's
+                 :class:`LoopKLStepConfig` (dual solved to ``kl_rtol = 1e-6``).
+    noise:       noise-aware variants (docs/math.md §10: corrected fit, estimator in the loop); the
+                 defaults are the paper's method (:class:`soc_opt.noise_aware.NoiseConfig`).
+    """
+
+    iterations: int = PAPER.iterations
+    samples: int = PAPER.samples
+    init_var: float = 1.0
+    kl_budget: float = 0.5
+    kl_mode: Literal["total", "per_step"] = "total"
+    kl_method: Literal["closed_form", "casadi"] = "closed_form"
+    adapt_step: bool = True
+    workers: int = 1
+    fit: fit.FitConfig = field(default_factory=fit.FitConfig)
+    kl: LoopKLStepConfig = field(default_factory=LoopKLStepConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+
+    def __post_init__(self):
+        if self.iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.samples < 2:
+            raise ValueError(f"samples must be >= 2 (dynamics fitting needs 2 rollouts), got {self.samples}")
+        if self.init_var <= 0 or self.kl_budget <= 0:
+            raise ValueError("init_var and kl_budget must be positive")
+        if self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {self.workers}")
+
+
+@dataclass(frozen=True)
+class EMConfig(Config):
+    """The EM phase of DPSOC-EM (docs/math.md §3–§5, paper Algorithm 1).
+
+    n_em:          EM recursions at the switch (each samples ``M`` rollouts of the current EM policy).
+    y_mode:        cost observations ``Y``: "model" (the paper), "measured", "optimistic" (docs/math.md §3).
+    y_samples:     number of ``Y`` sequences drawn in "model" mode (default: ``samples``).
+    method:        M-step solver, "closed_form" or "cvxpy" (``mstep.maximize(method=...)``).
+    variant:       "time_varying" (the Proposition's DP sweep) or "time_invariant".
+    objective:     "surrogate" (the paper's Lbar) or "exact" (exact EM).
+    cov_floor_scale:  ``Sigma_k >= scale * Sigma_k^i`` (covariance floor relative to the
+                   current policy, docs/math.md §5); ignored when ``entropy_floor`` is true.
+    entropy_floor: use the entropy floor ``log det Sigma_k >= log det Sigma_k^i`` instead.
+    trust_region:  optional Frobenius trust region on ``[K k]`` around the current policy (cvxpy only).
+    min_norm:      minimum-norm M-step where the maximiser is not unique.
+    mstep:         the M-step's solver tolerances and limits (:class:`soc_opt.mstep.MStepConfig`,
+                   passed as ``mstep.maximize(config=...)``; its ``solver`` picks the CVXPY solver).
+    """
+
+    n_em: int = 1
+    y_mode: Literal["model", "measured", "optimistic"] = "model"
+    y_samples: int | None = None
+    method: Literal["closed_form", "cvxpy"] = "closed_form"
+    variant: Literal["time_varying", "time_invariant"] = "time_varying"
+    objective: Literal["surrogate", "exact"] = "surrogate"
+    cov_floor_scale: float = 0.5
+    entropy_floor: bool = False
+    trust_region: float | None = None
+    min_norm: bool = True
+    mstep: mstep.MStepConfig = field(default_factory=mstep.MStepConfig)
+
+    def __post_init__(self):
+        if self.n_em < 1:
+            raise ValueError(f"n_em must be >= 1, got {self.n_em}")
+        if not 0 < self.cov_floor_scale:
+            raise ValueError(f"cov_floor_scale must be positive, got {self.cov_floor_scale}")
+        if self.y_samples is not None and self.y_samples < 1:
+            raise ValueError(f"y_samples must be >= 1, got {self.y_samples}")
+        if self.trust_region is not None and not self.trust_region > 0:
+            raise ValueError(f"trust_region must be positive, got {self.trust_region}")
+
+
+@dataclass(frozen=True)
+class EvalConfig(Config):
+    """Evaluation of the final policies by ``soc-opt compare`` (docs/math.md §9.5).
+
+    samples:     fresh rollouts per final policy (default: ``baseline.samples``).
+    seed_offset: the evaluation generator is seeded with ``seed_offset + seed``: the same stream
+                 for both methods, distinct from the training stream of that seed.
+    """
+
+    samples: int | None = None
+    seed_offset: int = 10_000
+
+    def __post_init__(self):
+        if self.samples is not None and self.samples < 1:
+            raise ValueError(f"samples must be >= 1, got {self.samples}")
+        if self.seed_offset < 0:
+            raise ValueError(f"seed_offset must be >= 0 (it seeds a numpy Generator), got {self.seed_offset}")
+
+
+@dataclass(frozen=True)
+class DPSOCConfig(Config):
+    """DPSOC-EM (paper Algorithm 1): baseline until ``i_switch``, EM phase, baseline again.
+
+    The run configuration: it holds every sub-configuration of a run (one TOML file, shared by
+    ``soc-opt run --method dpsoc-em|lqr-flm|ilqg`` and ``soc-opt compare``; each method reads
+    its own sections (:attr:`Method.sections <soc_opt.methods.base.Method.sections>`) and ignores the
+    others; :func:`soc_opt.methods.registry.check_config` runs a method's own checks).
+
+    i_switch:   the EM phase runs after this many baseline iterations (default: the paper's,
+                ``PAPER.i_switch``); must be below ``baseline.iterations`` for DPSOC-EM only.
+    baseline:   the LQR-FLM configuration (iterations = total baseline iterations).
+    em:         the EM phase configuration.
+    evaluation: evaluation of the final policies (``soc-opt compare``).
+    ilqg:       model-based iLQG (``soc-opt run --method ilqg``), :class:`soc_opt.ilqg.ILQGConfig`.
+    """
+
+    i_switch: int = PAPER.i_switch
+    baseline: LQRFLMConfig = field(default_factory=LQRFLMConfig)
+    em: EMConfig = field(default_factory=EMConfig)
+    evaluation: EvalConfig = field(default_factory=EvalConfig)
+    ilqg: ILQGConfig = field(default_factory=ILQGConfig)
+
+    def __post_init__(self):
+        if self.i_switch < 0:
+            raise ValueError(f"i_switch must be >= 0, got {self.i_switch}")
+
+
+def with_paper_scale(cfg: DPSOCConfig) -> DPSOCConfig:
+    """``cfg`` at the paper's scale (:data:`PAPER`: iterations, samples, switch point)."""
+    base = cfg.baseline.replace(iterations=PAPER.iterations, samples=PAPER.samples)
+    return cfg.replace(baseline=base, i_switch=PAPER.i_switch)
+

@@ -1,0 +1,150 @@
+"""DPSOC-EM (paper Algorithm 1; docs/math.md §7): LQR-FLM with an EM phase at ``i_switch``.
+
+At iteration ``i_switch`` the reference of the KL step is replaced by the EM policy: ``n_em``
+recursions of {sample, fit augmented model (§1–§2), generate ``Y`` (§3), E-step (§4), DP M-step
+(§5)}; the LQG step of that iteration then uses the EM policy as its KL reference and as the
+sampling policy (paper eq. constrainObjective).  With ``[baseline.noise] estimator = "kalman"``
+(docs/math.md §10.2) the E-/M-step run on the augmented model in ``xhat``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .. import estep, fit, mstep, noise_aware
+from ..config import ConfigError
+from ..estimator import FilteredPolicy
+from ..models import LinearGaussianPolicy, Rollouts
+from .config import DPSOCConfig, EMConfig
+from .lqr_flm import LQRFLM, _initial_distribution, _update_prior, lqr_flm_iteration
+from .state import EMDiagnostics, RunState, improved, record, state_rng
+
+if TYPE_CHECKING:
+    from ..tasks import Task
+
+__all__ = ["em_update", "dpsoc_iteration", "DPSOCEM", "DPSOC_EM"]
+
+
+def _mstep_constraints(em: EMConfig, policy: LinearGaussianPolicy) -> mstep.MStepConstraints:
+    """The M-step's feasible set relative to the current policy (docs/math.md §5)."""
+    if em.entropy_floor:
+        cons = mstep.MStepConstraints(entropy_floor=np.linalg.slogdet(policy.cov)[1].tolist())
+    else:
+        cons = mstep.MStepConstraints(cov_floor=(em.cov_floor_scale * np.asarray(policy.cov)).tolist())
+    if em.trust_region is not None:
+        cons = dataclasses.replace(cons, trust_region=em.trust_region)
+    return cons
+
+
+def _em_model(task: Task, cfg: DPSOCConfig, rollouts: Rollouts, prior, policy, recursion: int, denoised=None):
+    """The EM recursion's augmented model, initial distribution and filter (``None`` for the paper).
+
+    With ``noise.estimator = "kalman"`` the model is the augmented model in ``xhat``
+    (``docs/noise.md`` §6) and the EM policy acts on the filter of this fit.
+    """
+    base = cfg.baseline
+    if base.noise.paper:
+        model = fit.fit_augmented(rollouts, base.fit, prior)
+    else:
+        model = noise_aware.fit_local(rollouts, base.fit, prior, base.noise, noise_aware.noise_model(task), policy,
+                                      include_y=True, denoised=denoised)
+    if base.noise.estimator == "none":
+        mu0, P0 = _initial_distribution(task)
+        return model, mu0, P0, None
+    model, kf, mu0, P0 = noise_aware.filtered_em_model(model, noise_aware.noise_model(task), base.noise,
+                                                       f" (EM recursion {recursion})")
+    return model, mu0, P0, kf
+
+
+def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | FilteredPolicy, rollouts: Rollouts,
+              prior: fit.MixturePrior | None, rng: np.random.Generator,
+              recursion: int = 0, denoised: Rollouts | None = None
+              ) -> tuple[LinearGaussianPolicy | FilteredPolicy, EMDiagnostics]:
+    """One EM recursion (paper Algorithm 1): fit augmented model, generate ``Y``, E-step, DP M-step.
+
+    ``rollouts`` are samples of ``policy``.  Returns the EM policy and the recursion's
+    :class:`EMDiagnostics` (surrogate and ``log p(Y)`` before/after, timings).  With the
+    estimator (docs/math.md §10.2) the E-/M-step run on the augmented model in ``xhat``, ``policy``'s gains
+    read as acting on the new filter's estimate, and the EM policy is returned with that filter.
+    """
+    em = cfg.em
+    t0 = time.perf_counter()
+    model, mu0, P0, kf = _em_model(task, cfg, rollouts, prior, policy, recursion, denoised)
+    t_fit = time.perf_counter() - t0
+    policy = noise_aware.gains(policy)
+    Y = fit.cost_observations(em.y_mode, rollouts, model, policy, mu0, P0, rng, n_samples=em.y_samples)
+
+    t0 = time.perf_counter()
+    sm = estep.smooth(model, policy, Y, mu0, P0)
+    t_estep = time.perf_counter() - t0
+
+    cons = _mstep_constraints(em, policy)
+    t0 = time.perf_counter()
+    new = mstep.maximize(
+        model, sm, Y, constraints=cons, method=em.method, variant=em.variant,
+        objective=em.objective, previous=policy, min_norm=em.min_norm, config=em.mstep,
+    )
+    t_mstep = time.perf_counter() - t0
+    diag = EMDiagnostics(
+        recursion=recursion,
+        surrogate_old=float(np.sum(mstep.surrogate(model, sm, Y, policy))),
+        surrogate_new=float(np.sum(mstep.surrogate(model, sm, Y, new))),
+        loglik_old=float(np.mean(sm.loglik)),
+        loglik_new=float(np.mean(estep.smooth(model, new, Y, mu0, P0).loglik)),
+        time_fit_augmented=t_fit,
+        time_estep=t_estep,
+        time_mstep=t_mstep,
+    )
+    return (new if kf is None else FilteredPolicy(new, kf)), diag
+
+
+def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
+    """One DPSOC-EM outer iteration: the EM phase when ``iteration == i_switch``, then LQR-FLM."""
+    if state.iteration == cfg.i_switch and not state.em_done:
+        rng = state_rng(state)
+        policy = state.policy
+        prior = state.prior
+        history = state.history
+        best = state.best
+        for r in range(cfg.em.n_em):
+            t0 = time.perf_counter()
+            rollouts = task.rollouts(policy, cfg.baseline.samples, rng, workers=cfg.baseline.workers)
+            t_roll = time.perf_counter() - t0
+            prior, denoised = _update_prior(task, cfg.baseline, prior, rollouts, policy, rng)
+            new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r, denoised=denoised)
+            rec = record(state.iteration, "em", task, rollouts, timings={"rollouts": t_roll}, em=diag)
+            history = history + (rec,)
+            best = improved(best, float(np.mean(rec.cost)), policy, state.iteration)
+            policy = new
+        state = dataclasses.replace(
+            state, policy=policy, prior=prior, rng_state=rng.bit_generator.state,
+            history=history, best=best, em_done=True, prev=None,
+        )
+        # The EM policy is the KL reference (and the sampling policy) of this iteration.
+        return lqr_flm_iteration(task, cfg.baseline, state, reference=policy)
+    return lqr_flm_iteration(task, cfg.baseline, state)
+
+
+
+class DPSOCEM(LQRFLM):
+    """DPSOC-EM as a :class:`~soc_opt.methods.base.Method`: reads ``i_switch``, ``[baseline]``, ``[em]``."""
+
+    name = "dpsoc-em"
+    sections: tuple[str, ...] = ("i_switch", "baseline", "em")
+
+    def check_config(self, cfg) -> None:
+        """DPSOC-EM needs ``0 <= i_switch < baseline.iterations``."""
+        if not 0 <= cfg.i_switch < cfg.baseline.iterations:
+            raise ConfigError(
+                f"i_switch must be in [0, iterations={cfg.baseline.iterations}), got {cfg.i_switch}"
+            )
+
+    def iterate(self, task: Task, cfg, state: RunState) -> RunState:
+        return dpsoc_iteration(task, cfg, state)
+
+
+DPSOC_EM = DPSOCEM()

@@ -1,0 +1,167 @@
+"""Run state of the sample-based methods (docs/math.md §7): what a checkpoint holds.
+
+:class:`RunState` (policy, KL multiplier, mixture prior, RNG state, history) is what one
+iteration maps to the next, so that a run can be checkpointed after every iteration and resumed
+bit for bit; :class:`IterationRecord` is one row of ``metrics.csv``; :class:`BestPolicy` the best
+policy sampled so far (iLQG's state reports one too).  These types import nothing above the
+kernels, so every method module (and the run directory code) can use them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Literal, NamedTuple
+
+import numpy as np
+
+from ..estimator import FilteredPolicy
+from ..models import LinearGaussianPolicy, Rollouts
+
+if TYPE_CHECKING:
+    from ..fit import MixturePrior
+    from ..lqg import LocalModel
+
+__all__ = ["BestPolicy", "PreviousStep", "EMDiagnostics", "IterationRecord", "RunState", "state_rng",
+           "improved", "record"]
+
+
+class BestPolicy(NamedTuple):
+    """The best policy sampled so far in a run."""
+
+    mean_cost: float  # mean true-state total cost of its samples
+    policy: LinearGaussianPolicy | FilteredPolicy
+    iteration: int  # the (0-based) iteration in which it was sampled
+
+
+class PreviousStep(NamedTuple):
+    """The previous KL step, for the step-size adaptation (docs/math.md §6)."""
+
+    model: LocalModel  # fitted dynamics, cost expansion and initial distribution (innovation form
+    #                        with the estimator)
+    reference: LinearGaussianPolicy  # the KL reference of that step (its gains, on xhat with the estimator)
+
+
+@dataclass(frozen=True)
+class EMDiagnostics:
+    """Diagnostics of one EM recursion (paper Algorithm 1; docs/math.md §4–§5).
+
+    recursion:     index of the recursion within the EM phase.
+    surrogate_old, surrogate_new: ``sum_k Lbar_k`` of the sampled and of the EM policy, both under
+                   the smoothed moments of the sampled policy (the M-step raises it).
+    loglik_old, loglik_new: mean over the ``Y`` sequences of ``log p(Y)`` under the sampled and
+                   the EM policy.
+    time_fit_augmented, time_estep, time_mstep: wall time of each phase (seconds).
+    """
+
+    recursion: int
+    surrogate_old: float
+    surrogate_new: float
+    loglik_old: float
+    loglik_new: float
+    time_fit_augmented: float
+    time_estep: float
+    time_mstep: float
+
+    def summary(self) -> dict:
+        """The metrics columns of the recursion (``em_recursion`` first, then the fields)."""
+        out = dataclasses.asdict(self)
+        return {"em_recursion": out.pop("recursion"), **out}
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    """Metrics of one iteration (one sampling round).
+
+    phase: "baseline" or "em".  ``cost`` holds per-sample total costs on the true states.
+    em:    the EM recursion's diagnostics (``phase == "em"`` only).
+    """
+
+    iteration: int
+    phase: Literal["baseline", "em"]
+    cost: np.ndarray  # (M,) true-state total cost per sample
+    cost_measured: np.ndarray  # (M,) measured-state total cost per sample (docs/math.md §0 Y)
+    kl: float
+    nu: float
+    mult: float
+    metrics: dict[str, float]
+    timings: dict[str, float]
+    extra: dict[str, float] = field(default_factory=dict)
+    em: EMDiagnostics | None = None
+
+    def summary(self) -> dict:
+        return {
+            "iteration": self.iteration,
+            "phase": self.phase,
+            "cost_mean": float(np.mean(self.cost)),
+            "cost_std": float(np.std(self.cost)),
+            "cost_measured_mean": float(np.mean(self.cost_measured)),
+            "kl": self.kl,
+            "nu": self.nu,
+            "mult": self.mult,
+            **{f"metric_{k}": v for k, v in self.metrics.items()},
+            **{f"time_{k}": v for k, v in self.timings.items()},
+            **self.extra,
+            **(self.em.summary() if self.em is not None else {}),
+        }
+
+
+@dataclass(frozen=True)
+class RunState:
+    """Everything needed to continue a run (checkpointed after each iteration).
+
+    iteration:     number of finished baseline iterations.
+    policy:        the current policy ``p_i`` (sampled next); a FilteredPolicy with the estimator.
+    mult:          KL budget multiplier (step-size adaptation).
+    prior:         mixture prior of the dynamics fit, or None.
+    rng_state:     ``numpy`` bit-generator state (JSON-able dict).
+    history:       the IterationRecords so far.
+    prev:          the previous KL step, for the step adaptation.
+    best:          the best policy sampled so far.
+    em_done:       whether the DPSOC-EM phase has run.
+    last_rollouts: the rollouts of the last iteration.
+    """
+
+    iteration: int
+    policy: LinearGaussianPolicy | FilteredPolicy
+    mult: float
+    prior: MixturePrior | None
+    rng_state: dict
+    history: tuple[IterationRecord, ...] = ()
+    prev: PreviousStep | None = None
+    best: BestPolicy | None = None
+    em_done: bool = False
+    last_rollouts: Rollouts | None = None
+
+
+
+def state_rng(state: RunState) -> np.random.Generator:
+    """A generator continuing ``state``'s stream."""
+    rng = np.random.default_rng()
+    rng.bit_generator.state = state.rng_state
+    return rng
+
+
+def improved(best: BestPolicy | None, mean_cost: float, policy, iteration: int) -> BestPolicy:
+    """``best`` updated with a policy whose samples had ``mean_cost`` (kept when not lower)."""
+    if best is None or mean_cost < best.mean_cost:
+        return BestPolicy(mean_cost, policy, iteration)
+    return best
+
+
+def record(iteration, phase, task, rollouts, *, kl=0.0, nu=0.0, mult=1.0, timings=None, extra=None,
+           em=None) -> IterationRecord:
+    """The :class:`IterationRecord` of one sampling round of ``task``."""
+    return IterationRecord(
+        iteration=iteration,
+        phase=phase,
+        cost=np.asarray(task.true_cost(rollouts).sum(axis=-1)),
+        cost_measured=np.asarray(rollouts.total_cost()),
+        kl=float(kl),
+        nu=float(nu),
+        mult=float(mult),
+        metrics={k: float(v) for k, v in task.metrics(rollouts).items()},
+        timings=timings or {},
+        extra=extra or {},
+        em=em,
+    )
