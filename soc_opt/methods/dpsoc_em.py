@@ -3,8 +3,9 @@
 At iteration ``i_switch`` the reference of the KL step is replaced by the EM policy: ``n_em``
 recursions of {sample, fit augmented model (§1–§2), generate ``Y`` (§3), E-step (§4), DP M-step
 (§5)}; the LQG step of that iteration then uses the EM policy as its KL reference and as the
-sampling policy (paper eq. constrainObjective).  With ``[baseline.noise] estimator = "kalman"``
-(docs/math.md §10.2) the E-/M-step run on the augmented model in ``xhat``.
+sampling policy (paper eq. constrainObjective).  The run's noise strategy
+(:mod:`soc_opt.noise_strategy`) supplies the fit and the model the E-/M-step run on (with
+``[baseline.noise] estimator = "kalman"``, docs/math.md §10.2: the augmented model in ``xhat``).
 """
 
 from __future__ import annotations
@@ -15,12 +16,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import estep, fit, mstep, noise_aware
+from .. import estep, fit, mstep
 from ..config import ConfigError
 from ..estimator import FilteredPolicy
 from ..models import LinearGaussianPolicy, Rollouts
+from ..noise_strategy import NoiseStrategy, resolve
 from .config import DPSOCConfig, EMConfig
-from .lqr_flm import LQRFLM, _initial_distribution, _update_prior, lqr_flm_iteration
+from .lqr_flm import LQRFLM, lqr_flm_iteration
 from .state import EMDiagnostics, RunState, improved, record, state_rng
 
 if TYPE_CHECKING:
@@ -40,29 +42,9 @@ def _mstep_constraints(em: EMConfig, policy: LinearGaussianPolicy) -> mstep.MSte
     return cons
 
 
-def _em_model(task: Task, cfg: DPSOCConfig, rollouts: Rollouts, prior, policy, recursion: int, denoised=None):
-    """The EM recursion's augmented model, initial distribution and filter (``None`` for the paper).
-
-    With ``noise.estimator = "kalman"`` the model is the augmented model in ``xhat``
-    (``docs/noise.md`` §6) and the EM policy acts on the filter of this fit.
-    """
-    base = cfg.baseline
-    if base.noise.paper:
-        model = fit.fit_augmented(rollouts, base.fit, prior)
-    else:
-        model = noise_aware.fit_local(rollouts, base.fit, prior, base.noise, noise_aware.noise_model(task), policy,
-                                      include_y=True, denoised=denoised)
-    if base.noise.estimator == "none":
-        mu0, P0 = _initial_distribution(task)
-        return model, mu0, P0, None
-    model, kf, mu0, P0 = noise_aware.filtered_em_model(model, noise_aware.noise_model(task), base.noise,
-                                                       f" (EM recursion {recursion})")
-    return model, mu0, P0, kf
-
-
 def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | FilteredPolicy, rollouts: Rollouts,
               prior: fit.MixturePrior | None, rng: np.random.Generator,
-              recursion: int = 0, denoised: Rollouts | None = None
+              recursion: int = 0, denoised: Rollouts | None = None, noise: NoiseStrategy | None = None
               ) -> tuple[LinearGaussianPolicy | FilteredPolicy, EMDiagnostics]:
     """One EM recursion (paper Algorithm 1): fit augmented model, generate ``Y``, E-step, DP M-step.
 
@@ -70,12 +52,16 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | Filte
     :class:`EMDiagnostics` (surrogate and ``log p(Y)`` before/after, timings).  With the
     estimator (docs/math.md §10.2) the E-/M-step run on the augmented model in ``xhat``, ``policy``'s gains
     read as acting on the new filter's estimate, and the EM policy is returned with that filter.
+    ``denoised``: the state estimates of ``rollouts`` (``NoiseStrategy.estimate``); ``noise``: the
+    run's noise strategy (default: resolved from ``cfg.baseline.noise``).
     """
     em = cfg.em
+    noise = resolve(task, cfg.baseline.noise) if noise is None else noise
     t0 = time.perf_counter()
-    model, mu0, P0, kf = _em_model(task, cfg, rollouts, prior, policy, recursion, denoised)
+    fitted = noise.fit(rollouts, cfg.baseline.fit, prior, policy, denoised, include_y=True)
+    model, mu0, P0, wrap = noise.em_model(fitted, f" (EM recursion {recursion})")
     t_fit = time.perf_counter() - t0
-    policy = noise_aware.gains(policy)
+    policy = noise.gains(policy)
     Y = fit.cost_observations(em.y_mode, rollouts, model, policy, mu0, P0, rng, n_samples=em.y_samples)
 
     t0 = time.perf_counter()
@@ -99,11 +85,12 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | Filte
         time_estep=t_estep,
         time_mstep=t_mstep,
     )
-    return (new if kf is None else FilteredPolicy(new, kf)), diag
+    return wrap(new), diag
 
 
 def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
     """One DPSOC-EM outer iteration: the EM phase when ``iteration == i_switch``, then LQR-FLM."""
+    noise = resolve(task, cfg.baseline.noise)
     if state.iteration == cfg.i_switch and not state.em_done:
         rng = state_rng(state)
         policy = state.policy
@@ -114,8 +101,9 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
             t0 = time.perf_counter()
             rollouts = task.rollouts(policy, cfg.baseline.samples, rng, workers=cfg.baseline.workers)
             t_roll = time.perf_counter() - t0
-            prior, denoised = _update_prior(task, cfg.baseline, prior, rollouts, policy, rng)
-            new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r, denoised=denoised)
+            prior, denoised = noise.estimate(prior, rollouts, cfg.baseline.fit, policy, rng)
+            new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r, denoised=denoised,
+                                  noise=noise)
             rec = record(state.iteration, "em", task, rollouts, timings={"rollouts": t_roll}, em=diag)
             history = history + (rec,)
             best = improved(best, float(np.mean(rec.cost)), policy, state.iteration)
@@ -125,8 +113,8 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
             history=history, best=best, em_done=True, prev=None,
         )
         # The EM policy is the KL reference (and the sampling policy) of this iteration.
-        return lqr_flm_iteration(task, cfg.baseline, state, reference=policy)
-    return lqr_flm_iteration(task, cfg.baseline, state)
+        return lqr_flm_iteration(task, cfg.baseline, state, reference=policy, noise=noise)
+    return lqr_flm_iteration(task, cfg.baseline, state, noise=noise)
 
 
 

@@ -8,10 +8,10 @@ One iteration on an explicit :class:`~soc_opt.methods.state.RunState`:
 4. adapt the KL budget from predicted vs actual improvement (docs/math.md §6, GPS rule);
 5. KL-constrained LQG step against the reference policy -> ``p_{i+1}``.
 
-Noise-aware variants (docs/math.md §10, ``[baseline.noise]``, :mod:`soc_opt.noise_aware`): a
-bias-corrected fit in step 2, and with ``estimator = "kalman"`` policies that act on a Kalman
-filter estimate (:class:`~soc_opt.estimator.FilteredPolicy`), steps 4–5 on the innovation form.
-The defaults are the paper's method.
+Noise-aware variants (docs/math.md §10, ``[baseline.noise]``): steps 2–5 call the run's
+:class:`~soc_opt.noise_strategy.NoiseStrategy` (state estimates for the prior, corrected fit,
+expansion point, the KL step's model and the new policy's estimator); the defaults are the
+paper's method.
 """
 
 from __future__ import annotations
@@ -22,9 +22,10 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from .. import fit, lqg, noise_aware
+from .. import lqg
 from ..estimator import FilteredPolicy
-from ..models import LinearGaussianPolicy, Rollouts
+from ..models import LinearGaussianPolicy
+from ..noise_strategy import NoiseStrategy, resolve
 from .base import MethodBase
 from .config import LQRFLMConfig, with_paper_scale
 from .state import PreviousStep, RunState, improved, record, state_rng
@@ -46,11 +47,6 @@ def initial_state(task: Task, cfg: LQRFLMConfig, seed: int) -> RunState:
     )
 
 
-def _initial_distribution(task: Task) -> tuple[np.ndarray, np.ndarray]:
-    """``s_0 ~ N(mu0, P0)`` from the task (measurement noise included; docs/choices.md)."""
-    return np.asarray(task.mu0, float), np.asarray(task.P0, float)
-
-
 _BUDGETS: dict[str, Callable[[LQRFLMConfig, int, float], float | np.ndarray]] = {
     "total": lambda cfg, T, mult: cfg.kl_budget * T * mult,
     "per_step": lambda cfg, T, mult: np.full(T, cfg.kl_budget * mult),
@@ -61,38 +57,15 @@ def _budget(cfg: LQRFLMConfig, T: int, mult: float):
     """The KL budget of one step: a total ``nu`` or per-step ``(T,)`` budgets (``cfg.kl_mode``)."""
     return _BUDGETS[cfg.kl_mode](cfg, T, mult)
 
-def _local_model(task: Task, cfg: LQRFLMConfig, dyn, cost, iteration: int):
-    """The KL step's model and the new policy's filter: the fit as is (the paper), or its
-    innovation form with the filter of ``dyn`` (``noise.estimator = "kalman"``, docs/math.md §10.2)."""
-    if cfg.noise.estimator == "none":
-        mu0, P0 = _initial_distribution(task)
-        return lqg.LocalModel(dyn, cost, mu0, P0), None
-    kf = noise_aware.loop_filter(dyn, noise_aware.noise_model(task), cfg.noise, f" (iteration {iteration})")
-    return noise_aware.innovation_local_model(kf, cost), kf
-
-
-def _update_prior(task: Task, cfg: LQRFLMConfig, prior, rollouts: Rollouts, sampler, rng):
-    """Step 2a: the mixture prior on the measured tuples (the paper), or on smoothed ones
-    (``noise.prior_data = "smoothed"``); returns ``(prior, smoothed rollouts or None)``."""
-    if cfg.fit.prior != "mixture":
-        return None, None
-    if cfg.noise.prior_data == "measured":
-        return fit.update_prior(prior, rollouts, cfg.fit, rng), None
-    return noise_aware.update_prior(prior, rollouts, cfg.fit, cfg.noise, noise_aware.noise_model(task), sampler, rng)
-
-
-def _fit_dynamics(task: Task, cfg: LQRFLMConfig, rollouts: Rollouts, prior, sampler, denoised=None):
-    """Step 2b: the paper's fit, or the noise-aware one (``noise.fit_correction``, docs/math.md §10.1)."""
-    if cfg.noise.fit_correction == "none":
-        return fit.fit_dynamics(rollouts, cfg.fit, prior)
-    return noise_aware.fit_local(rollouts, cfg.fit, prior, cfg.noise, noise_aware.noise_model(task), sampler,
-                                 denoised=denoised)
-
 
 def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
                       reference: LinearGaussianPolicy | FilteredPolicy | None = None,
-                      phase: str = "baseline") -> RunState:
-    """One LQR-FLM iteration (module docstring, steps 1–5). Pure: returns a new state."""
+                      phase: str = "baseline", noise: NoiseStrategy | None = None) -> RunState:
+    """One LQR-FLM iteration (module docstring, steps 1–5). Pure: returns a new state.
+
+    ``noise``: the run's noise strategy (default: resolved from ``cfg.noise`` for ``task``).
+    """
+    noise = resolve(task, cfg.noise) if noise is None else noise
     rng = state_rng(state)
     timings = {}
     t0 = time.perf_counter()
@@ -100,22 +73,19 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     timings["rollouts"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    prior, denoised = _update_prior(task, cfg, state.prior, rollouts, state.policy, rng)
-    dyn = _fit_dynamics(task, cfg, rollouts, prior, state.policy, denoised)
+    prior, estimates = noise.estimate(state.prior, rollouts, cfg.fit, state.policy, rng)
+    dyn = noise.fit(rollouts, cfg.fit, prior, state.policy, estimates)
     timings["fit"] = time.perf_counter() - t0
 
-    if cfg.noise.expand_at == "measured":
-        s_bar = rollouts.s.mean(axis=0)
-    else:
-        s_bar = noise_aware.expansion_point(rollouts, dyn, noise_aware.noise_model(task), cfg.noise)
+    s_bar = noise.expansion_point(rollouts, dyn)
     a_bar = rollouts.a.mean(axis=0)
     cost = task.cost_expansion(s_bar, a_bar)
-    local, kf = _local_model(task, cfg, dyn, cost, state.iteration)
-    ref = noise_aware.gains(state.policy if reference is None else reference)
+    local, wrap = noise.lqg_model(dyn, cost, f" (iteration {state.iteration})")
+    ref = noise.gains(state.policy if reference is None else reference)
 
     mult = state.mult
     if cfg.adapt_step and state.prev is not None:
-        predicted, actual = lqg.laplace_improvements(state.prev.reference, noise_aware.gains(state.policy),
+        predicted, actual = lqg.laplace_improvements(state.prev.reference, noise.gains(state.policy),
                                                      state.prev.model, local)
         mult = lqg.adapt_step(mult, predicted, actual, cfg.kl)
 
@@ -132,7 +102,7 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     return dataclasses.replace(
         state,
         iteration=state.iteration + 1,
-        policy=res.policy if kf is None else FilteredPolicy(res.policy, kf),
+        policy=wrap(res.policy),
         mult=mult,
         prior=prior,
         rng_state=rng.bit_generator.state,

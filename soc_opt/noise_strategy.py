@@ -1,0 +1,185 @@
+"""One noise strategy per run: what ``[baseline.noise]`` means to the LQR-FLM / DPSOC-EM loop.
+
+:func:`resolve` turns a task and its :class:`~soc_opt.noise_aware.NoiseConfig` into one
+:class:`NoiseStrategy` object (memoised per task and configuration, so a run resolves it once).
+The loop (:mod:`soc_opt.methods.lqr_flm`, :mod:`soc_opt.methods.dpsoc_em`) calls only the
+strategy's operations and never branches on the configuration:
+
+============================  ==================================================================
+``estimate``                  the iteration's mixture prior and the state estimates of the
+                              rollouts it was fitted on (``None``: the measured states)
+``fit``                       the local model (dynamics, or the augmented model for EM) under the
+                              fit correction (docs/math.md §10.1)
+``expansion_point``           the ``(T+1, n)`` trajectory the cost is expanded around
+``lqg_model``                 the KL step's model and how its new policy is wrapped (§6, §10.2)
+``em_model``                  the EM recursion's augmented model, initial distribution and wrap
+``gains``                     the linear-Gaussian part ``(K, k, Sigma)`` of a policy of this
+                              estimator (what the KL step and the M-step read)
+============================  ==================================================================
+
+The estimator (``NoiseConfig.estimator``) picks the class from
+:data:`soc_opt.noise_aware.ESTIMATORS`; the fit correction, expansion point and prior data are
+options every estimator shares through :class:`NoiseStrategy`.  Adding an estimator is one new
+class (a subclass of :class:`NoiseStrategy` overriding what differs, usually ``lqg_model``,
+``em_model`` and ``gains``) and one entry ``"name": "module:Class"`` in ``ESTIMATORS``.  The
+defaults (:class:`MeasuredState`, no correction) are the paper's methods, bit for bit.
+"""
+
+from __future__ import annotations
+
+import importlib
+import weakref
+from typing import TYPE_CHECKING, Callable, NamedTuple
+
+import numpy as np
+
+from . import fit, noise_aware
+from .config import ConfigError
+from .estimator import FilteredPolicy
+from .lqg import LocalModel
+from .models import AugmentedModel, LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, Rollouts
+
+if TYPE_CHECKING:
+    from .noise_aware import NoiseConfig
+
+__all__ = ["NoiseStrategy", "MeasuredState", "KalmanEstimator", "LoopModel", "EMModel", "resolve",
+           "strategy_class"]
+
+
+def _identity(policy: LinearGaussianPolicy):
+    return policy
+
+
+class LoopModel(NamedTuple):
+    """The KL step's model and what the step's policy becomes.
+
+    local: the :class:`~soc_opt.lqg.LocalModel` the KL step runs on (dynamics, cost, ``mu0``, ``P0``).
+    wrap:  ``LinearGaussianPolicy -> policy`` run by the task's rollouts (e.g. with its filter).
+    """
+
+    local: LocalModel
+    wrap: Callable[[LinearGaussianPolicy], object]
+
+
+class EMModel(NamedTuple):
+    """The EM recursion's model: augmented model (§1), ``s_0 ~ N(mu0, P0)``, policy wrap."""
+
+    model: AugmentedModel
+    mu0: np.ndarray
+    P0: np.ndarray
+    wrap: Callable[[LinearGaussianPolicy], object]
+
+
+class NoiseStrategy:
+    """The loop's noise operations for one task and one ``NoiseConfig`` (module docstring).
+
+    Construct through :func:`resolve`.  ``cfg``: the ``[baseline.noise]`` table; ``task``: the
+    task (its ``mu0``, ``P0``, ``rho2``).  :attr:`noise` (the known noise model, docs/math.md
+    §10) is computed on first use, so the paper's method never builds it.  Subclasses override
+    ``lqg_model``, ``em_model`` and ``gains`` (the estimator in the loop); ``estimate``, ``fit``
+    and ``expansion_point`` implement the options shared by all estimators.
+    """
+
+    name = ""
+
+    def __init__(self, task, cfg: NoiseConfig):
+        self.task = task
+        self.cfg = cfg
+        self._noise: noise_aware.NoiseModel | None = None
+
+    @property
+    def noise(self) -> noise_aware.NoiseModel:
+        if self._noise is None:
+            self._noise = noise_aware.noise_model(self.task)
+        return self._noise
+
+    def initial_distribution(self) -> tuple[np.ndarray, np.ndarray]:
+        """``s_0 ~ N(mu0, P0)`` from the task (measurement noise included; docs/choices.md)."""
+        return np.asarray(self.task.mu0, float), np.asarray(self.task.P0, float)
+
+    def gains(self, policy) -> LinearGaussianPolicy:
+        """The linear-Gaussian part ``(K, k, Sigma)`` of ``policy``."""
+        return noise_aware.gains(policy)
+
+    def estimate(self, prior, rollouts: Rollouts, fit_cfg: fit.FitConfig, sampler,
+                 rng: np.random.Generator) -> tuple[fit.MixturePrior | None, Rollouts | None]:
+        """Step 2a: the mixture prior on the measured tuples (the paper), or on state estimates
+        (``prior_data = "smoothed"``: :func:`soc_opt.noise_aware.update_prior`); returns
+        ``(prior or None, rollouts with estimated states or None)``."""
+        if fit_cfg.prior != "mixture":
+            return None, None
+        if self.cfg.prior_data == "measured":
+            return fit.update_prior(prior, rollouts, fit_cfg, rng), None
+        return noise_aware.update_prior(prior, rollouts, fit_cfg, self.cfg, self.noise, sampler, rng)
+
+    def fit(self, rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, sampler, estimates: Rollouts | None = None,
+            *, include_y: bool = False) -> LinearGaussianDynamics | AugmentedModel:
+        """Step 2b: the paper's fit (§2) or the corrected one (``fit_correction``, §10.1);
+        ``include_y``: the augmented model of the EM phase."""
+        if self.cfg.fit_correction == "none":
+            return (fit.fit_augmented if include_y else fit.fit_dynamics)(rollouts, fit_cfg, prior)
+        return noise_aware.fit_local(rollouts, fit_cfg, prior, self.cfg, self.noise, sampler, include_y=include_y,
+                                     denoised=estimates)
+
+    def expansion_point(self, rollouts: Rollouts, dynamics: LinearGaussianDynamics) -> np.ndarray:
+        """Step 3: where the cost is expanded (``expand_at``; :func:`soc_opt.noise_aware.expansion_point`)."""
+        if self.cfg.expand_at == "measured":
+            return rollouts.s.mean(axis=0)
+        return noise_aware.expansion_point(rollouts, dynamics, self.noise, self.cfg)
+
+    def lqg_model(self, dynamics: LinearGaussianDynamics, cost: QuadraticCost, where: str = "") -> LoopModel:
+        """Steps 4–5: the KL step's model; the policy acts on the measured state (the paper)."""
+        mu0, P0 = self.initial_distribution()
+        return LoopModel(LocalModel(dynamics, cost, mu0, P0), _identity)
+
+    def em_model(self, model: AugmentedModel, where: str = "") -> EMModel:
+        """The EM recursion's model: the fit as is, ``s_0`` from the task (the paper)."""
+        mu0, P0 = self.initial_distribution()
+        return EMModel(model, mu0, P0, _identity)
+
+
+class MeasuredState(NoiseStrategy):
+    """``estimator = "none"``: policies act on the measured ``s_k`` (the paper, docs/math.md §7)."""
+
+    name = "none"
+
+
+class KalmanEstimator(NoiseStrategy):
+    """``estimator = "kalman"`` (docs/math.md §10.2): policies act on ``xhat_k`` of a Kalman filter of
+    the iteration's fitted model (:class:`~soc_opt.estimator.FilteredPolicy`); the KL step runs on
+    the innovation form, the EM phase on the augmented model in ``xhat``."""
+
+    name = "kalman"
+
+    def lqg_model(self, dynamics, cost, where: str = "") -> LoopModel:
+        kf = noise_aware.loop_filter(dynamics, self.noise, self.cfg, where)
+        return LoopModel(noise_aware.innovation_local_model(kf, cost), lambda policy: FilteredPolicy(policy, kf))
+
+    def em_model(self, model, where: str = "") -> EMModel:
+        model, kf, mu0, P0 = noise_aware.filtered_em_model(model, self.noise, self.cfg, where)
+        return EMModel(model, mu0, P0, lambda policy: FilteredPolicy(policy, kf))
+
+
+def strategy_class(name: str) -> type[NoiseStrategy]:
+    """The class registered for estimator ``name`` in :data:`soc_opt.noise_aware.ESTIMATORS`."""
+    ref = noise_aware.ESTIMATORS.get(name)
+    if ref is None:
+        raise ConfigError(f"estimator: unknown estimator {name!r}; use one of "
+                          f"{', '.join(map(repr, noise_aware.ESTIMATORS))}")
+    module, _, attr = ref.partition(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+_RESOLVED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def resolve(task, cfg: NoiseConfig) -> NoiseStrategy:
+    """The strategy of ``cfg.estimator`` for ``task`` (one object per task and configuration)."""
+    try:
+        per_task = _RESOLVED.setdefault(task, {})
+    except TypeError:  # a task that cannot be weakly referenced: no memo
+        return strategy_class(cfg.estimator)(task, cfg)
+    strategy = per_task.get(cfg)
+    if strategy is None:
+        strategy = per_task[cfg] = strategy_class(cfg.estimator)(task, cfg)
+    return strategy
