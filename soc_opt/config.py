@@ -5,9 +5,18 @@ frozen dataclass deriving from :class:`Config`.  ``Config.from_dict`` rejects
 unknown keys and wrong types with a message naming the key, before any work
 starts; nested configs are nested TOML tables.
 
-Every ``Config`` also rejects NaN and infinite numbers in any of its float fields (and in
-lists of floats), whether built from TOML or in Python: :meth:`Config.__post_init__` checks them
-before a subclass's own ``__post_init__`` range checks run (:func:`check_finite`).
+Every ``Config`` checks itself when it is constructed, whether from TOML or in Python, in one
+declared style (as scikit-learn's ``_parameter_constraints``):
+
+1. NaN and infinite numbers are rejected in float fields (and lists of floats) (:func:`check_finite`);
+2. every field's value must match its annotation (types, ``Literal`` choices, ``X | None``);
+3. every field named in the class's ``_constraints`` table must satisfy one of its constraints:
+   :class:`Interval` (a range of numbers), :class:`Options` (a set of names, possibly read from a
+   solver or estimator table when the class is checked) or ``None`` (the value ``None``);
+4. the subclass's own ``__post_init__`` runs last, for the rules between fields.
+
+Every failure is one :class:`ConfigError` whose message starts with the key and names the value
+(``from_dict`` prefixes the table path, ``from_toml`` the file).
 """
 
 from __future__ import annotations
@@ -20,13 +29,142 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-__all__ = ["Config", "ConfigError", "read_toml", "check_finite"]
+__all__ = ["Config", "ConfigError", "Interval", "Options", "config_error", "read_toml", "check_finite"]
 
 C = TypeVar("C", bound="Config")
 
 
 class ConfigError(ValueError):
     """A configuration value or key is invalid; the message names it."""
+
+
+def config_error(key: str, message: str) -> ConfigError:
+    """A :class:`ConfigError` ``"key: message"`` that :meth:`Config.from_dict` prefixes with the table path."""
+    err = ConfigError(f"{key}: {message}")
+    err.key = key
+    return err
+
+
+@dataclasses.dataclass(frozen=True)
+class Interval:
+    """A number in ``[lo, hi]`` (``None``: unbounded); ``closed`` says which ends are included."""
+
+    lo: float | None = None
+    hi: float | None = None
+    closed: typing.Literal["both", "left", "right", "neither"] = "both"
+
+    def holds(self, value) -> bool:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return False
+        lo_ok = self.lo is None or (value >= self.lo if self.closed in ("both", "left") else value > self.lo)
+        hi_ok = self.hi is None or (value <= self.hi if self.closed in ("both", "right") else value < self.hi)
+        return lo_ok and hi_ok
+
+    def __str__(self) -> str:
+        if self.lo is not None and self.hi is None:
+            return f"{'>=' if self.closed in ('both', 'left') else '>'} {self.lo:g}"
+        if self.hi is not None and self.lo is None:
+            return f"{'<=' if self.closed in ('both', 'right') else '<'} {self.hi:g}"
+        left = "[" if self.closed in ("both", "left") else "("
+        right = "]" if self.closed in ("both", "right") else ")"
+        return f"in {left}{self.lo:g}, {self.hi:g}{right}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """One of a set of names: a tuple, or a callable returning the current names of a table
+    (e.g. the KL-step solvers), so that a registered entry is accepted without editing the config."""
+
+    values: tuple | typing.Callable[[], typing.Iterable]
+
+    def names(self) -> tuple:
+        return tuple(self.values() if callable(self.values) else self.values)
+
+    def holds(self, value) -> bool:
+        return isinstance(value, str) and value in self.names()
+
+    def __str__(self) -> str:
+        return f"one of {list(self.names())}"
+
+
+def _satisfies(value, constraint) -> bool:
+    return value is None if constraint is None else constraint.holds(value)
+
+
+def check_constraints(cfg: "Config") -> None:
+    """Types (annotations) and the ``_constraints`` table of ``cfg``'s class (module docstring)."""
+    cls = type(cfg)
+    hints = _hints(cls)
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.name in hints:
+            _check_value(f.name, value, hints[f.name])
+        allowed = cls._constraints.get(f.name)
+        if allowed is not None and not any(_satisfies(value, c) for c in allowed):
+            wanted = " or ".join("None" if c is None else str(c) for c in allowed)
+            raise config_error(f.name, f"must be {wanted}, got {value!r}")
+
+
+_HINTS: dict[type, dict] = {}
+
+
+def _hints(cls) -> dict:
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
+
+
+def _check_value(key: str, value: Any, tp: Any) -> None:
+    """Raise a :class:`ConfigError` if ``value`` does not match the annotation ``tp`` (no conversion)."""
+    origin = typing.get_origin(tp)
+    if tp is Any:
+        return
+    if origin in (typing.Union, types.UnionType):
+        for arg in typing.get_args(tp):
+            try:
+                _check_value(key, value, arg)
+                return
+            except ConfigError:
+                continue
+        raise config_error(key, f"{value!r} does not match {tp}")
+    if tp is type(None):
+        if value is not None:
+            raise config_error(key, f"expected None, got {value!r}")
+        return
+    if origin is typing.Literal:
+        if value not in typing.get_args(tp):
+            raise config_error(key, f"{value!r} is not one of {list(typing.get_args(tp))}")
+        return
+    if origin in (tuple, list):
+        if type(value).__name__ == "ndarray":  # an array given in Python: its owner converts it
+            return
+        if not isinstance(value, (list, tuple)):
+            raise config_error(key, f"expected a list, got {type(value).__name__} {value!r}")
+        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        if origin is tuple and typing.get_args(tp) and typing.get_args(tp)[-1] is not Ellipsis:
+            if len(args) != len(value):
+                raise config_error(key, f"expected {len(args)} entries, got {len(value)}")
+            for v, a in zip(value, args):
+                _check_value(key, v, a)
+        elif args:
+            for v in value:
+                _check_value(key, v, args[0])
+        return
+    if origin is dict:
+        if not isinstance(value, (dict, Config)):  # a table, or the config its owner built from it
+            raise config_error(key, f"expected a table, got {type(value).__name__}")
+        return
+    checks = {
+        float: lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+        int: lambda v: isinstance(v, int) and not isinstance(v, bool),
+        bool: lambda v: isinstance(v, bool),
+        str: lambda v: isinstance(v, str),
+    }
+    if tp in checks:
+        if not checks[tp](value):
+            raise config_error(key, f"expected {tp.__name__}, got {type(value).__name__} {value!r}")
+    elif isinstance(tp, type) and not isinstance(value, tp):
+        raise config_error(key, f"expected {tp.__name__}, got {type(value).__name__} {value!r}")
 
 
 def _nonfinite(name: str, value: Any) -> str | None:
@@ -139,9 +277,13 @@ def read_toml(path: str | Path) -> dict:
 class Config:
     """Base class: a frozen dataclass with strict ``from_dict`` / ``from_toml`` / ``to_dict``.
 
-    Subclasses may define ``__post_init__`` for their range checks; it runs after
-    :func:`check_finite` (installed by ``__init_subclass__``), so a range check never sees NaN.
+    ``_constraints`` (a class attribute, ``{field: [Interval | Options | None, ...]}``) declares
+    the allowed values of each field; subclasses may define ``__post_init__`` for the rules
+    between fields; it runs after :func:`check_finite` and :func:`check_constraints` (installed by
+    ``__init_subclass__``), so it never sees NaN, a wrong type or an out-of-range value.
     """
+
+    _constraints: typing.ClassVar[dict[str, list]] = {}
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -149,6 +291,7 @@ class Config:
         if own is not None and not getattr(own, "_checks_finite", False):
             def __post_init__(self, _own=own):
                 check_finite(self)
+                check_constraints(self)
                 _own(self)
 
             __post_init__._checks_finite = True
@@ -157,6 +300,7 @@ class Config:
 
     def __post_init__(self):
         check_finite(self)
+        check_constraints(self)
 
     @classmethod
     def from_dict(cls: type[C], data: dict, _path: str = "") -> C:
@@ -189,7 +333,10 @@ class Config:
         data = read_toml(path)
         if table is not None:
             data = data.get(table, {})
-        return cls.from_dict(data)
+        try:
+            return cls.from_dict(data)
+        except ConfigError as e:
+            raise ConfigError(f"{path}: {e}") from e
 
     def to_dict(self) -> dict:
         out = {}

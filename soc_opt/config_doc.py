@@ -23,7 +23,7 @@ __all__ = ["LIBRARY", "config_tables", "describe", "render"]
 
 #: Configs that are not part of the run configuration: (public path, where they are used).
 LIBRARY = (
-    ("soc_opt.lqg.KLStepConfig", "library: `lqg.kl_step(config=...)`, `lqg.adapt_step(config=...)`"),
+    ("soc_opt.lqg.KLStepConfig", "library: `lqg.kl_step(config=...)`, `lqg.adapt_multiplier(config=...)`"),
     ("soc_opt.mstep.MStepConstraints", "library: `mstep.maximize(constraints=...)`"),
 )
 
@@ -143,8 +143,8 @@ n_components = 20
 
 [baseline.kl]             # KL-step dual solver and step adaptation (docs/math.md §6)
 kl_rtol = 1e-6
-min_mult = 0.1
-max_mult = 5.0
+factor_min = 0.1
+factor_max = 5.0
 
 [em]                      # EM phase (docs/math.md §3-§5)
 n_em = 1

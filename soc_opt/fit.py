@@ -75,7 +75,7 @@ from typing import Literal
 
 import numpy as np
 
-from .config import Config
+from .config import Config, Interval, Options
 from .linalg import T as _T
 from .linalg import as_generator, chol, cho_solve, single_thread_blas
 from .mixture import MixturePrior, VBState, standardisation
@@ -170,21 +170,15 @@ class FitConfig(Config):
     mixture_reg: float = 1e-6
     min_eig: float = 1e-9
 
-    def __post_init__(self):
-        if self.prior not in ("mixture", "none"):
-            raise ValueError(f"prior must be 'mixture' or 'none', got {self.prior!r}")
-        if self.n_components < 1:
-            raise ValueError(f"n_components must be >= 1, got {self.n_components}")
-        if self.max_iter < 1:
-            raise ValueError(f"max_iter must be >= 1, got {self.max_iter}")
-        if self.buffer_size < 0:
-            raise ValueError(f"buffer_size must be >= 0, got {self.buffer_size}")
-        for name in ("weight_concentration", "k0", "n0", "reg", "mixture_reg", "min_eig", "tol"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive number, got {v!r}")
-        if not 0.0 <= self.min_weight < 1.0:
-            raise ValueError(f"min_weight must be in [0, 1), got {self.min_weight!r}")
+    _constraints = {
+        "prior": [Options(("mixture", "none"))],
+        "n_components": [Interval(1)],
+        "max_iter": [Interval(1)],
+        "buffer_size": [Interval(0)],
+        **{name: [Interval(0, None, "neither")]
+           for name in ("weight_concentration", "k0", "n0", "reg", "mixture_reg", "min_eig", "tol")},
+        "min_weight": [Interval(0.0, 1.0, "left")],
+    }
 
 
 # --------------------------------------------------------------------------- data

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Callable, Literal
 import numpy as np
 
 from . import lqg
-from .config import Config, ConfigError
+from .config import Config, ConfigError, Interval, config_error
 from .methods.base import MethodBase
 from .methods.state import BestPolicy
 from .models import LinearGaussianPolicy, Rollouts
@@ -59,22 +59,21 @@ class ILQGConfig(Config):
     tol: float = 1e-4
     policy_var: float = 1.0
 
+    _constraints = {
+        "iterations": [Interval(1)],
+        "mu_init": [Interval(0)],
+        "mu_factor": [Interval(1, None, "neither")],
+        "mu_max": [Interval(0, None, "neither")],
+        "mu_restart": [Interval(0, None, "neither")],
+        "tol": [Interval(0)],
+        "policy_var": [Interval(0, None, "neither")],
+    }
+
     def __post_init__(self):
-        checks = [
-            ("iterations", self.iterations >= 1, "must be >= 1"),
-            ("mu_init", self.mu_init >= 0, "must be >= 0"),
-            ("mu_factor", self.mu_factor > 1, "must be > 1"),
-            ("mu_max", self.mu_max > 0 and self.mu_max >= self.mu_init, "must be positive and >= mu_init"),
-            ("mu_restart", self.mu_restart > 0, "must be positive"),
-            ("alphas", len(self.alphas) > 0 and all(a > 0 for a in self.alphas), "must be non-empty and positive"),
-            ("tol", self.tol >= 0, "must be >= 0"),
-            ("policy_var", self.policy_var > 0, "must be positive"),
-        ]
-        for key, ok, msg in checks:
-            if not ok:
-                err = ConfigError(f"{key}: {msg}, got {getattr(self, key)!r}")
-                err.key = key
-                raise err
+        if self.mu_max < self.mu_init:
+            raise config_error("mu_max", f"must be >= mu_init, got {self.mu_max!r}")
+        if not self.alphas or not all(a > 0 for a in self.alphas):
+            raise config_error("alphas", f"must be non-empty and positive, got {self.alphas!r}")
 
 
 @dataclass(frozen=True)

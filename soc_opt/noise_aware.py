@@ -43,7 +43,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from . import fit
-from .config import Config, ConfigError
+from .config import Config, Interval, Options, config_error
 from .estimator import (
     FilteredPolicy,
     KalmanFilter,
@@ -116,7 +116,12 @@ class NoiseConfig(Config):
                      would make the filter stop listening to the measurements).
     estep_p0_jitter: added (times ``I``) to the covariance of ``xhat_0`` for DPSOC-EM's E-step,
                      which needs it positive definite (a known start makes it ~0).
-    em_max_iter:     maximum EM iterations of ``"ssm_em"``.
+    em_max_iter:     maximum EM iterations of ``"ssm_em"`` in the loop (:func:`ssm_em_fit`, one fit
+                     per iteration, warm from the paper's fit and pulled by the NIW prior: 20 by
+                     default).  :class:`soc_opt.noisefit.NoiseFitConfig` configures the library's
+                     stand-alone SSM-EM (:func:`soc_opt.noisefit.ssm_em`, no prior, run to
+                     convergence: 500, ``em_tol`` 1e-8); the two are different fits and keep
+                     separate settings.  ``min_reliability`` has the same meaning and default in both.
     em_tol:          ``"ssm_em"`` stops when ``log p(s | a)`` changes by less than ``em_tol`` per
                      sequence and time step.
     expand_at:       where LQR-FLM expands the cost (docs/math.md §3): ``"measured"`` (the sample mean of
@@ -148,37 +153,27 @@ class NoiseConfig(Config):
     prior_data: Literal["measured", "smoothed"] = "measured"
     pool: Literal["union", "anchored"] = "union"
 
+    _constraints = {
+        "estimator": [Options(lambda: ESTIMATORS)],
+        "fit_correction": [Options(("none", "moments", "ssm_em"))],
+        "min_reliability": [Interval(0.0, 1.0, "right")],
+        "filter_w_floor": [Interval(0.0)],
+        "estep_p0_jitter": [Interval(0.0, None, "neither")],
+        "em_max_iter": [Interval(1)],
+        "em_tol": [Interval(0.0)],
+        "time_window": [Interval(0)],
+        "expand_at": [Options(("measured", "smoothed"))],
+        "prior_data": [Options(("measured", "smoothed"))],
+        "pool": [Options(("union", "anchored"))],
+    }
+
     def __post_init__(self):
-        if self.estimator not in ESTIMATORS:
-            err = ConfigError(f"estimator: {self.estimator!r} is not one of {list(ESTIMATORS)}")
-            err.key = "estimator"
-            raise err
-        if self.fit_correction not in ("none", "moments", "ssm_em"):
-            raise ValueError(f"fit_correction must be 'none', 'moments' or 'ssm_em', got {self.fit_correction!r}")
-        if not 0.0 < self.min_reliability <= 1.0:
-            raise ValueError(f"min_reliability must be in (0, 1], got {self.min_reliability!r}")
-        if not (np.isfinite(self.filter_w_floor) and self.filter_w_floor >= 0):
-            raise ValueError(f"filter_w_floor must be a finite number >= 0, got {self.filter_w_floor!r}")
-        if not (np.isfinite(self.estep_p0_jitter) and self.estep_p0_jitter > 0):
-            raise ValueError(f"estep_p0_jitter must be a positive number, got {self.estep_p0_jitter!r}")
-        if self.em_max_iter < 1:
-            raise ValueError(f"em_max_iter must be >= 1, got {self.em_max_iter!r}")
-        if not (np.isfinite(self.em_tol) and self.em_tol >= 0):
-            raise ValueError(f"em_tol must be a finite number >= 0, got {self.em_tol!r}")
-        if self.expand_at not in ("measured", "smoothed"):
-            raise ValueError(f"expand_at must be 'measured' or 'smoothed', got {self.expand_at!r}")
-        if self.prior_data not in ("measured", "smoothed"):
-            raise ValueError(f"prior_data must be 'measured' or 'smoothed', got {self.prior_data!r}")
         if self.prior_data == "smoothed" and self.fit_correction != "ssm_em":
-            raise ValueError("prior_data = 'smoothed' fits the prior on smoothed states and needs "
-                             f"fit_correction = 'ssm_em' (got {self.fit_correction!r})")
-        if self.pool not in ("union", "anchored"):
-            raise ValueError(f"pool must be 'union' or 'anchored', got {self.pool!r}")
-        if self.time_window < 0:
-            raise ValueError(f"time_window must be >= 0, got {self.time_window!r}")
+            raise config_error("prior_data", "'smoothed' fits the prior on smoothed states and needs "
+                               f"fit_correction = 'ssm_em' (got {self.fit_correction!r})")
         if self.time_window > 0 and self.fit_correction == "none":
-            raise ValueError("time_window pools the noise-aware fits' moments; it needs fit_correction "
-                             "'moments' or 'ssm_em' (the paper's fit is per step)")
+            raise config_error("time_window", "pools the noise-aware fits' moments; it needs fit_correction "
+                               "'moments' or 'ssm_em' (the paper's fit is per step)")
 
     @property
     def paper(self) -> bool:

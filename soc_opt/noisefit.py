@@ -34,7 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .config import Config
+from .config import Config, Interval
 from .estimator import check_noise_covariance, filter_pass, kalman_filter
 from .linalg import T as _T
 from .linalg import cho_solve, chol, right_cho_solve, tri_solve
@@ -79,15 +79,12 @@ class NoiseFitConfig(Config):
     em_tol: float = 1e-8
     em_initial: bool = True
 
-    def __post_init__(self):
-        if not 0.0 < self.min_reliability <= 1.0:
-            raise ValueError(f"min_reliability must be in (0, 1], got {self.min_reliability!r}")
-        if not (np.isfinite(self.min_eig) and self.min_eig > 0):
-            raise ValueError(f"min_eig must be a positive number, got {self.min_eig!r}")
-        if self.em_max_iter < 1:
-            raise ValueError(f"em_max_iter must be >= 1, got {self.em_max_iter!r}")
-        if not (np.isfinite(self.em_tol) and self.em_tol >= 0):
-            raise ValueError(f"em_tol must be >= 0, got {self.em_tol!r}")
+    _constraints = {
+        "min_reliability": [Interval(0.0, 1.0, "right")],
+        "min_eig": [Interval(0, None, "neither")],
+        "em_max_iter": [Interval(1)],
+        "em_tol": [Interval(0)],
+    }
 
 
 # --------------------------------------------------------------------------- inputs

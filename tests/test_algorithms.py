@@ -108,7 +108,7 @@ def test_dpsoc_em_rejects_a_switch_outside_the_run_before_sampling():
     task = load_task("linear2d", overrides={"T": 5})
     with pytest.raises(ValueError, match="i_switch"):
         run_algorithm(task, "dpsoc-em", cfg.replace(baseline=LQRFLMConfig(iterations=1, samples=2)), seed=0)
-    with pytest.raises(ValueError, match="i_switch must be >= 0"):
+    with pytest.raises(ValueError, match="i_switch: must be >= 0"):
         DPSOCConfig(i_switch=-1)
 
 
@@ -148,7 +148,7 @@ def test_em_update_passes_its_mstep_config_to_the_m_step(monkeypatch):
 
 def test_loop_kl_tolerance_comes_from_the_config_with_the_loop_default():
     """A partial [baseline.kl] table keeps the loop's tolerance (1e-6), not the library's (1e-10)."""
-    cfg = DPSOCConfig.from_dict({"baseline": {"kl": {"min_mult": 0.2}}})
+    cfg = DPSOCConfig.from_dict({"baseline": {"kl": {"factor_min": 0.2}}})
     assert cfg.baseline.kl.kl_rtol == LQRFLMConfig().kl.kl_rtol == 1e-6
     assert lqg.KLStepConfig().kl_rtol == 1e-10
     assert isinstance(cfg.baseline.kl, lqg.KLStepConfig)

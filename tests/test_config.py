@@ -110,3 +110,46 @@ def test_docs_configuration_md_is_the_generated_reference():
 
     doc = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
     assert doc.read_text() == render(), "regenerate with: soc-opt config-doc --out docs/configuration.md"
+
+
+def test_configs_check_themselves_when_built_in_python_naming_key_and_value():
+    from soc_opt.algorithms import EMConfig, LQRFLMConfig
+    from soc_opt.lqg import KLStepConfig
+    from soc_opt.noise_aware import NoiseConfig
+
+    cases = [
+        (LQRFLMConfig, {"kl_mode": "bogus"}, "kl_mode", "'bogus'"),
+        (LQRFLMConfig, {"kl_method": "nope"}, "kl_method", "'nope'"),
+        (LQRFLMConfig, {"samples": 1}, "samples", "1"),
+        (LQRFLMConfig, {"samples": "20"}, "samples", "'20'"),
+        (EMConfig, {"variant": "nope"}, "variant", "'nope'"),
+        (EMConfig, {"y_samples": 0}, "y_samples", "0"),
+        (KLStepConfig, {"mult_max": -1.0}, "mult_max", "-1.0"),
+        (NoiseConfig, {"estimator": "ekf"}, "estimator", "'ekf'"),
+    ]
+    for cls, kwargs, key, shown in cases:
+        with pytest.raises(ConfigError) as info:
+            cls(**kwargs)
+        msg = str(info.value)
+        assert msg.startswith(f"{key}:") and shown in msg, msg
+
+
+def test_every_kl_step_solver_is_accepted_from_toml(tmp_path):
+    from soc_opt.algorithms import DPSOCConfig
+    from soc_opt.lqg import KL_METHODS
+
+    for name in KL_METHODS:
+        path = tmp_path / f"{name}.toml"
+        path.write_text(f'[baseline]\nkl_method = "{name}"\n')
+        assert DPSOCConfig.from_toml(path).baseline.kl_method == name
+
+
+def test_a_bad_value_in_a_toml_file_names_the_file_the_table_path_and_the_value(tmp_path):
+    from soc_opt.algorithms import DPSOCConfig
+
+    path = tmp_path / "bad.toml"
+    path.write_text("[baseline.kl]\nmult_min = 0.0\n")
+    with pytest.raises(ConfigError) as info:
+        DPSOCConfig.from_toml(path)
+    msg = str(info.value)
+    assert str(path) in msg and "baseline.kl.mult_min" in msg and "0.0" in msg, msg

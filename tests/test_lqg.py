@@ -19,7 +19,7 @@ from soc_opt.lqg import (
     KLStepConfig,
     LocalModel,
     SolverError,
-    adapt_step,
+    adapt_multiplier,
     expected_cost,
     forward,
     kl_divergence,
@@ -775,21 +775,21 @@ def test_config_is_strict():
 
 
 def test_adapt_step_gps_rule():
-    cfg = KLStepConfig(min_mult=0.1, max_mult=5.0, nu_min=1e-3, nu_max=10.0)
+    cfg = KLStepConfig(factor_min=0.1, factor_max=5.0, mult_min=1e-3, mult_max=10.0)
     # mult = pred / (2 (pred - act)), clipped to [0.1, 5]
-    assert adapt_step(1.0, 2.0, 0.0, cfg) == pytest.approx(0.5)  # no actual improvement: halve
-    assert adapt_step(1.0, 2.0, 1.0, cfg) == pytest.approx(1.0)  # half realised: keep
-    assert adapt_step(1.0, 2.0, 1.8, cfg) == pytest.approx(5.0)  # good model: grow (clipped)
-    assert adapt_step(1.0, 2.0, 2.0, cfg) == pytest.approx(5.0)  # perfect prediction
-    assert adapt_step(1.0, 1.0, -3.0, cfg) == pytest.approx(0.125)  # cost went up
-    assert adapt_step(1.0, -1.0, 0.5, cfg) == pytest.approx(0.1)  # nothing predicted
-    assert adapt_step(5.0, 2.0, 2.0, cfg) == pytest.approx(10.0)  # nu_max
-    assert adapt_step(2e-3, 2.0, -10.0, cfg) == pytest.approx(1e-3)  # nu_min
-    np.testing.assert_allclose(adapt_step(np.array([1.0, 2.0]), 2.0, 0.0, cfg), [0.5, 1.0])
+    assert adapt_multiplier(1.0, 2.0, 0.0, cfg) == pytest.approx(0.5)  # no actual improvement: halve
+    assert adapt_multiplier(1.0, 2.0, 1.0, cfg) == pytest.approx(1.0)  # half realised: keep
+    assert adapt_multiplier(1.0, 2.0, 1.8, cfg) == pytest.approx(5.0)  # good model: grow (clipped)
+    assert adapt_multiplier(1.0, 2.0, 2.0, cfg) == pytest.approx(5.0)  # perfect prediction
+    assert adapt_multiplier(1.0, 1.0, -3.0, cfg) == pytest.approx(0.125)  # cost went up
+    assert adapt_multiplier(1.0, -1.0, 0.5, cfg) == pytest.approx(0.1)  # nothing predicted
+    assert adapt_multiplier(5.0, 2.0, 2.0, cfg) == pytest.approx(10.0)  # mult_max
+    assert adapt_multiplier(2e-3, 2.0, -10.0, cfg) == pytest.approx(1e-3)  # mult_min
+    np.testing.assert_allclose(adapt_multiplier(np.array([1.0, 2.0]), 2.0, 0.0, cfg), [0.5, 1.0])
     with pytest.raises(ValueError):
-        adapt_step(1.0, np.nan, 0.0, cfg)
+        adapt_multiplier(1.0, np.nan, 0.0, cfg)
     with pytest.raises(ValueError):
-        adapt_step(-1.0, 1.0, 0.0, cfg)
+        adapt_multiplier(-1.0, 1.0, 0.0, cfg)
 
 
 def test_laplace_improvements():

@@ -49,7 +49,7 @@ def _paper_iteration(task, cfg, state):
     mult = state.mult
     if state.prev is not None:
         pred, act = lqg.laplace_improvements(state.prev.reference, state.policy, state.prev.model, model)
-        mult = lqg.adapt_step(mult, pred, act, cfg.kl)
+        mult = lqg.adapt_multiplier(mult, pred, act, cfg.kl)
     res = lqg.kl_step(dyn, cost, state.policy, cfg.kl_budget * task.T * mult, task.mu0, task.P0, config=cfg.kl)
     return res.policy, mult, ro
 
@@ -376,13 +376,13 @@ def test_noise_config_rejects_unknown_values_with_the_key_named():
         NoiseConfig(min_reliability=0.0)
     with pytest.raises(ValueError, match="time_window"):
         NoiseConfig(time_window=-1, fit_correction="moments")
-    with pytest.raises(ValueError, match="time_window .* needs fit_correction"):
+    with pytest.raises(ValueError, match="time_window: .* needs fit_correction"):
         NoiseConfig(time_window=5)
     with pytest.raises(ConfigError, match="noise.expand_at"):
         LQRFLMConfig.from_dict({"noise": {"expand_at": "true"}})
     with pytest.raises(ConfigError, match="noise.pool"):
         LQRFLMConfig.from_dict({"noise": {"pool": "median", "fit_correction": "ssm_em"}})
-    with pytest.raises(ValueError, match="prior_data = 'smoothed' .* needs fit_correction = 'ssm_em'"):
+    with pytest.raises(ValueError, match="prior_data: 'smoothed' .* needs fit_correction = 'ssm_em'"):
         NoiseConfig(prior_data="smoothed", fit_correction="moments")
     assert not NoiseConfig(expand_at="smoothed").paper
     cfg = LQRFLMConfig.from_dict({"noise": {"estimator": "kalman", "fit_correction": "ssm_em", "time_window": 50}})

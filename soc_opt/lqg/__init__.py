@@ -24,7 +24,7 @@ Modules (each imports only from those below it):
 * :mod:`.dual`: the scalar and vector dual solvers over the multipliers ``eta``.
 * :mod:`.backward`: the backward pass for fixed ``eta`` (closed form, Quu repair rule) and
   :func:`lqr`.
-* :mod:`.step_size`: step-size adaptation (GPS): :func:`laplace_improvements`, :func:`adapt_step`.
+* :mod:`.step_size`: step-size adaptation (GPS): :func:`laplace_improvements`, :func:`adapt_multiplier`.
 * :mod:`.moments`: forward pass, expected cost and KL in closed form.
 * :mod:`.problem`: shared types (:class:`KLStepConfig`, :class:`KLStepResult`,
   :class:`Marginals`, :class:`SolverError`), input validation and the per-step problem arrays.
@@ -40,8 +40,8 @@ about 40 ms / 8 backward passes, per-step budgets about 80 ms / 16 passes
 from .backward import lqr
 from .moments import expected_cost, forward, kl_divergence
 from .problem import KLStepConfig, KLStepResult, Marginals, SolverError
-from .step import kl_step
-from .step_size import LocalModel, adapt_step, laplace_improvements
+from .step import KL_METHODS, kl_step
+from .step_size import LocalModel, adapt_multiplier, laplace_improvements
 
 __all__ = [
     "SolverError",
@@ -54,6 +54,6 @@ __all__ = [
     "kl_divergence",
     "lqr",
     "kl_step",
-    "adapt_step",
+    "adapt_multiplier",
     "laplace_improvements",
 ]

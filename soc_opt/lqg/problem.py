@@ -14,7 +14,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from .. import errors
-from ..config import Config
+from ..config import Config, Interval, Options, config_error
 from ..linalg import inv_from_chol, logdet_chol, tri_solve
 from ..models import (
     LinearGaussianDynamics,
@@ -54,7 +54,7 @@ class Marginals(NamedTuple):
 
 @dataclass(frozen=True)
 class KLStepConfig(Config):
-    """Hyperparameters of :func:`kl_step` and :func:`adapt_step` (docs/math.md §6).
+    """Hyperparameters of :func:`kl_step` and :func:`adapt_multiplier` (docs/math.md §6).
 
     Dual solver (closed form):
         kl_rtol, kl_atol: stop when ``|KL - nu| <= kl_rtol * nu + kl_atol`` for every active
@@ -93,11 +93,11 @@ class KLStepConfig(Config):
         fatrop_expand:  expand the NLP's MX graph into SX before solving (True: faster
                         evaluations; False saves build time and memory on large problems).
         fatrop_options: extra fatrop options (override the above).
-    Step-size adaptation (:func:`adapt_step`, GPS rule):
-        min_mult, max_mult: clip of the budget multiplier ``predicted / (2 (predicted - actual))``
+    Step-size adaptation (:func:`adapt_multiplier`, GPS rule, on the KL-budget multiplier):
+        factor_min, factor_max: clip of the per-iteration factor ``predicted / (2 (predicted - actual))``
                         (0.1, 5.0).
         min_gap:        floor of the denominator ``predicted - actual`` (1e-4, cost units).
-        nu_min, nu_max: clip of the new budget (1e-4, 1e4).
+        mult_min, mult_max: clip of the adapted multiplier (1e-4, 1e4).
     """
 
     kl_rtol: float = 1e-10
@@ -120,35 +120,28 @@ class KLStepConfig(Config):
     fatrop_max_iter: int = 1000
     fatrop_expand: bool = True
     fatrop_options: dict[str, Any] = field(default_factory=dict)
-    min_mult: float = 0.1
-    max_mult: float = 5.0
+    factor_min: float = 0.1
+    factor_max: float = 5.0
     min_gap: float = 1e-4
-    nu_min: float = 1e-4
-    nu_max: float = 1e4
+    mult_min: float = 1e-4
+    mult_max: float = 1e4
+
+    _constraints = {
+        **{name: [Interval(0, None, "neither")]
+           for name in ("kl_rtol", "kl_atol", "eta_init", "eta_min", "eta_max", "max_log_step", "ipopt_tol",
+                        "ipopt_acceptable_tol", "chol_floor", "fatrop_tol", "factor_min", "factor_max", "min_gap",
+                        "mult_min", "mult_max")},
+        "repair_factor": [Interval(1.0, None, "neither")],
+        "repair_margin": [Interval(0.0)],
+        **{name: [Interval(1)] for name in ("max_backward", "ipopt_max_iter", "fatrop_max_iter")},
+        "casadi_nlp": [Options(("auto", "symbolic", "structured"))],
+        "casadi_auto_max_vars": [Interval(0)],
+    }
 
     def __post_init__(self):
-        pos = ("kl_rtol", "kl_atol", "eta_init", "eta_min", "eta_max", "max_log_step", "ipopt_tol",
-               "ipopt_acceptable_tol", "chol_floor", "fatrop_tol", "min_mult", "max_mult", "min_gap", "nu_min", "nu_max")
-        for name in pos:
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"KLStepConfig.{name} must be a positive finite number, got {v!r}")
-        if self.eta_min >= self.eta_max:
-            raise ValueError("KLStepConfig.eta_min must be below eta_max")
-        if self.repair_factor <= 1.0 or self.repair_margin < 0.0:
-            raise ValueError("KLStepConfig.repair_factor must be > 1 and repair_margin >= 0")
-        if self.min_mult > self.max_mult or self.nu_min > self.nu_max:
-            raise ValueError("KLStepConfig: min_mult <= max_mult and nu_min <= nu_max required")
-        if self.max_backward < 1 or self.ipopt_max_iter < 1 or self.fatrop_max_iter < 1:
-            raise ValueError("KLStepConfig.max_backward, ipopt_max_iter and fatrop_max_iter must be >= 1")
-        if not isinstance(self.fatrop_expand, bool):
-            raise ValueError(f"KLStepConfig.fatrop_expand must be true or false, got {self.fatrop_expand!r}")
-        if self.casadi_nlp not in ("auto", "symbolic", "structured"):
-            raise ValueError("KLStepConfig.casadi_nlp must be 'auto', 'symbolic' or 'structured', "
-                             f"got {self.casadi_nlp!r}")
-        mv = self.casadi_auto_max_vars
-        if isinstance(mv, bool) or not isinstance(mv, int) or mv < 0:
-            raise ValueError(f"KLStepConfig.casadi_auto_max_vars must be an integer >= 0, got {mv!r}")
+        for lo, hi in (("eta_min", "eta_max"), ("factor_min", "factor_max"), ("mult_min", "mult_max")):
+            if getattr(self, lo) > getattr(self, hi) or (lo == "eta_min" and self.eta_min == self.eta_max):
+                raise config_error(lo, f"must be below {hi} = {getattr(self, hi)!r}, got {getattr(self, lo)!r}")
 
 
 class KLStepResult(NamedTuple):

@@ -9,7 +9,6 @@ IPOPT (:mod:`.casadi_nlp`), ``method="fatrop"`` its multiple-shooting form with 
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import numpy as np
 
@@ -22,8 +21,7 @@ from .problem import KLStepConfig, KLStepResult, check_dims, check_init, check_n
 
 
 def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: LinearGaussianPolicy, nu, mu0, P0,
-            method: Literal["closed_form", "casadi", "fatrop"] = "closed_form", config: KLStepConfig | None = None,
-            *, eta0=None) -> KLStepResult:
+            *, method: str = "closed_form", config: KLStepConfig | None = None, eta0=None) -> KLStepResult:
     """KL-constrained LQG step (docs/math.md §6): ``min sum_k E[l_k]  s.t.  KL_k <= nu_k`` (or ``sum KL <= nu``).
 
     Args:
@@ -33,8 +31,9 @@ def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: Li
             budgets; ``inf`` entries are unconstrained (``eta = 0``, deterministic step),
             ``0`` entries pin the step to the reference (``eta = inf``).
         mu0, P0: initial state distribution.
-        method: ``"closed_form"`` (backward passes + dual solve), ``"casadi"`` (IPOPT NLP) or
-            ``"fatrop"`` (multiple-shooting optimal control NLP solved by fatrop).
+        method: a name in :data:`KL_METHODS`: ``"closed_form"`` (backward passes + dual solve),
+            ``"casadi"`` (IPOPT NLP) or ``"fatrop"`` (multiple-shooting optimal control NLP solved
+            by fatrop).
         config: :class:`KLStepConfig`.
         eta0: optional warm start of the multiplier(s) (closed form only).
     Returns a :class:`KLStepResult`.
@@ -46,16 +45,31 @@ def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: Li
     mu0, P0 = check_init(mu0, P0, n)
     nu_arr, scalar = check_nu(nu, T)
     nu_out = float(nu_arr[0]) if scalar else nu_arr.copy()
-    if method == "closed_form":
-        # many small matrix products: threaded BLAS gains nothing there, and on a loaded machine
-        # its spinning threads made the dual solve several times slower
-        with single_thread_blas_cached():
-            return _kl_step_closed(KLProblem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config, eta0)
-    if method == "casadi":
-        return kl_step_casadi(KLProblem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config)
-    if method == "fatrop":
-        return kl_step_fatrop(KLProblem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config)
-    raise ValueError(f"unknown method {method!r}; use 'closed_form', 'casadi' or 'fatrop'")
+    solve = KL_METHODS.get(method)
+    if solve is None:
+        raise ValueError(f"unknown method {method!r}; use one of {', '.join(map(repr, KL_METHODS))}")
+    return solve(KLProblem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config, eta0)
+
+
+def _closed_form(prob: KLProblem, nu, scalar, nu_out, config, eta0) -> KLStepResult:
+    # many small matrix products: threaded BLAS gains nothing there, and on a loaded machine
+    # its spinning threads made the dual solve several times slower
+    with single_thread_blas_cached():
+        return _kl_step_closed(prob, nu, scalar, nu_out, config, eta0)
+
+
+def _casadi(prob: KLProblem, nu, scalar, nu_out, config, eta0) -> KLStepResult:
+    return kl_step_casadi(prob, nu, scalar, nu_out, config)
+
+
+def _fatrop(prob: KLProblem, nu, scalar, nu_out, config, eta0) -> KLStepResult:
+    return kl_step_fatrop(prob, nu, scalar, nu_out, config)
+
+
+#: The KL-step solvers: ``method`` name -> ``solve(problem, nu, scalar, nu_out, config, eta0)``.
+#: A new solver is one module returning a :class:`KLStepResult` plus one entry here; the run
+#: configuration's ``kl_method`` accepts every name in this table.
+KL_METHODS = {"closed_form": _closed_form, "casadi": _casadi, "fatrop": _fatrop}
 
 
 def _kl_step_closed(prob: KLProblem, nu: np.ndarray, scalar: bool, nu_out, config, eta0) -> KLStepResult:

@@ -1,5 +1,5 @@
 """Step-size adaptation of the KL budget (GPS, docs/math.md §6 last bullet) under the Laplace
-approximation: :func:`laplace_improvements` and :func:`adapt_step`."""
+approximation: :func:`laplace_improvements` and :func:`adapt_multiplier`."""
 
 from __future__ import annotations
 
@@ -41,25 +41,26 @@ def laplace_improvements(old_policy: LinearGaussianPolicy, new_policy: LinearGau
     return float(j_old - j_pred), float(j_old - j_act)
 
 
-def adapt_step(nu, predicted_improvement: float, actual_improvement: float,
-               config: KLStepConfig | None = None):
-    """GPS step-size rule: scale the KL budget by how well the model predicted the improvement.
+def adapt_multiplier(mult, predicted_improvement: float, actual_improvement: float,
+                     config: KLStepConfig | None = None):
+    """GPS step-size rule: scale the KL-budget multiplier by how well the model predicted the improvement.
 
-    ``mult = predicted / (2 max(min_gap, predicted - actual))`` clipped to
-    ``[min_mult, max_mult]`` (defaults 0.1, 5.0); ``new_nu = clip(mult * nu, nu_min, nu_max)``.
-    The multiplier is the minimiser of the quadratic fitted to the two improvements: a perfect
-    prediction (``actual = predicted``) gives ``max_mult``, ``actual = 0`` halves the budget,
-    a cost increase (or a non-positive prediction) gives ``min_mult``.  ``nu`` may be a scalar
-    or an array (every entry scaled by the same multiplier); returns the same kind.
+    The loop's budget is ``kl_budget * T * mult``; this adapts ``mult`` (docs/math.md §6).
+    ``factor = predicted / (2 max(min_gap, predicted - actual))`` clipped to
+    ``[factor_min, factor_max]`` (defaults 0.1, 5.0); ``new_mult = clip(factor * mult, mult_min,
+    mult_max)``.  The factor is the minimiser of the quadratic fitted to the two improvements: a
+    perfect prediction (``actual = predicted``) gives ``factor_max``, ``actual = 0`` halves the
+    multiplier, a cost increase (or a non-positive prediction) gives ``factor_min``.  ``mult`` may
+    be a scalar or an array (every entry scaled by the same factor); returns the same kind.
     """
     config = KLStepConfig() if config is None else config
     pred, act = float(predicted_improvement), float(actual_improvement)
     if not (math.isfinite(pred) and math.isfinite(act)):
         raise ValueError(f"improvements must be finite, got predicted={pred!r}, actual={act!r}")
-    nu_a = np.asarray(nu, dtype=float)
+    nu_a = np.asarray(mult, dtype=float)
     if np.any(np.isnan(nu_a)) or np.any(nu_a < 0):
-        raise ValueError(f"nu must be non-negative and not NaN, got {nu!r}")
-    mult = pred / (2.0 * max(config.min_gap, pred - act))
-    mult = min(max(mult, config.min_mult), config.max_mult)
-    out = np.clip(mult * nu_a, config.nu_min, config.nu_max)
+        raise ValueError(f"mult must be non-negative and not NaN, got {mult!r}")
+    factor = pred / (2.0 * max(config.min_gap, pred - act))
+    factor = min(max(factor, config.factor_min), config.factor_max)
+    out = np.clip(factor * nu_a, config.mult_min, config.mult_max)
     return float(out) if nu_a.ndim == 0 else out

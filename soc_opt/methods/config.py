@@ -13,8 +13,11 @@ from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
 from .. import fit, lqg, mstep
-from ..config import Config
+from ..config import Config, Interval, Options
+from ..fit import COST_MODES
 from ..ilqg import ILQGConfig
+from ..lqg import KL_METHODS
+from ..mstep import MSTEP_METHODS
 from ..noise_aware import NoiseConfig
 
 __all__ = ["PaperScale", "PAPER", "LoopKLStepConfig", "LQRFLMConfig", "EMConfig", "EvalConfig", "DPSOCConfig",
@@ -57,8 +60,9 @@ class LQRFLMConfig(Config):
     kl_budget:   base KL budget per time step; the total budget is ``kl_budget * T * mult``.
     kl_mode:     "total" (one budget ``nu = sum nu_k``, one multiplier: the GPS form) or
                  "per_step" (``nu_k = kl_budget * mult`` with one multiplier per step).
-    kl_method:   KL-step solver, "closed_form" (LQR backward pass + dual) or "casadi" (IPOPT).
-    adapt_step:  adapt ``mult`` from predicted vs actual improvement (GPS rule, see lqg.adapt_step).
+    kl_method:   KL-step solver, a name in ``lqg.KL_METHODS``: "closed_form" (LQR backward pass +
+                 dual), "casadi" (IPOPT) or "fatrop".
+    adapt_multiplier:  adapt ``mult`` from predicted vs actual improvement (GPS rule, see lqg.adapt_multiplier).
     workers:     parallel rollout workers (results do not depend on it).
     fit:         dynamics-fitting configuration (docs/math.md §2).
     kl:          KL-step solver and step-adaptation configuration (docs/math.md §6), the loop's
@@ -72,22 +76,22 @@ class LQRFLMConfig(Config):
     init_var: float = 1.0
     kl_budget: float = 0.5
     kl_mode: Literal["total", "per_step"] = "total"
-    kl_method: Literal["closed_form", "casadi"] = "closed_form"
-    adapt_step: bool = True
+    kl_method: str = "closed_form"
+    adapt_multiplier: bool = True
     workers: int = 1
     fit: fit.FitConfig = field(default_factory=fit.FitConfig)
     kl: LoopKLStepConfig = field(default_factory=LoopKLStepConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
 
-    def __post_init__(self):
-        if self.iterations < 1:
-            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
-        if self.samples < 2:
-            raise ValueError(f"samples must be >= 2 (dynamics fitting needs 2 rollouts), got {self.samples}")
-        if self.init_var <= 0 or self.kl_budget <= 0:
-            raise ValueError("init_var and kl_budget must be positive")
-        if self.workers < 1:
-            raise ValueError(f"workers must be >= 1, got {self.workers}")
+    _constraints = {
+        "iterations": [Interval(1)],
+        "samples": [Interval(2)],  # dynamics fitting needs 2 rollouts
+        "init_var": [Interval(0, None, "neither")],
+        "kl_budget": [Interval(0, None, "neither")],
+        "kl_mode": [Options(("total", "per_step"))],
+        "kl_method": [Options(lambda: KL_METHODS)],
+        "workers": [Interval(1)],
+    }
 
 
 @dataclass(frozen=True)
@@ -112,7 +116,7 @@ class EMConfig(Config):
     n_em: int = 1
     y_mode: Literal["model", "measured", "optimistic"] = "model"
     y_samples: int | None = None
-    method: Literal["closed_form", "cvxpy"] = "closed_form"
+    method: str = "closed_form"
     variant: Literal["time_varying", "time_invariant"] = "time_varying"
     objective: Literal["surrogate", "exact"] = "surrogate"
     cov_floor_scale: float = 0.5
@@ -121,15 +125,16 @@ class EMConfig(Config):
     min_norm: bool = True
     mstep: mstep.MStepConfig = field(default_factory=mstep.MStepConfig)
 
-    def __post_init__(self):
-        if self.n_em < 1:
-            raise ValueError(f"n_em must be >= 1, got {self.n_em}")
-        if not 0 < self.cov_floor_scale:
-            raise ValueError(f"cov_floor_scale must be positive, got {self.cov_floor_scale}")
-        if self.y_samples is not None and self.y_samples < 1:
-            raise ValueError(f"y_samples must be >= 1, got {self.y_samples}")
-        if self.trust_region is not None and not self.trust_region > 0:
-            raise ValueError(f"trust_region must be positive, got {self.trust_region}")
+    _constraints = {
+        "n_em": [Interval(1)],
+        "y_mode": [Options(COST_MODES)],
+        "y_samples": [None, Interval(1)],
+        "method": [Options(MSTEP_METHODS)],
+        "variant": [Options(("time_varying", "time_invariant"))],
+        "objective": [Options(("surrogate", "exact"))],
+        "cov_floor_scale": [Interval(0, None, "neither")],
+        "trust_region": [None, Interval(0, None, "neither")],
+    }
 
 
 @dataclass(frozen=True)
@@ -144,11 +149,10 @@ class EvalConfig(Config):
     samples: int | None = None
     seed_offset: int = 10_000
 
-    def __post_init__(self):
-        if self.samples is not None and self.samples < 1:
-            raise ValueError(f"samples must be >= 1, got {self.samples}")
-        if self.seed_offset < 0:
-            raise ValueError(f"seed_offset must be >= 0 (it seeds a numpy Generator), got {self.seed_offset}")
+    _constraints = {
+        "samples": [None, Interval(1)],
+        "seed_offset": [Interval(0)],  # it seeds a numpy Generator
+    }
 
 
 @dataclass(frozen=True)
@@ -174,9 +178,7 @@ class DPSOCConfig(Config):
     evaluation: EvalConfig = field(default_factory=EvalConfig)
     ilqg: ILQGConfig = field(default_factory=ILQGConfig)
 
-    def __post_init__(self):
-        if self.i_switch < 0:
-            raise ValueError(f"i_switch must be >= 0, got {self.i_switch}")
+    _constraints = {"i_switch": [Interval(0)]}
 
 
 def with_paper_scale(cfg: DPSOCConfig) -> DPSOCConfig:

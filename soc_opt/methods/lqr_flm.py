@@ -84,10 +84,10 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     ref = noise.gains(state.policy if reference is None else reference)
 
     mult = state.mult
-    if cfg.adapt_step and state.prev is not None:
+    if cfg.adapt_multiplier and state.prev is not None:
         predicted, actual = lqg.laplace_improvements(state.prev.reference, noise.gains(state.policy),
                                                      state.prev.model, local)
-        mult = lqg.adapt_step(mult, predicted, actual, cfg.kl)
+        mult = lqg.adapt_multiplier(mult, predicted, actual, cfg.kl)
 
     t0 = time.perf_counter()
     nu = _budget(cfg, task.T, mult)

@@ -24,7 +24,7 @@ choices".
 
 from __future__ import annotations
 
-from .config import MStepConfig
+from .config import MSTEP_METHODS, MSTEP_OBJECTIVES, MSTEP_SOLVERS, MSTEP_VARIANTS, MStepConfig
 from .constraints import MStepConstraints
 from .errors import ClosedFormUnavailableError, InfeasibleConstraintsError, NonUniqueMaximizerError, SolverError
 from .maximize import MStepResult, maximize, maximize_moments
@@ -45,6 +45,10 @@ __all__ = [
     "ClosedFormUnavailableError",
     "MStepConstraints",
     "MStepConfig",
+    "MSTEP_METHODS",
+    "MSTEP_SOLVERS",
+    "MSTEP_VARIANTS",
+    "MSTEP_OBJECTIVES",
     "MStepResult",
     "GradHess",
     "LOG_2PI",

@@ -5,9 +5,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from ..config import Config, ConfigError
+from ..config import Config, Interval, Options
 
-__all__ = ["MStepConfig"]
+__all__ = ["MStepConfig", "MSTEP_METHODS", "MSTEP_SOLVERS", "MSTEP_VARIANTS", "MSTEP_OBJECTIVES"]
+
+#: ``maximize(method=...)``: the closed form or the CVXPY program (docs/math.md §5).
+MSTEP_METHODS = ("closed_form", "cvxpy")
+#: CVXPY solvers of ``method="cvxpy"``.
+MSTEP_SOLVERS = ("CLARABEL", "SCS")
+#: ``maximize(variant=...)``: one policy per step (the DP sweep) or one shared policy.
+MSTEP_VARIANTS = ("time_varying", "time_invariant")
+#: ``maximize(objective=...)``: the paper's surrogate or exact EM.
+MSTEP_OBJECTIVES = ("surrogate", "exact")
 
 
 @dataclass(frozen=True)
@@ -53,12 +62,9 @@ class MStepConfig(Config):
     exact_max_iter: int = 1000
     verbose: bool = False
 
-    def __post_init__(self):
-        if self.solver not in ("CLARABEL", "SCS"):
-            raise ConfigError(f"solver: {self.solver!r} is not one of ['CLARABEL', 'SCS']")
-        for name in ("clarabel_tol", "scs_eps", "eig_tol", "feas_tol", "exact_tol"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("clarabel_max_iter", "scs_max_iters", "exact_max_iter"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)!r}")
+    _constraints = {
+        "solver": [Options(MSTEP_SOLVERS)],
+        **{name: [Interval(0, None, "neither")] for name in ("clarabel_tol", "scs_eps", "eig_tol", "feas_tol",
+                                                              "exact_tol")},
+        **{name: [Interval(1)] for name in ("clarabel_max_iter", "scs_max_iters", "exact_max_iter")},
+    }

@@ -22,7 +22,7 @@ import numpy as np
 from .. import linalg as la
 from ..estep import Moments, moments
 from ..models import AugmentedModel, LinearGaussianPolicy, Smoothed
-from .config import MStepConfig
+from .config import MSTEP_METHODS, MSTEP_OBJECTIVES, MSTEP_SOLVERS, MSTEP_VARIANTS, MStepConfig
 from .constraints import MStepConstraints, pd_guaranteed, require_pd_covariance, sigma_closed
 from .cvx import cvxpy_ti, cvxpy_tv
 from .errors import ClosedFormUnavailableError
@@ -80,6 +80,7 @@ def maximize(
     model: AugmentedModel,
     smoothed: Smoothed,
     y: np.ndarray,
+    *,
     constraints: MStepConstraints | None = None,
     method: str = "closed_form",
     solver: str | None = None,
@@ -118,13 +119,15 @@ def maximize(
         SolverError: CVXPY failed (status and step in the message).
         ShapeError: inconsistent shapes.
     """
-    return maximize_moments(model, moments(smoothed, y), constraints, method, solver, variant, objective,
-                            previous, min_norm, config, return_result)
+    return maximize_moments(model, moments(smoothed, y), constraints=constraints, method=method, solver=solver,
+                            variant=variant, objective=objective, previous=previous, min_norm=min_norm,
+                            config=config, return_result=return_result)
 
 
 def maximize_moments(
     model: AugmentedModel,
     mom: Moments,
+    *,
     constraints: MStepConstraints | None = None,
     method: str = "closed_form",
     solver: str | None = None,
@@ -137,15 +140,13 @@ def maximize_moments(
 ) -> LinearGaussianPolicy | MStepResult:
     """The M-step from precomputed :class:`Moments` (see :func:`maximize`)."""
     cfg = config if config is not None else MStepConfig()
-    if method not in ("closed_form", "cvxpy"):
-        raise ValueError(f"method must be 'closed_form' or 'cvxpy', got {method!r}")
-    if variant not in ("time_varying", "time_invariant"):
-        raise ValueError(f"variant must be 'time_varying' or 'time_invariant', got {variant!r}")
-    if objective not in ("surrogate", "exact"):
-        raise ValueError(f"objective must be 'surrogate' or 'exact', got {objective!r}")
+    for key, value, allowed in (("method", method, MSTEP_METHODS), ("variant", variant, MSTEP_VARIANTS),
+                                ("objective", objective, MSTEP_OBJECTIVES)):
+        if value not in allowed:
+            raise ValueError(f"{key} must be one of {list(allowed)}, got {value!r}")
     solver = (solver if solver is not None else cfg.solver).upper()
-    if solver not in ("CLARABEL", "SCS"):
-        raise ValueError(f"solver must be 'CLARABEL' or 'SCS', got {solver!r}")
+    if solver not in MSTEP_SOLVERS:
+        raise ValueError(f"solver must be one of {list(MSTEP_SOLVERS)}, got {solver!r}")
     if constraints is None:
         constraints = MStepConstraints()
     if not isinstance(constraints, MStepConstraints):
