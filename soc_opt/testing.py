@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from .estep import moments
 from .models import (
     AugmentedModel,
     LinearGaussianDynamics,
     LinearGaussianPolicy,
     QuadraticCost,
+    Rollouts,
     Smoothed,
     symmetrize,
 )
@@ -38,6 +40,10 @@ __all__ = [
     "random_kl_step_problem",
     "random_trajectory",
     "random_gaussian_quadratic",
+    "make_kl_instance",
+    "random_mstep_instance",
+    "simulate_linear",
+    "simulate_pendulum",
 ]
 
 
@@ -354,3 +360,124 @@ def random_gaussian_quadratic(rng: np.random.Generator, d: int):
     b = rng.standard_normal(d)
     c = float(rng.standard_normal())
     return mu, S, A, b, c
+
+
+# --------------------------------------------------------------------------- benchmark instances
+# (moved from soc_opt.bench, which imports them from here; the draws are unchanged)
+
+
+def make_kl_instance(n: int, m: int, T: int, rng: np.random.Generator):
+    """A random stable, convex KL-step instance ``(dynamics, cost, reference, mu0, P0)``."""
+    A = np.empty((T, n, n))
+    for t in range(T):
+        Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+        A[t] = 0.95 * Q + 0.05 * rng.standard_normal((n, n)) / np.sqrt(n)
+    B = rng.standard_normal((T, n, m)) / np.sqrt(n)
+    c = 0.1 * rng.standard_normal((T, n))
+    Wf = 0.1 * rng.standard_normal((T, n, n))
+    W = Wf @ np.swapaxes(Wf, 1, 2) + 0.01 * np.eye(n)
+    M = rng.standard_normal((T, n + m, n + m))
+    C = M @ np.swapaxes(M, 1, 2) / (n + m) + 0.1 * np.eye(n + m)
+    cost = QuadraticCost(C, rng.standard_normal((T, n + m)), n)
+    Lf = 0.3 * rng.standard_normal((T, m, m))
+    ref = LinearGaussianPolicy(0.3 * rng.standard_normal((T, m, n)) / np.sqrt(n), 0.5 * rng.standard_normal((T, m)),
+                               Lf @ np.swapaxes(Lf, 1, 2) + 0.5 * np.eye(m))
+    return LinearGaussianDynamics(A, B, c, W), cost, ref, rng.standard_normal(n), 0.1 * np.eye(n)
+
+
+def _mstep_spd(rng: np.random.Generator, d: int, floor: float) -> np.ndarray:
+    R = rng.normal(size=(d, d)) / np.sqrt(d)
+    return R @ R.T + floor * np.eye(d)
+
+
+def random_mstep_instance(n: int, m: int, T: int, rng: np.random.Generator):
+    """A random augmented model and the moments of a random smoothing distribution.
+
+    Returns ``(model, Moments)``.  The model has ``||A_k||_2 = 0.9`` and PD ``So_k``; the smoothed
+    states are the blocks of a random PD covariance over ``(s_0..s_T)`` with random means, and
+    ``y_k`` is uniform in ``(0.05, 1)``.
+    """
+    A = rng.normal(size=(T, n + 1, n))
+    A *= 0.9 / np.linalg.norm(A[:, :n], 2, axis=(1, 2))[:, None, None]
+    B = rng.normal(size=(T, n + 1, m)) / np.sqrt(n)
+    Ao = np.concatenate([A, B], axis=2)
+    co = rng.normal(size=(T, n + 1))
+    So = np.stack([_mstep_spd(rng, n + 1, 0.1) for _ in range(T)])
+    model = AugmentedModel(Ao, co, So, n)
+    L = rng.normal(size=((T + 1) * n, (T + 1) * n)) / np.sqrt((T + 1) * n) + 0.3 * np.eye((T + 1) * n)
+    C = (L @ L.T).reshape(T + 1, n, T + 1, n)
+    cov = np.stack([C[t, :, t, :] for t in range(T + 1)])
+    cross = np.stack([C[t + 1, :, t, :] for t in range(T)])
+    sm = Smoothed(rng.normal(size=(T + 1, n)), cov, cross, 0.0)
+    y = rng.uniform(0.05, 1.0, size=T)
+    return model, moments(sm, y)
+
+
+def _rollouts(x: np.ndarray, a: np.ndarray, rng: np.random.Generator, rho2: float, target: np.ndarray) -> Rollouts:
+    s = x + np.sqrt(rho2) * rng.standard_normal(x.shape) if rho2 > 0 else x.copy()
+    d = s[:, :-1] - target
+    cost = 0.05 * np.sum(d * d, axis=-1) + 0.005 * np.sum(a * a, axis=-1)
+    return Rollouts(x=x, s=s, a=a, cost=cost, y=np.exp(-cost))
+
+
+def simulate_linear(
+    system: dict,
+    M: int,
+    rng: np.random.Generator,
+    rho2: float = 0.0,
+    action_std: float = 1.0,
+    x0_std: float = 1.0,
+) -> Rollouts:
+    """``M`` rollouts of ``system`` under the exploratory policy ``a ~ N(0, action_std^2 I)``.
+
+    ``x_0 ~ N(0, x0_std^2 I)``; measured ``s = x + N(0, rho2 I)``; stage cost
+    ``Y = 0.05 |s|^2 + 0.005 |a|^2`` and ``y = exp(-Y)``.
+    """
+    A, B, c, W = system["A"], system["B"], system["c"], system["W"]
+    T, n, m = B.shape[0], B.shape[1], B.shape[2]
+    LW = np.linalg.cholesky(W)
+    x = np.empty((M, T + 1, n))
+    a = action_std * rng.standard_normal((M, T, m))
+    x[:, 0] = x0_std * rng.standard_normal((M, n))
+    for k in range(T):
+        w = rng.standard_normal((M, n)) @ LW[k].T
+        x[:, k + 1] = x[:, k] @ A[k].T + a[:, k] @ B[k].T + c[k] + w
+    return _rollouts(x, a, rng, rho2, np.zeros(n))
+
+
+def _pendulum_f(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    g_over_l, damping = 9.81, 0.3
+    th, om = x[..., 0], x[..., 1]
+    return np.stack([om, -g_over_l * np.sin(th) - damping * om + u[..., 0]], axis=-1)
+
+
+def simulate_pendulum(
+    M: int,
+    rng: np.random.Generator,
+    T: int = 60,
+    dt: float = 0.05,
+    rho2: float = 1e-3,
+    action_std: float = 2.0,
+    proc_std: float = 0.01,
+) -> Rollouts:
+    """``M`` rollouts of a damped pendulum ``th'' = -9.81 sin th - 0.3 th' + u`` (n=2, m=1).
+
+    RK4 with step ``dt``; open-loop exploratory torque ``u_k = 6 sin(2 pi k / T) + N(0, action_std^2)``
+    so that the swings cover the nonlinear range; start ``th_0 ~ N(pi/2, 0.3^2)``,
+    ``th'_0 ~ N(0, 0.3^2)``; additive process noise ``N(0, proc_std^2 I)`` per step and
+    measurement noise ``N(0, rho2 I)``.
+    """
+    n = 2
+    x = np.empty((M, T + 1, n))
+    x[:, 0, 0] = np.pi / 2 + 0.3 * rng.standard_normal(M)
+    x[:, 0, 1] = 0.3 * rng.standard_normal(M)
+    u_nom = 6.0 * np.sin(2 * np.pi * np.arange(T) / T)
+    a = u_nom[None, :, None] + action_std * rng.standard_normal((M, T, 1))
+    for k in range(T):
+        xk, uk = x[:, k], a[:, k]
+        k1 = _pendulum_f(xk, uk)
+        k2 = _pendulum_f(xk + 0.5 * dt * k1, uk)
+        k3 = _pendulum_f(xk + 0.5 * dt * k2, uk)
+        k4 = _pendulum_f(xk + dt * k3, uk)
+        x[:, k + 1] = xk + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4) + proc_std * rng.standard_normal((M, n))
+    return _rollouts(x, a, rng, rho2, np.array([np.pi, 0.0]))

@@ -23,9 +23,9 @@ from soc_opt.bench.fit import (
     few_sample_table,
     format_table,
     pendulum_table,
-    simulate_linear,
     summarize,
 )
+from soc_opt.testing import simulate_linear
 from soc_opt.config import ConfigError
 from soc_opt.fit import (
     FitConfig,

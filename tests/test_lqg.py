@@ -542,7 +542,7 @@ def test_closed_form_matches_ipopt_largest_documented_size(kind):
 @pytest.mark.parametrize("kind", ["per_step", "total"])
 def test_structured_ipopt_at_benchmark_size(kind):
     """n=26, m=7, T=100 (21 700 NLP variables): "auto" picks the structured NLP; 10-60 s."""
-    from soc_opt.bench.lqg import make_instance
+    from soc_opt.testing import make_kl_instance as make_instance
 
     def make(rng, n, m, T):
         return make_instance(n, m, T, rng)
@@ -573,7 +573,7 @@ def test_closed_form_matches_fatrop(seed, n, m, T, kind):
 @pytest.mark.parametrize("kind", ["per_step", "total"])
 def test_fatrop_matches_closed_form_at_small_benchmark_size(kind):
     """The benchmark's small instance (n=4, m=2, T=20) of :mod:`soc_opt.bench.lqg`."""
-    from soc_opt.bench.lqg import make_instance
+    from soc_opt.testing import make_kl_instance as make_instance
 
     cf, fr = _compare(32, 4, 2, 20, kind, make=lambda rng, n, m, T: make_instance(n, m, T, rng), method="fatrop")
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..fit import FitConfig, fit_augmented, fit_dynamics, prediction_error, update_prior
 from ..models import Rollouts
-from ..testing import random_ltv_system
+from ..testing import random_ltv_system, simulate_linear, simulate_pendulum
 
 __all__ = [
     "simulate_linear",
@@ -44,76 +44,6 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------- systems
-
-
-def _rollouts(x: np.ndarray, a: np.ndarray, rng: np.random.Generator, rho2: float, target: np.ndarray) -> Rollouts:
-    s = x + np.sqrt(rho2) * rng.standard_normal(x.shape) if rho2 > 0 else x.copy()
-    d = s[:, :-1] - target
-    cost = 0.05 * np.sum(d * d, axis=-1) + 0.005 * np.sum(a * a, axis=-1)
-    return Rollouts(x=x, s=s, a=a, cost=cost, y=np.exp(-cost))
-
-
-def simulate_linear(
-    system: dict,
-    M: int,
-    rng: np.random.Generator,
-    rho2: float = 0.0,
-    action_std: float = 1.0,
-    x0_std: float = 1.0,
-) -> Rollouts:
-    """``M`` rollouts of ``system`` under the exploratory policy ``a ~ N(0, action_std^2 I)``.
-
-    ``x_0 ~ N(0, x0_std^2 I)``; measured ``s = x + N(0, rho2 I)``; stage cost
-    ``Y = 0.05 |s|^2 + 0.005 |a|^2`` and ``y = exp(-Y)``.
-    """
-    A, B, c, W = system["A"], system["B"], system["c"], system["W"]
-    T, n, m = B.shape[0], B.shape[1], B.shape[2]
-    LW = np.linalg.cholesky(W)
-    x = np.empty((M, T + 1, n))
-    a = action_std * rng.standard_normal((M, T, m))
-    x[:, 0] = x0_std * rng.standard_normal((M, n))
-    for k in range(T):
-        w = rng.standard_normal((M, n)) @ LW[k].T
-        x[:, k + 1] = x[:, k] @ A[k].T + a[:, k] @ B[k].T + c[k] + w
-    return _rollouts(x, a, rng, rho2, np.zeros(n))
-
-
-def _pendulum_f(x: np.ndarray, u: np.ndarray) -> np.ndarray:
-    g_over_l, damping = 9.81, 0.3
-    th, om = x[..., 0], x[..., 1]
-    return np.stack([om, -g_over_l * np.sin(th) - damping * om + u[..., 0]], axis=-1)
-
-
-def simulate_pendulum(
-    M: int,
-    rng: np.random.Generator,
-    T: int = 60,
-    dt: float = 0.05,
-    rho2: float = 1e-3,
-    action_std: float = 2.0,
-    proc_std: float = 0.01,
-) -> Rollouts:
-    """``M`` rollouts of a damped pendulum ``th'' = -9.81 sin th - 0.3 th' + u`` (n=2, m=1).
-
-    RK4 with step ``dt``; open-loop exploratory torque ``u_k = 6 sin(2 pi k / T) + N(0, action_std^2)``
-    so that the swings cover the nonlinear range; start ``th_0 ~ N(pi/2, 0.3^2)``,
-    ``th'_0 ~ N(0, 0.3^2)``; additive process noise ``N(0, proc_std^2 I)`` per step and
-    measurement noise ``N(0, rho2 I)``.
-    """
-    n = 2
-    x = np.empty((M, T + 1, n))
-    x[:, 0, 0] = np.pi / 2 + 0.3 * rng.standard_normal(M)
-    x[:, 0, 1] = 0.3 * rng.standard_normal(M)
-    u_nom = 6.0 * np.sin(2 * np.pi * np.arange(T) / T)
-    a = u_nom[None, :, None] + action_std * rng.standard_normal((M, T, 1))
-    for k in range(T):
-        xk, uk = x[:, k], a[:, k]
-        k1 = _pendulum_f(xk, uk)
-        k2 = _pendulum_f(xk + 0.5 * dt * k1, uk)
-        k3 = _pendulum_f(xk + 0.5 * dt * k2, uk)
-        k4 = _pendulum_f(xk + dt * k3, uk)
-        x[:, k + 1] = xk + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4) + proc_std * rng.standard_normal((M, n))
-    return _rollouts(x, a, rng, rho2, np.array([np.pi, 0.0]))
 
 
 # --------------------------------------------------------------------------- tables

@@ -49,7 +49,7 @@ import time
 import numpy as np
 
 from ..lqg import KLStepConfig, kl_step
-from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost
+from ..testing import make_kl_instance as make_instance
 
 __all__ = ["run", "make_instance", "FATROP_MAX_VARS"]
 
@@ -57,25 +57,6 @@ FATROP_MAX_VARS = 5000
 """Default ``fatrop_max_vars`` of :func:`run` (NLP variables in the closed-form count): fatrop's
 solver build did not finish within 7 minutes at 21 700 (``n=26, m=7, T=100``)."""
 _FATROP_SKIP_REASON = "solver build > 7 min and > 5.9 GB at n=26, m=7, T=100"
-
-
-def make_instance(n: int, m: int, T: int, rng: np.random.Generator):
-    """A random stable, convex KL-step instance ``(dynamics, cost, reference, mu0, P0)``."""
-    A = np.empty((T, n, n))
-    for t in range(T):
-        Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
-        A[t] = 0.95 * Q + 0.05 * rng.standard_normal((n, n)) / np.sqrt(n)
-    B = rng.standard_normal((T, n, m)) / np.sqrt(n)
-    c = 0.1 * rng.standard_normal((T, n))
-    Wf = 0.1 * rng.standard_normal((T, n, n))
-    W = Wf @ np.swapaxes(Wf, 1, 2) + 0.01 * np.eye(n)
-    M = rng.standard_normal((T, n + m, n + m))
-    C = M @ np.swapaxes(M, 1, 2) / (n + m) + 0.1 * np.eye(n + m)
-    cost = QuadraticCost(C, rng.standard_normal((T, n + m)), n)
-    Lf = 0.3 * rng.standard_normal((T, m, m))
-    ref = LinearGaussianPolicy(0.3 * rng.standard_normal((T, m, n)) / np.sqrt(n), 0.5 * rng.standard_normal((T, m)),
-                               Lf @ np.swapaxes(Lf, 1, 2) + 0.5 * np.eye(m))
-    return LinearGaussianDynamics(A, B, c, W), cost, ref, rng.standard_normal(n), 0.1 * np.eye(n)
 
 
 def _budget(kind: str, T: int, rng: np.random.Generator):

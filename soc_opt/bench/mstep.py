@@ -14,39 +14,10 @@ import time
 
 import numpy as np
 
-from ..estep import moments
-from ..models import AugmentedModel, Smoothed
 from ..mstep import MStepConstraints, maximize_moments
+from ..testing import random_mstep_instance as random_instance
 
 __all__ = ["random_instance", "run"]
-
-
-def _spd(rng: np.random.Generator, d: int, floor: float) -> np.ndarray:
-    R = rng.normal(size=(d, d)) / np.sqrt(d)
-    return R @ R.T + floor * np.eye(d)
-
-
-def random_instance(n: int, m: int, T: int, rng: np.random.Generator):
-    """A random augmented model and the moments of a random smoothing distribution.
-
-    Returns ``(model, Moments)``.  The model has ``||A_k||_2 = 0.9`` and PD ``So_k``; the smoothed
-    states are the blocks of a random PD covariance over ``(s_0..s_T)`` with random means, and
-    ``y_k`` is uniform in ``(0.05, 1)``.
-    """
-    A = rng.normal(size=(T, n + 1, n))
-    A *= 0.9 / np.linalg.norm(A[:, :n], 2, axis=(1, 2))[:, None, None]
-    B = rng.normal(size=(T, n + 1, m)) / np.sqrt(n)
-    Ao = np.concatenate([A, B], axis=2)
-    co = rng.normal(size=(T, n + 1))
-    So = np.stack([_spd(rng, n + 1, 0.1) for _ in range(T)])
-    model = AugmentedModel(Ao, co, So, n)
-    L = rng.normal(size=((T + 1) * n, (T + 1) * n)) / np.sqrt((T + 1) * n) + 0.3 * np.eye((T + 1) * n)
-    C = (L @ L.T).reshape(T + 1, n, T + 1, n)
-    cov = np.stack([C[t, :, t, :] for t in range(T + 1)])
-    cross = np.stack([C[t + 1, :, t, :] for t in range(T)])
-    sm = Smoothed(rng.normal(size=(T + 1, n)), cov, cross, 0.0)
-    y = rng.uniform(0.05, 1.0, size=T)
-    return model, moments(sm, y)
 
 
 def _constraint_sets(m: int) -> dict[str, MStepConstraints]:
