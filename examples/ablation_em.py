@@ -25,7 +25,7 @@ import numpy as np
 
 from soc_opt import algorithms
 from soc_opt.algorithms import DPSOCConfig
-from soc_opt.compare import evaluate_policy, spreads
+from soc_opt.experiments.compare import evaluate_policy, spreads
 from soc_opt.tasks import load_task
 
 

@@ -7,7 +7,7 @@ Run: .venv/bin/python examples/compare_solvers.py   (the same tables as `soc-opt
 
 from soc_opt.bench import lqg as bench_lqg
 from soc_opt.bench import mstep as bench_mstep
-from soc_opt.report import format_table
+from soc_opt.experiments.report import format_table
 
 print("M-step (n=6, m=2, T=5)")
 print(format_table(bench_mstep.run(sizes=((6, 2),), T=5)))

@@ -15,7 +15,8 @@ Run: .venv/bin/python examples/custom_mstep_constraint.py
 import cvxpy as cp
 import numpy as np
 
-from soc_opt import estep, fit, lqg, mstep
+from soc_opt import estep, lqg, mstep
+from soc_opt.learning import fit
 from soc_opt.tasks import load_task
 
 rng = np.random.default_rng(0)

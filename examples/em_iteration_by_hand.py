@@ -6,7 +6,8 @@ Run: .venv/bin/python examples/em_iteration_by_hand.py
 
 import numpy as np
 
-from soc_opt import estep, fit, mstep
+from soc_opt import estep, mstep
+from soc_opt.learning import fit
 from soc_opt.tasks import load_task
 
 rng = np.random.default_rng(0)

@@ -4,7 +4,7 @@ Four variants, each on the same seeds: LQR-FLM and DPSOC-EM as in the paper, and
 noise-aware pieces of ``[baseline.noise]`` (a Kalman filter in the loop and a noise-aware fit;
 ``--variants`` picks the noise configurations).  DPSOC-EM starts from a copy of the LQR-FLM state of the same
 variant at ``i_switch`` (as ``soc-opt compare`` does).  linear2d is linear, so the final policy is
-scored *exactly* (``soc_opt.lqg_reference.expected_cost``: closed-loop moments of the true
+scored *exactly* (``soc_opt.noise.lqg_reference.expected_cost``: closed-loop moments of the true
 system with the policy's own filter, or with ``xhat = s`` for a policy acting on ``s``), as a
 ratio to the exact LQG optimum (``task_reference``: 7,473.39 at ``rho2 = 0.1``).
 
@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from soc_opt import algorithms
-from soc_opt.estimator import FilteredPolicy, kalman_filter, measurement_noise
-from soc_opt.experiment import load_run_config, fork_state
-from soc_opt.lqg_reference import expected_cost, task_reference
-from soc_opt.noise_aware import NoiseConfig
+from soc_opt.experiments.run import fork_state, load_run_config
+from soc_opt.noise.aware import NoiseConfig
+from soc_opt.noise.estimator import FilteredPolicy, kalman_filter, measurement_noise
+from soc_opt.noise.lqg_reference import expected_cost, task_reference
 from soc_opt.tasks import load_task
 
 

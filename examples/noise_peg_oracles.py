@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from soc_opt.experiment import load_run_config, run_experiment
-from soc_opt.noise_aware import NoiseConfig
+from soc_opt.experiments.run import load_run_config, run_experiment
+from soc_opt.noise.aware import NoiseConfig
 from soc_opt.tasks import load_task
 
 NOISE_AWARE = NoiseConfig(estimator="kalman", fit_correction="ssm_em", time_window=5)

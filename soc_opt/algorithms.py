@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from typing import Callable
 
-from .ilqg import ILQGConfig, ilqg
 from .methods.config import (
     PAPER,
     DPSOCConfig,
@@ -21,6 +20,7 @@ from .methods.config import (
     with_paper_scale,
 )
 from .methods.dpsoc_em import dpsoc_iteration, em_update
+from .methods.ilqg import ILQGConfig, ilqg
 from .methods.lqr_flm import initial_state, lqr_flm_iteration
 from .methods.registry import METHODS, check_config, get_method, run
 from .methods.state import BestPolicy, EMDiagnostics, IterationRecord, PreviousStep, RunState

@@ -14,8 +14,8 @@ Subcommands::
 
 ``TASK`` is a built-in name (``linear2d``, ``peg``, ``door``) or the path of a task TOML file.
 Configurations are validated before any simulation starts and before anything is written to
-``--out``; they are built by :func:`soc_opt.experiment.load_run_config` (the same loader is
-public for scripts).  Every method writes a resumable run directory (:mod:`soc_opt.rundir`).
+``--out``; they are built by :func:`soc_opt.experiments.run.load_run_config` (the same loader is
+public for scripts).  Every method writes a resumable run directory (:mod:`soc_opt.experiments.rundir`).
 
 Every error ends the command with one line ``soc-opt: error: ...`` on standard error and exit
 status 2 (``--debug``: the traceback instead).  Iterations are numbered from 0 on the console
@@ -42,21 +42,21 @@ def _print(line: str) -> None:
 
 
 def _table(rows: list[dict]) -> str:
-    from .report import format_table
+    from .experiments.report import format_table
 
     return format_table(rows)
 
 
 def _progress(args):
     """Progress of ``run``/``compare``: a bar on a terminal, plain lines otherwise (``--progress``)."""
-    from .progress import Progress
+    from .experiments.progress import Progress
 
     return Progress(getattr(args, "progress", "auto"), print_line=_print)
 
 
 def _log_to_tensorboard(out: Path, *, figures=(), step: int = 0, scalars: dict | None = None) -> None:
     """Figures (PNG paths) and scalar series into ``out``'s TensorBoard events (if tensorboardX is installed)."""
-    from .tblog import RunLog
+    from .experiments.tblog import RunLog
 
     log = RunLog.open(out)
     if log is None:
@@ -82,7 +82,7 @@ def _cmd_tasks(args) -> int:
 
 def _run_method(args, task, out: Path) -> int:
     """One registered method in a resumable run directory; figures and a filmstrip at the end."""
-    from .experiment import load_run_config, run_experiment
+    from .experiments.run import load_run_config, run_experiment
     from .methods.registry import get_method
 
     cfg = load_run_config(args.task, args.config, paper=args.paper,
@@ -116,8 +116,8 @@ def _cmd_run(args) -> int:
 
 
 def _write_run_figures(task, method: str, state, out: Path) -> None:
-    from . import report
-    from .compare import point_names, point_targets
+    from .experiments import report
+    from .experiments.compare import point_names, point_targets
     from .methods.registry import get_method
 
     phase = get_method(method).cost_phase
@@ -131,8 +131,8 @@ def _write_run_figures(task, method: str, state, out: Path) -> None:
 
 
 def _cmd_compare(args) -> int:
-    from .compare import compare
-    from .experiment import load_run_config
+    from .experiments.compare import compare
+    from .experiments.run import load_run_config
     from .tasks import load_task
 
     if args.seed < 0 or args.seeds < 1:
@@ -202,7 +202,7 @@ def _cmd_bench(args) -> int:
 
 
 def _cmd_sweep(args) -> int:
-    from .sweep import describe, load_sweep
+    from .sweeps.spec import describe, load_sweep
 
     spec = load_sweep(args.file)  # validates every trial before anything starts
     out = Path(args.out or f"runs/sweep-{spec.name}")
@@ -210,7 +210,7 @@ def _cmd_sweep(args) -> int:
     if args.dry_run:
         _print("\n".join(t.id for t in spec.trials))
         return 0
-    from .sweep_runner import run_sweep
+    from .sweeps.runner import run_sweep
 
     res = run_sweep(spec, out, address=args.address, workers=args.workers, max_retries=args.max_retries)
     c = res["counts"]

@@ -168,7 +168,7 @@ reads `[baseline]`; DPSOC-EM `i_switch`, `[baseline]` and `[em]` (and only DPSOC
 `[evaluation]`.  Every number must be finite: NaN and infinities are rejected with the key's name.
 A run directory remembers the sections its method reads and refuses to resume with different ones.
 
-Precedence (`soc_opt.experiment.load_run_config`, used by the CLI): the task's default file
+Precedence (`soc_opt.experiments.run.load_run_config`, used by the CLI): the task's default file
 `problems/experiments/<task>.toml` (if any), replaced by `--config FILE` when given; then
 `--paper` (the paper scale `soc_opt.methods.config.PAPER`: {iterations} iterations, {samples} samples,
 switch at {i_switch}), then the flags `--iterations`, `--samples`, `--workers`, `--i-switch`

@@ -42,9 +42,8 @@ from __future__ import annotations
 import os
 import sys
 
-import numpy as np
-
 import gymnasium
+import numpy as np
 from gymnasium import spaces
 
 from .config import ConfigError

@@ -3,16 +3,17 @@
 import numpy as np
 import pytest
 
-from soc_opt import fit, lqg
+from soc_opt import lqg
 from soc_opt.algorithms import (
     DPSOCConfig,
     EMConfig,
     ILQGConfig,
     LQRFLMConfig,
-    ilqg,
     check_config,
+    ilqg,
     run_algorithm,
 )
+from soc_opt.learning import fit
 from soc_opt.tasks import load_task
 
 # Documented in docs/choices.md: LQR-FLM needs 3 iterations (10 samples each) on this problem.

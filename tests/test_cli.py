@@ -4,7 +4,7 @@ import pytest
 
 from soc_opt.cli import main
 from soc_opt.config import ConfigError
-from soc_opt.experiment import load_run_config
+from soc_opt.experiments.run import load_run_config
 
 
 def test_unknown_config_key_is_rejected_naming_it(tmp_path, capsys):
@@ -176,7 +176,7 @@ def test_console_counts_iterations_like_metrics_csv_and_labels_times(tmp_path, c
 
 
 def test_unexpected_errors_are_one_line_and_debug_shows_the_traceback(tmp_path, capsys, monkeypatch):
-    import soc_opt.experiment as experiment
+    import soc_opt.experiments.run as experiment
 
     def boom(*a, **k):
         raise RuntimeError("deliberate\nfailure")
@@ -195,7 +195,6 @@ def test_a_second_run_on_a_directory_in_use_is_refused_naming_the_first(tmp_path
     import signal
     import subprocess
     import sys
-    import time
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]

@@ -74,7 +74,7 @@ def test_invalid_toml_is_reported_with_the_file(tmp_path):
 
 def _run_configs():
     from soc_opt.algorithms import DPSOCConfig
-    from soc_opt.config_doc import LIBRARY, resolve_config_class, config_tables
+    from soc_opt.config_doc import LIBRARY, config_tables, resolve_config_class
 
     return [cls for _, cls in config_tables(DPSOCConfig)] + [resolve_config_class(path) for path, _ in LIBRARY]
 
@@ -115,7 +115,7 @@ def test_docs_configuration_md_is_the_generated_reference():
 def test_configs_check_themselves_when_built_in_python_naming_key_and_value():
     from soc_opt.algorithms import EMConfig, LQRFLMConfig
     from soc_opt.lqg import KLStepConfig
-    from soc_opt.noise_aware import NoiseConfig
+    from soc_opt.noise.aware import NoiseConfig
 
     cases = [
         (LQRFLMConfig, {"kl_mode": "bogus"}, "kl_mode", "'bogus'"),

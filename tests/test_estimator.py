@@ -1,14 +1,22 @@
-"""Tests of soc_opt.estimator (docs/math.md §10.2) against brute-force Gaussian conditioning."""
+"""Tests of soc_opt.noise.estimator (docs/math.md §10.2) against brute-force Gaussian conditioning."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from noise_oracle import closed_loop, condition, cov, random_ltv, random_pd, sample, stack
 from scipy.stats import multivariate_normal
 
-from noise_oracle import closed_loop, condition, cov, random_ltv, random_pd, sample, stack
 from soc_opt import lqg
-from soc_opt.estimator import (
+from soc_opt.models import (
+    AugmentedModel,
+    LinearGaussianDynamics,
+    LinearGaussianPolicy,
+    NotPositiveDefiniteError,
+    QuadraticCost,
+    ShapeError,
+)
+from soc_opt.noise.estimator import (
     FilteredPolicy,
     KalmanFilter,
     cost_correction,
@@ -21,14 +29,6 @@ from soc_opt.estimator import (
     innovation_dynamics,
     kalman_filter,
     measurement_noise,
-)
-from soc_opt.models import (
-    AugmentedModel,
-    LinearGaussianDynamics,
-    LinearGaussianPolicy,
-    NotPositiveDefiniteError,
-    QuadraticCost,
-    ShapeError,
 )
 
 

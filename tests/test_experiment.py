@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig
-from soc_opt.experiment import run_experiment
+from soc_opt.experiments.run import run_experiment
 from soc_opt.tasks import load_task
 
 
@@ -67,7 +67,7 @@ def test_run_directory_refuses_a_different_configuration(task, tmp_path):
 
 
 def test_compare_writes_a_report_with_figures_and_claims(task, tmp_path):
-    from soc_opt.compare import compare
+    from soc_opt.experiments.compare import compare
 
     summary = compare(task, _cfg(iterations=3), seeds=[0, 1], out=tmp_path / "cmp")
     out = tmp_path / "cmp"
@@ -81,7 +81,7 @@ def test_compare_writes_a_report_with_figures_and_claims(task, tmp_path):
 
 
 def test_compare_shares_the_baseline_prefix(task, tmp_path):
-    from soc_opt.compare import compare
+    from soc_opt.experiments.compare import compare
 
     compare(task, _cfg(iterations=3, i_switch=2), seeds=[5], out=tmp_path / "cmp")
     base = json.loads((tmp_path / "cmp" / "seed_5" / "lqr-flm" / "metrics.json").read_text())
@@ -92,7 +92,7 @@ def test_compare_shares_the_baseline_prefix(task, tmp_path):
 
 
 def test_door_report_plots_the_minimum_hinge_angle_per_iteration(tmp_path):
-    from soc_opt.compare import compare
+    from soc_opt.experiments.compare import compare
 
     door = load_task("door", overrides={"T": 10})
     cfg = DPSOCConfig(i_switch=1, baseline=LQRFLMConfig(iterations=2, samples=4), em=EMConfig(n_em=1))
@@ -103,7 +103,7 @@ def test_door_report_plots_the_minimum_hinge_angle_per_iteration(tmp_path):
 
 def test_evaluation_uses_the_configured_seed_stream(task):
     from soc_opt.algorithms import EvalConfig
-    from soc_opt.compare import evaluate_policy
+    from soc_opt.experiments.compare import evaluate_policy
 
     policy = task.initial_policy(1.0)
     a = evaluate_policy(task, policy, 3, seed=2)
@@ -193,7 +193,7 @@ def test_a_damaged_checkpoint_offers_the_previous_one_and_restart(task, tmp_path
 def test_a_second_writer_is_refused_while_the_first_holds_the_directory(task, tmp_path):
     import os
 
-    from soc_opt.experiment import RunDirectoryError, lock_directory
+    from soc_opt.experiments.run import RunDirectoryError, lock_directory
 
     with lock_directory(tmp_path / "r"):
         with pytest.raises(RunDirectoryError, match=f"in use by process {os.getpid()}"):
@@ -228,7 +228,7 @@ def test_a_run_that_never_finished_an_iteration_does_not_block_a_corrected_rerun
 
 
 def test_compare_report_with_one_seed_shows_n_instead_of_a_zero_spread(task, tmp_path):
-    from soc_opt.compare import compare
+    from soc_opt.experiments.compare import compare
 
     compare(task, _cfg(iterations=2, i_switch=1), seeds=[0], out=tmp_path / "cmp")
     md = (tmp_path / "cmp" / "report.md").read_text()
@@ -247,8 +247,8 @@ TWO_LINK = """<mujoco><option timestep="0.01" gravity="0 0 0"/><worldbody>
 def test_compare_action_figure_names_the_actuators(monkeypatch, tmp_path):
     import matplotlib.pyplot as plt
 
-    from soc_opt import report
-    from soc_opt.compare import compare
+    from soc_opt.experiments import report
+    from soc_opt.experiments.compare import compare
     from soc_opt.tasks import build_task
 
     arm = build_task({"name": "arm", "T": 5, "q0": [0.3, 0.5], "rho2": 0.01, "init_var": 0.1,

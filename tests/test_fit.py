@@ -1,4 +1,4 @@
-"""Tests of soc_opt.fit (docs/math.md §2, §3).
+"""Tests of soc_opt.learning.fit (docs/math.md §2, §3).
 
 Oracles: the known system matrices and the OLS / Wishart standard errors,
 ridge regression written here with numpy, a direct re-implementation of the
@@ -25,9 +25,8 @@ from soc_opt.bench.fit import (
     pendulum_table,
     summarize,
 )
-from soc_opt.testing import simulate_linear
 from soc_opt.config import ConfigError
-from soc_opt.fit import (
+from soc_opt.learning.fit import (
     FitConfig,
     MixturePrior,
     VBState,
@@ -39,7 +38,7 @@ from soc_opt.fit import (
     update_prior,
 )
 from soc_opt.models import AugmentedModel, LinearGaussianPolicy, Rollouts, ShapeError
-from soc_opt.testing import random_ltv_system
+from soc_opt.testing import random_ltv_system, simulate_linear
 
 N, MU, T = 6, 2, 50
 ERRS = ("err_A", "err_B", "err_c", "err_W")
@@ -620,7 +619,7 @@ def test_config_toml_and_validation(tmp_path):
 
 def _closed_loop_y_moments(model: AugmentedModel, policy: LinearGaussianPolicy, mu0, P0):
     """Exact mean and variance of y_k under the model and the policy, by moment propagation."""
-    n, m = model.n, model.m
+    n = model.n
     mu, P = mu0.copy(), P0.copy()
     mean, var = [], []
     for k in range(model.T):

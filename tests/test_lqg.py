@@ -472,7 +472,7 @@ def test_structured_ipopt_with_singular_initial_covariance(nu):
 def _structured_point(nlp, policy):
     """NLP variables of the structured formulation that represent ``policy``."""
     x = np.zeros(nlp.nx)
-    n, m, n1 = nlp.n, nlp.m, nlp.n1
+    m, n1 = nlp.m, nlp.n1
     for t in np.flatnonzero(nlp.var):
         G = np.concatenate([policy.K[t], policy.k[t][:, None]], axis=1)
         Z = np.linalg.solve(nlp.Lh[t], G - nlp.Gh[t]) @ np.linalg.inv(nlp.Mx[t])

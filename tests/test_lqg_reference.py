@@ -1,13 +1,14 @@
-"""Tests of soc_opt.lqg_reference (docs/math.md §10.3): exact closed-loop moments, Monte Carlo, R -> 0, optimality."""
+"""Tests of soc_opt.noise.lqg_reference (docs/math.md §10.3): exact closed-loop moments, Monte Carlo, R -> 0, optimality."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from noise_oracle import closed_loop, cov, random_ltv, random_pd, stack
+
 from soc_opt import lqg
-from soc_opt.estimator import (
+from soc_opt.models import LinearGaussianDynamics, LinearGaussianPolicy, NotPositiveDefiniteError, QuadraticCost, ShapeError
+from soc_opt.noise.estimator import (
     FilteredPolicy,
     filtered_cost,
     initial_estimate,
@@ -15,8 +16,8 @@ from soc_opt.estimator import (
     kalman_filter,
     measurement_noise,
 )
-from soc_opt.lqg_reference import closed_loop_moments, expected_cost, lqg as lqg_solve, simulate, task_reference
-from soc_opt.models import LinearGaussianDynamics, LinearGaussianPolicy, NotPositiveDefiniteError, QuadraticCost, ShapeError
+from soc_opt.noise.lqg_reference import closed_loop_moments, expected_cost, simulate, task_reference
+from soc_opt.noise.lqg_reference import lqg as lqg_solve
 
 
 def _problem(n=3, m=2, T=6, seed=0):
@@ -88,7 +89,7 @@ def test_lqg_cost_matches_monte_carlo_of_the_closed_loop():
     tot = per.sum(axis=1)
     assert abs(tot.mean() - sol.total) < 4.0 * tot.std(ddof=1) / np.sqrt(M)
     # the online estimates of the simulation are the batch filter's
-    from soc_opt.estimator import filter_states
+    from soc_opt.noise.estimator import filter_states
 
     np.testing.assert_allclose(filter_states(sol.policy.filter, smp.s, smp.a), smp.xhat, atol=1e-10)
 

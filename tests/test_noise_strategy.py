@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from soc_opt import noise_aware
 from soc_opt.config import ConfigError
-from soc_opt.estimator import FilteredPolicy
-from soc_opt.fit import FitConfig
-from soc_opt.noise_aware import NoiseConfig
-from soc_opt.noise_strategy import KalmanEstimator, MeasuredState, resolve, strategy_class
+from soc_opt.learning.fit import FitConfig
+from soc_opt.noise import aware as noise_aware
+from soc_opt.noise.aware import NoiseConfig
+from soc_opt.noise.estimator import FilteredPolicy
+from soc_opt.noise.strategy import KalmanEstimator, MeasuredState, resolve, strategy_class
 from soc_opt.tasks import load_task
 
 
@@ -38,7 +38,7 @@ def test_every_registered_estimator_resolves_to_its_class():
 
 
 def test_paper_strategy_is_the_plain_fit_and_model(sampled):
-    from soc_opt import fit
+    from soc_opt.learning import fit
 
     task, pol, ro = sampled
     s = resolve(task, NoiseConfig())

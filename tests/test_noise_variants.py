@@ -7,13 +7,16 @@ import types
 import numpy as np
 import pytest
 
-from soc_opt import estep, fit, lqg, mstep, noise_aware, noisefit
-from soc_opt.noisefit import smooth_states
-from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig, em_update, lqr_flm_iteration, initial_state, run_algorithm
+from soc_opt import estep, lqg, mstep
+from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig, em_update, initial_state, lqr_flm_iteration, run_algorithm
 from soc_opt.config import ConfigError
-from soc_opt.estimator import FilteredPolicy, filter_states, kalman_filter, measurement_noise
+from soc_opt.learning import fit
 from soc_opt.models import LinearGaussianDynamics, LinearGaussianPolicy, NotPositiveDefiniteError
-from soc_opt.noise_aware import NoiseConfig
+from soc_opt.noise import aware as noise_aware
+from soc_opt.noise import noisefit
+from soc_opt.noise.aware import NoiseConfig
+from soc_opt.noise.estimator import FilteredPolicy, filter_states, kalman_filter, measurement_noise
+from soc_opt.noise.noisefit import smooth_states
 from soc_opt.tasks import load_task
 
 

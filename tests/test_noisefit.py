@@ -1,15 +1,15 @@
-"""Tests of soc_opt.noisefit (docs/math.md §10.1): exact population correction, consistency, SSM-EM."""
+"""Tests of soc_opt.noise.noisefit (docs/math.md §10.1): exact population correction, consistency, SSM-EM."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from noise_oracle import closed_loop, condition, cov, random_pd, sample, stack
+
 from soc_opt.bench.noisefit import bias_table, population_naive, problem, relative_errors, simulate
-from soc_opt.estimator import kalman_filter, measurement_noise
 from soc_opt.models import LinearGaussianDynamics, NotPositiveDefiniteError, ShapeError
-from soc_opt.noisefit import (
+from soc_opt.noise.estimator import kalman_filter, measurement_noise
+from soc_opt.noise.noisefit import (
     NoiseFitConfig,
     condition_joint,
     correct_joint,
@@ -222,7 +222,7 @@ def test_reliability_floor_keeps_the_corrected_covariance_positive_definite():
     prob["P0"] = 1e-12 * np.eye(2)
     dyn, R, pol = prob["dynamics"], prob["R"], prob["policy"]
     _, s, a = simulate(prob, 200, np.random.default_rng(2))
-    from soc_opt.noisefit import sample_moments
+    from soc_opt.noise.noisefit import sample_moments
 
     mu, Lam = sample_moments(s, a)
     X = noise_action_cov(R, pol.K)

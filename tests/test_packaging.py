@@ -10,7 +10,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.parametrize("name", ["lqg", "mstep", "estep", "fit", "algorithms", "ilqg", "tasks", "experiment"])
+@pytest.mark.parametrize("name", ["lqg", "mstep", "estep", "learning", "algorithms", "ilqg", "tasks", "experiments",
+                                  "methods", "noise", "sweeps"])
 def test_submodules_are_attributes_of_a_freshly_imported_package(name):
     """``import soc_opt; soc_opt.<name>`` works without importing the submodule first."""
     code = f"import soc_opt; m = soc_opt.{name}; print(m.__name__)"
@@ -34,3 +35,19 @@ def test_license_is_an_spdx_string_with_a_setuptools_that_reads_it():
     reqs = [r.replace(" ", "") for r in data["build-system"]["requires"] if r.replace(" ", "").startswith("setuptools")]
     assert reqs and reqs[0].startswith("setuptools>=")
     assert tuple(int(p) for p in reqs[0].split(">=")[1].split(".")) >= (77,)
+
+
+def test_pyproject_lists_every_package_and_ships_problems_inside_soc_opt():
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    on_disk = {"soc_opt"} | {"soc_opt." + p.parent.relative_to(ROOT / "soc_opt").as_posix().replace("/", ".")
+                             for p in (ROOT / "soc_opt").rglob("__init__.py") if p.parent != ROOT / "soc_opt"}
+    assert set(data["packages"]) == on_disk | {"soc_opt.problems"}
+    assert data["package-dir"] == {"soc_opt.problems": "problems"}
+
+
+def test_problems_are_found_in_the_checkout_by_the_one_lookup():
+    from soc_opt.experiments.run import EXPERIMENTS
+    from soc_opt.tasks.loading import problems_dir
+
+    assert problems_dir() == ROOT / "problems"
+    assert EXPERIMENTS == ROOT / "problems" / "experiments" and (EXPERIMENTS / "peg.toml").is_file()

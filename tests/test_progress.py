@@ -8,9 +8,9 @@ import re
 import pytest
 
 from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig
-from soc_opt.compare import compare
-from soc_opt.experiment import run_experiment
-from soc_opt.progress import Progress, resolve_mode
+from soc_opt.experiments.compare import compare
+from soc_opt.experiments.progress import Progress, resolve_mode
+from soc_opt.experiments.run import run_experiment
 from soc_opt.tasks import load_task
 
 

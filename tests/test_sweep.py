@@ -20,10 +20,10 @@ import pytest
 
 from soc_opt.algorithms import IterationRecord, RunState
 from soc_opt.cli import main
-from soc_opt.experiment import run_experiment
+from soc_opt.experiments.run import run_experiment
 from soc_opt.linalg import single_thread_blas
-from soc_opt.sweep import TrialDiverged, check_finite, load_sweep, sweep_from_dict
-from soc_opt.sweep_runner import ProgressBoard, run_sweep
+from soc_opt.sweeps.runner import ProgressBoard, run_sweep
+from soc_opt.sweeps.spec import TrialDiverged, check_finite, load_sweep, sweep_from_dict
 from soc_opt.tasks import BUILTIN_TASKS, load_task
 from soc_opt.tasks.loading import problems_dir
 
@@ -96,8 +96,8 @@ def test_settings_record_their_entry_and_grid_values():
 
 
 def test_report_plots_quantities_against_a_single_numeric_grid_key(tmp_path):
-    from soc_opt.sweep import RESULT
-    from soc_opt.sweep_report import versus_key, write_report
+    from soc_opt.sweeps.report import versus_key, write_report
+    from soc_opt.sweeps.spec import RESULT
 
     data = dict(SMALL, settings=[{"name": "a"}, {"name": "b"}], grid={"task": {"rho2": [0.0, 0.01, 0.1]}})
     spec = sweep_from_dict(data)

@@ -312,7 +312,7 @@ def test_linear2d_matches_continuous_point_mass(lin):
     x, u = rng.normal(size=6), rng.normal(size=2)
 
     def f(t, z):
-        p, v, F = z[:2], z[2:4], z[4:]
+        v, F = z[2:4], z[4:]
         return np.r_[v, F / cfg.mass, (u - F) / cfg.tau]
 
     sol = scipy.integrate.solve_ivp(f, (0, lin.dt), x, rtol=1e-11, atol=1e-12)
@@ -573,7 +573,7 @@ def test_whole_step_differences_agree_with_mjd_transition_fd():
 
 
 def test_ilqg_lowers_the_cost_on_an_rk4_model():
-    from soc_opt.ilqg import ILQGConfig, ilqg
+    from soc_opt.methods.ilqg import ILQGConfig, ilqg
 
     xml = TWO_LINK.replace('gravity="0 0 0"', 'gravity="0 0 0" integrator="RK4"')
     task = build_task(_two_link_config(T=15, substeps=2), xml=xml)

@@ -18,10 +18,10 @@ import pytest
 
 from soc_opt import cli
 from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig
-from soc_opt.experiment import run_experiment
-from soc_opt.progress import Progress
+from soc_opt.experiments.progress import Progress
+from soc_opt.experiments.run import run_experiment
+from soc_opt.experiments.tblog import MISSING_MESSAGE, available
 from soc_opt.tasks import load_task
-from soc_opt.tblog import MISSING_MESSAGE, available
 
 needs_tensorboardx = pytest.mark.skipif(not available(), reason="tensorboardX not installed (test extra)")
 
@@ -103,8 +103,9 @@ def test_cli_run_adds_the_figures_as_images(tmp_path, monkeypatch):
     _, images = read_events(out)
     pngs = sorted(p.stem for p in out.glob("*.png"))
     assert sorted(images) == pngs and "cost_per_iteration" in pngs
-    from matplotlib.image import imread
     import io
+
+    from matplotlib.image import imread
 
     (step, png), = images["cost_per_iteration"]
     assert step == 1

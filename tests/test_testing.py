@@ -3,7 +3,7 @@
 import numpy as np
 
 from soc_opt import lqg, mstep
-from soc_opt.testing import make_kl_instance, random_mstep_instance, simulate_linear, random_ltv_system
+from soc_opt.testing import make_kl_instance, random_ltv_system, random_mstep_instance, simulate_linear
 
 
 def test_kl_instance_has_a_convex_cost_and_a_positive_definite_reference(kl_instance):

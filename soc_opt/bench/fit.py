@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from ..fit import FitConfig, fit_augmented, fit_dynamics, prediction_error, update_prior
+from ..learning.fit import FitConfig, fit_augmented, fit_dynamics, prediction_error, update_prior
 from ..models import Rollouts
 from ..testing import random_ltv_system, simulate_linear, simulate_pendulum
 
@@ -213,7 +213,7 @@ def peg_sequence(
     rollouts the iteration fitted on, ``test`` are ``n_test`` further rollouts of the
     same policy (an independent stream, seed ``seed + 1``).
     """
-    from ..experiment import load_run_config
+    from ..experiments.run import load_run_config
     from ..methods.lqr_flm import initial_state, lqr_flm_iteration
     from ..tasks import load_task
 

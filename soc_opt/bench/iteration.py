@@ -37,7 +37,7 @@ def run(task: str = "peg", seed: int = 0, iterations: int | None = None, samples
     iterations 2..n, ``first_s`` the first iteration.  ``iterations``/``samples`` override the
     paper's (for a quick check)."""
     from ..algorithms import PAPER
-    from ..experiment import load_run_config
+    from ..experiments.run import load_run_config
     from ..linalg import single_thread_blas
     from ..tasks import load_task
 

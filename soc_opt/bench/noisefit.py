@@ -2,7 +2,7 @@
 
 ``run()`` simulates a known time-varying linear system with noisy measurements
 (``rho^2 = 0.1``) under a feedback policy, fits ``A, B`` with the three estimators of
-:mod:`soc_opt.noisefit` for growing ``M``, and reports per method and ``M`` (over ``reps``
+:mod:`soc_opt.noise.noisefit` for growing ``M``, and reports per method and ``M`` (over ``reps``
 independent data sets):
 
 * ``bias_A``, ``bias_B``: ``mean_k ||mean_r Ahat_r[k] - A[k]||_F / ||A[k]||_F`` (the same for ``B``);
@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..estimator import FilteredPolicy, kalman_filter, measurement_noise
-from ..lqg_reference import simulate as simulate_filtered
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy
-from ..noisefit import NoiseFitConfig, corrected_fit, naive_fit, noise_action_cov, ssm_em
+from ..noise.estimator import FilteredPolicy, kalman_filter, measurement_noise
+from ..noise.lqg_reference import simulate as simulate_filtered
+from ..noise.noisefit import NoiseFitConfig, corrected_fit, naive_fit, noise_action_cov, ssm_em
 
 __all__ = ["problem", "simulate", "relative_errors", "population_naive", "bias_table", "format_table", "run"]
 

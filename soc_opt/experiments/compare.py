@@ -4,9 +4,10 @@ For each seed the baseline runs first; DPSOC-EM starts from a copy of the baseli
 ``i_switch`` (same policy, prior and RNG state), so both methods share their first
 ``i_switch`` iterations exactly and differ only from the EM phase on.  Each method's final
 policy is then evaluated on ``evaluation.samples`` fresh rollouts drawn with the same evaluation
-seed for both methods (:func:`evaluate_policy`, :class:`~soc_opt.methods.config.EvalConfig`).  Everything is written under ``out/``; a rerun with the same ``out`` resumes.
-``out`` is locked while the comparison runs (:func:`soc_opt.rundir.lock_directory`), and each
-method's run directory checks its contract (:mod:`soc_opt.rundir`).
+seed for both methods (:func:`evaluate_policy`, :class:`~soc_opt.methods.config.EvalConfig`).
+Everything is written under ``out/``; a rerun with the same ``out`` resumes.
+``out`` is locked while the comparison runs (:func:`soc_opt.experiments.rundir.lock_directory`), and each
+method's run directory checks its contract (:mod:`soc_opt.experiments.rundir`).
 """
 
 from __future__ import annotations
@@ -17,18 +18,18 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from ..methods.config import DPSOCConfig, EvalConfig
+from ..methods.dpsoc_em import DPSOC_EM
+from ..methods.lqr_flm import LQR_FLM
+from ..methods.state import RunState
+from ..models import LinearGaussianPolicy, Rollouts
 from . import report
-from .experiment import fork_state, run_experiment
-from .methods.config import DPSOCConfig, EvalConfig
-from .methods.dpsoc_em import DPSOC_EM
-from .methods.lqr_flm import LQR_FLM
-from .methods.state import RunState
-from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory
-from .models import LinearGaussianPolicy, Rollouts
 from .progress import Progress, as_progress
+from .run import fork_state, run_experiment
+from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory
 
 if TYPE_CHECKING:
-    from .tasks import Task
+    from ..tasks import Task
 
 __all__ = ["compare", "evaluate_policy", "spreads", "point_names", "point_targets", "action_names"]
 
@@ -77,7 +78,7 @@ def evaluate_policy(task: Task, policy: LinearGaussianPolicy, samples: int, seed
 
 
 def spreads(task: Task, ro: Rollouts) -> dict[str, float]:
-    """Final-policy statistics of the claims table (:func:`soc_opt.report.claims_table`).
+    """Final-policy statistics of the claims table (:func:`soc_opt.experiments.report.claims_table`).
 
     ``cost``: mean true-state total cost; ``state_spread``: mean over time and points of the std
     over samples of the end-effector points; ``action_spread``: the same for the actions.
@@ -105,7 +106,7 @@ def compare(
 
     ``eval_samples`` (optional) overrides ``cfg.evaluation.samples`` for the final evaluation;
     ``restart`` discards the runs already in ``out``.
-    ``progress``: a :class:`soc_opt.progress.Progress` (a bar over the seeds above each run's
+    ``progress``: a :class:`soc_opt.experiments.progress.Progress` (a bar over the seeds above each run's
     bar over its iterations, or plain lines), a callable printing lines, or ``None``.
     """
     FORKED.check_config(cfg)

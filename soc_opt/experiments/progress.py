@@ -1,7 +1,7 @@
 """Progress of long work: a tqdm bar on a terminal, plain lines otherwise (CI logs, files).
 
-:class:`Progress` is what the command line hands to :func:`soc_opt.experiment.run_experiment`
-and :func:`soc_opt.compare.compare`.  It opens one :class:`Bar` per loop (iterations of one
+:class:`Progress` is what the command line hands to :func:`soc_opt.experiments.run.run_experiment`
+and :func:`soc_opt.experiments.compare.compare`.  It opens one :class:`Bar` per loop (iterations of one
 run; seeds of a comparison, with the runs' bars nested below):
 
 * ``mode = "bar"``: a tqdm bar on ``stream`` (default ``sys.stderr``) whose postfix shows the
@@ -121,4 +121,4 @@ def as_progress(progress) -> Progress | None:
         return progress
     if callable(progress):
         return Progress("lines", print_line=progress)
-    raise TypeError(f"progress must be a soc_opt.progress.Progress, a callable taking a line, or None; got {progress!r}")
+    raise TypeError(f"progress must be a soc_opt.experiments.progress.Progress, a callable taking a line, or None; got {progress!r}")

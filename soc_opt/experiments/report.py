@@ -1,6 +1,6 @@
 """Figures and the Markdown report of a method comparison (docs/math.md §9.5, paper figures).
 
-Inputs are plain arrays gathered by :func:`soc_opt.compare.compare`; this module only draws
+Inputs are plain arrays gathered by :func:`soc_opt.experiments.compare.compare`; this module only draws
 and writes.  Figures (PNG):
 
 - ``cost_per_iteration.png``: expected cost per iteration, box plots over samples (all seeds)

@@ -1,11 +1,11 @@
 """Experiments on disk: run configurations, resumable runs, and forks for method comparisons.
 
 :func:`run_experiment` runs one method (``lqr-flm``, ``dpsoc-em`` or ``ilqg``) on one task and
-seed in a run directory (:mod:`soc_opt.rundir`: files, contract, lock, verified checkpoints).
+seed in a run directory (:mod:`soc_opt.experiments.rundir`: files, contract, lock, verified checkpoints).
 Starting again with the same directory resumes from its checkpoint; because the RNG state is
 part of the checkpoint, the resumed run ends with the same results as an uninterrupted one.
 With ``tensorboardX`` installed the directory also gets ``events.out.tfevents.*`` files with the
-per-iteration scalars (:mod:`soc_opt.tblog`).
+per-iteration scalars (:mod:`soc_opt.experiments.tblog`).
 
 :func:`load_run_config` builds and validates the run configuration the way ``soc-opt run|compare``
 does (the task's default file, a TOML file, the paper scale, single-key overrides), before
@@ -21,23 +21,24 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from .config import ConfigError, read_toml
-from .methods.base import run_method
-from .methods.config import DPSOCConfig
-from .methods.registry import METHODS, get_method
-from .methods.state import RunState
+from ..config import ConfigError, read_toml
+from ..methods.base import run_method
+from ..methods.config import DPSOCConfig
+from ..methods.registry import METHODS, get_method
+from ..methods.state import RunState
+from ..tasks.loading import problems_dir
 from .progress import Progress, as_progress
 from .rundir import CHECKPOINT, CheckpointError, RunDirectory, RunDirectoryError, differences, lock_directory
 from .tblog import MISSING_MESSAGE, RunLog
 
 if TYPE_CHECKING:
-    from .tasks import Task
+    from ..tasks import Task
 
 __all__ = ["EXPERIMENTS", "load_run_config", "RunDirectory", "RunDirectoryError", "CheckpointError",
            "run_experiment", "fork_state", "lock_directory", "headline_metric", "CHECKPOINT"]
 
 #: Default run configurations of the built-in tasks: ``EXPERIMENTS / "<task>.toml"``.
-EXPERIMENTS = Path(__file__).resolve().parent.parent / "problems" / "experiments"
+EXPERIMENTS = problems_dir() / "experiments"
 def _read_run_config(path: Path, method: str) -> DPSOCConfig:
     """A run configuration file; an iLQG file in the old top-level layout gets a hint."""
     data = read_toml(path)
@@ -79,7 +80,7 @@ def load_run_config(task_name: str, config_file: str | Path | None = None, *, pa
 
 def same_settings(old, new) -> bool:
     """Every setting recorded in ``old`` has the same value in ``new`` (keys only in ``new`` are
-    ignored): no :func:`soc_opt.rundir.differences`.  Kept for ``soc_opt.sweep_runner``."""
+    ignored): no :func:`soc_opt.experiments.rundir.differences`.  Kept for ``soc_opt.sweeps.runner``."""
     return not differences(old, new)
 
 
@@ -147,15 +148,15 @@ def run_experiment(
 
     ``method``: a name in :data:`soc_opt.methods.registry.METHODS` (``"lqr-flm"``, ``"dpsoc-em"``:
     returns a :class:`~soc_opt.methods.state.RunState`; ``"ilqg"``: reads ``cfg.ilqg``, returns an
-    :class:`~soc_opt.ilqg.ILQGState`).  Everything is
+    :class:`~soc_opt.methods.ilqg.ILQGState`).  Everything is
     validated before ``out`` is touched.  With ``out``, the run holds the directory's lock, checks
-    its contract and resumes from its checkpoint (:mod:`soc_opt.rundir`); ``restart`` discards a
+    its contract and resumes from its checkpoint (:mod:`soc_opt.experiments.rundir`); ``restart`` discards a
     previous run's files first; ``previous_checkpoint`` resumes from the checkpoint before the last
     (after a damaged one).  ``start_state`` (no checkpoint yet) starts from a given state, e.g. a
     fork of the baseline.  An exception during an iteration leaves the finished iterations saved;
     the run directory's path is added to it as a note.
 
-    ``progress``: a :class:`soc_opt.progress.Progress` (a bar over the iterations, showing the
+    ``progress``: a :class:`soc_opt.experiments.progress.Progress` (a bar over the iterations, showing the
     mean cost, the KL and the task's headline metric, or plain lines), a callable printing
     one line per iteration, or ``None`` (silent).  ``bar_level``: nesting of the bar (compare).
     """

@@ -50,7 +50,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .config import ConfigError
+from ..config import ConfigError
 
 try:  # POSIX advisory locks; elsewhere a pid check stands in (see _PidLock)
     import fcntl
@@ -353,7 +353,7 @@ class RunDirectory:
     def save(self, state) -> None:
         """Write the iteration's files, then the checkpoint (atomically, last; the previous one kept).
 
-        ``state`` is a :class:`~soc_opt.methods.state.RunState` or :class:`~soc_opt.ilqg.ILQGState`
+        ``state`` is a :class:`~soc_opt.methods.state.RunState` or :class:`~soc_opt.methods.ilqg.ILQGState`
         (``iteration``, ``policy``, ``history``, ``best``, ``last_rollouts``).
         """
         it = state.iteration

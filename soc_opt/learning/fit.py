@@ -24,7 +24,7 @@ Two estimators of the joint Gaussian:
   fitted by variational Bayes with ``sklearn.mixture.BayesianGaussianMixture``
   (Dirichlet prior on the weights, normal-Wishart priors on the components,
   Bishop §10.2), see :func:`update_prior`; the fitted mixture is a
-  :class:`soc_opt.mixture.MixturePrior`.  Each iteration's fit is warm-started
+  :class:`soc_opt.learning.mixture.MixturePrior`.  Each iteration's fit is warm-started
   from the previous iteration's variational posterior
   (``FitConfig.prior_warm_start``).  Per step it gives a single
   normal-inverse-Wishart prior
@@ -75,11 +75,10 @@ from typing import Literal
 
 import numpy as np
 
-from .config import Config, Interval, Options
-from .linalg import T as _T
-from .linalg import as_generator, chol, cho_solve, single_thread_blas
-from .mixture import MixturePrior, VBState, standardisation
-from .models import (
+from ..config import Config, Interval, Options
+from ..linalg import T as _T
+from ..linalg import as_generator, cho_solve, chol, single_thread_blas
+from ..models import (
     AugmentedModel,
     LinearGaussianDynamics,
     LinearGaussianPolicy,
@@ -88,6 +87,7 @@ from .models import (
     check_array,
     symmetrize,
 )
+from .mixture import MixturePrior, VBState, standardisation
 
 __all__ = [
     "FitConfig",
@@ -400,7 +400,7 @@ def fit_augmented(
     and a prior is given; otherwise per-step regularised least squares.
     ``correct(mu (T, d), Lam (T, d, d)) -> (mu, Lam)``, if given, maps the per-step joint
     moments (after the ridge) before conditioning: the hook of the bias-corrected fit
-    (docs/math.md §10.1, :func:`soc_opt.noise_aware.moment_correction`).
+    (docs/math.md §10.1, :func:`soc_opt.noise.aware.moment_correction`).
     """
     Ao, co, So = _fit(rollouts, config, prior, include_y=True, correct=correct)
     return AugmentedModel(Ao, co, So, rollouts.n)

@@ -2,8 +2,8 @@
 
 :class:`MixturePrior` is the fitted mixture (pruned components, point estimates) with the
 tuple buffer and the variational posterior (:class:`VBState`) from which the next fit is
-warm-started; :func:`soc_opt.fit.update_prior` fits it and
-:func:`soc_opt.fit.joint_posterior` turns it into per-step NIW priors.  The helpers here map
+warm-started; :func:`soc_opt.learning.fit.update_prior` fits it and
+:func:`soc_opt.learning.fit.joint_posterior` turns it into per-step NIW priors.  The helpers here map
 the variational posterior between original units and the standardised coordinates each fit
 works in (sklearn's ``BayesianGaussianMixture`` attributes).
 """
@@ -16,9 +16,9 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import logsumexp
 
-from .linalg import T as _T
-from .linalg import chol, tri_solve
-from .models import ShapeError, check_array, symmetrize
+from ..linalg import T as _T
+from ..linalg import chol, tri_solve
+from ..models import ShapeError, check_array, symmetrize
 
 __all__ = ["VBState", "MixturePrior", "standardisation"]
 
@@ -26,7 +26,7 @@ __all__ = ["VBState", "MixturePrior", "standardisation"]
 class VBState(NamedTuple):
     """Variational posterior of the VB mixture's kept components, in original units.
 
-    Kept by :class:`MixturePrior` so that the next :func:`soc_opt.fit.update_prior` can start VB from it
+    Kept by :class:`MixturePrior` so that the next :func:`soc_opt.learning.fit.update_prior` can start VB from it
     (``FitConfig.prior_warm_start``).  Only the ``C`` components whose weight reached
     ``FitConfig.min_weight`` are stored (the components of the prior).  The names follow
     sklearn's fitted attributes (Bishop §10.2: ``alpha_c``, ``beta_c``, ``m_c``, ``nu_c`` and

@@ -54,6 +54,7 @@ __all__ = [
     "kl_divergence",
     "lqr",
     "kl_step",
+    "KL_METHODS",
     "adapt_multiplier",
     "laplace_improvements",
 ]

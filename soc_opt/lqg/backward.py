@@ -42,8 +42,8 @@ from scipy.linalg import blas, lapack
 
 from ..linalg import logdet_chol
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, NotPositiveDefiniteError, QuadraticCost, symmetrize
-from .moments import expected_cost_marg, forward_arrays, ForwardWorkspace
-from .problem import KLStepConfig, Marginals, check_dims, check_init, KLProblem, ux_transpose
+from .moments import ForwardWorkspace, expected_cost_marg, forward_arrays
+from .problem import KLProblem, KLStepConfig, Marginals, check_dims, check_init, ux_transpose
 
 
 class NotPDPoint(Exception):

@@ -31,9 +31,8 @@ import numpy as np
 from ..linalg import logdet_pd
 from ..models import symmetrize
 from .moments import expected_cost_marg, forward_arrays, kl_batched
-from .problem import KLStepConfig, KLStepResult, SolverError, policy_from, KLProblem
+from .problem import KLProblem, KLStepConfig, KLStepResult, SolverError, policy_from
 from .structured_nlp import StructuredNLP
-
 
 _IPOPT_OK = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 

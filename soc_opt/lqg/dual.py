@@ -25,8 +25,8 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.signal import lfilter
 
 from ..models import NotPositiveDefiniteError
-from .backward import backward_pass, direct_dkl, DualEval, evaluate_eta, NotPDPoint
-from .problem import KLStepConfig, SolverError, KLProblem
+from .backward import DualEval, NotPDPoint, backward_pass, direct_dkl, evaluate_eta
+from .problem import KLProblem, KLStepConfig, SolverError
 
 _MEM = 10
 _NEAR = 0.1  # L-BFGS memory is used only once every free |log(KL_k/nu_k)| < _NEAR ...

@@ -15,9 +15,9 @@ import numpy as np
 from ..linalg import single_thread_blas_cached
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost
 from .casadi_nlp import kl_step_casadi
-from .fatrop_nlp import kl_step_fatrop
 from .dual import dual_objective, solve_scalar, solve_vector
-from .problem import KLStepConfig, KLStepResult, check_dims, check_init, check_nu, policy_from, KLProblem
+from .fatrop_nlp import kl_step_fatrop
+from .problem import KLProblem, KLStepConfig, KLStepResult, check_dims, check_init, check_nu, policy_from
 
 
 def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: LinearGaussianPolicy, nu, mu0, P0,

@@ -3,7 +3,7 @@
 - :mod:`.base`: the :class:`~soc_opt.methods.base.Method` protocol and the generic run loop;
 - :mod:`.config`: the run configuration (:class:`DPSOCConfig` and its sections);
 - :mod:`.state`: run state, iteration records, best policy (what checkpoints hold);
-- :mod:`.lqr_flm`, :mod:`.dpsoc_em`: the sample-based methods; iLQG is :mod:`soc_opt.ilqg`;
+- :mod:`.lqr_flm`, :mod:`.dpsoc_em`: the sample-based methods; iLQG is :mod:`soc_opt.methods.ilqg`;
 - :mod:`.registry`: :data:`~soc_opt.methods.registry.METHODS`, name -> method.
 
 The registry is imported explicitly (``from soc_opt.methods.registry import METHODS``) so that a

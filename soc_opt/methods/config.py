@@ -1,7 +1,7 @@
 """The run configuration (docs/math.md §7): one TOML file holds every method's sections.
 
 :class:`DPSOCConfig` is the whole file; :class:`LQRFLMConfig` (``[baseline]``), :class:`EMConfig`
-(``[em]``), :class:`EvalConfig` (``[evaluation]``) and :class:`~soc_opt.ilqg.ILQGConfig`
+(``[em]``), :class:`EvalConfig` (``[evaluation]``) and :class:`~soc_opt.methods.ilqg.ILQGConfig`
 (``[ilqg]``) its sections.  Which sections a method reads is declared by the method itself
 (:attr:`soc_opt.methods.base.Method.sections`); method-specific checks run through the registry
 (:func:`soc_opt.methods.registry.check_config`), so this module knows no method by name.
@@ -12,13 +12,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
-from .. import fit, lqg, mstep
+from .. import lqg, mstep
 from ..config import Config, Interval, Options
-from ..fit import COST_MODES
-from ..ilqg import ILQGConfig
+from ..learning import fit
+from ..learning.fit import COST_MODES
 from ..lqg import KL_METHODS
 from ..mstep import MSTEP_METHODS
-from ..noise_aware import NoiseConfig
+from ..noise.aware import NoiseConfig
+from .ilqg import ILQGConfig
 
 __all__ = ["PaperScale", "PAPER", "LoopKLStepConfig", "LQRFLMConfig", "EMConfig", "EvalConfig", "DPSOCConfig",
            "with_paper_scale"]
@@ -68,7 +69,7 @@ class LQRFLMConfig(Config):
     kl:          KL-step solver and step-adaptation configuration (docs/math.md §6), the loop's
                  :class:`LoopKLStepConfig` (dual solved to ``kl_rtol = 1e-6``).
     noise:       noise-aware variants (docs/math.md §10: corrected fit, estimator in the loop); the
-                 defaults are the paper's method (:class:`soc_opt.noise_aware.NoiseConfig`).
+                 defaults are the paper's method (:class:`soc_opt.noise.aware.NoiseConfig`).
     """
 
     iterations: int = PAPER.iterations
@@ -169,7 +170,7 @@ class DPSOCConfig(Config):
     baseline:   the LQR-FLM configuration (iterations = total baseline iterations).
     em:         the EM phase configuration.
     evaluation: evaluation of the final policies (``soc-opt compare``).
-    ilqg:       model-based iLQG (``soc-opt run --method ilqg``), :class:`soc_opt.ilqg.ILQGConfig`.
+    ilqg:       model-based iLQG (``soc-opt run --method ilqg``), :class:`soc_opt.methods.ilqg.ILQGConfig`.
     """
 
     i_switch: int = PAPER.i_switch

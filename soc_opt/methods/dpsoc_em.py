@@ -4,7 +4,7 @@ At iteration ``i_switch`` the reference of the KL step is replaced by the EM pol
 recursions of {sample, fit augmented model (§1–§2), generate ``Y`` (§3), E-step (§4), DP M-step
 (§5)}; the LQG step of that iteration then uses the EM policy as its KL reference and as the
 sampling policy (paper eq. constrainObjective).  The run's noise strategy
-(:mod:`soc_opt.noise_strategy`) supplies the fit and the model the E-/M-step run on (with
+(:mod:`soc_opt.noise.strategy`) supplies the fit and the model the E-/M-step run on (with
 ``[baseline.noise] estimator = "kalman"``, docs/math.md §10.2: the augmented model in ``xhat``).
 """
 
@@ -16,11 +16,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import estep, fit, mstep
+from .. import estep, mstep
 from ..config import ConfigError
-from ..estimator import FilteredPolicy
+from ..learning import fit
 from ..models import LinearGaussianPolicy, Rollouts
-from ..noise_strategy import NoiseStrategy, resolve
+from ..noise.estimator import FilteredPolicy
+from ..noise.strategy import NoiseStrategy, resolve
 from .config import DPSOCConfig, EMConfig
 from .lqr_flm import LQRFLM, lqr_flm_iteration
 from .state import EMDiagnostics, RunState, improved, record, state_rng

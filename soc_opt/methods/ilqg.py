@@ -22,14 +22,14 @@ from typing import TYPE_CHECKING, Callable, Literal
 
 import numpy as np
 
-from . import lqg
-from .config import Config, ConfigError, Interval, config_error
-from .methods.base import MethodBase
-from .methods.state import BestPolicy
-from .models import LinearGaussianPolicy, Rollouts
+from .. import lqg
+from ..config import Config, ConfigError, Interval, config_error
+from ..models import LinearGaussianPolicy, Rollouts
+from .base import MethodBase
+from .state import BestPolicy
 
 if TYPE_CHECKING:
-    from .tasks import Task
+    from ..tasks import Task
 
 __all__ = ["ILQGConfig", "ILQGRecord", "ILQGState", "check_task", "initial_ilqg_state", "ilqg_iteration",
            "run_ilqg", "ilqg", "ILQG", "ILQG_METHOD"]
@@ -193,7 +193,7 @@ def initial_ilqg_state(task: Task, cfg: ILQGConfig = ILQGConfig(), u_init: np.nd
 
 def _line_search(task, cfg, x, u, J, Knew, d):
     """The first step size in ``cfg.alphas`` whose rollout lowers the cost, or None."""
-    from .tasks import SimulationError
+    from ..tasks import SimulationError
 
     for alpha in cfg.alphas:
         kff = u + alpha * d - np.einsum("tij,tj->ti", Knew, x[:-1])

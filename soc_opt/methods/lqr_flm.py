@@ -9,7 +9,7 @@ One iteration on an explicit :class:`~soc_opt.methods.state.RunState`:
 5. KL-constrained LQG step against the reference policy -> ``p_{i+1}``.
 
 Noise-aware variants (docs/math.md §10, ``[baseline.noise]``): steps 2–5 call the run's
-:class:`~soc_opt.noise_strategy.NoiseStrategy` (state estimates for the prior, corrected fit,
+:class:`~soc_opt.noise.strategy.NoiseStrategy` (state estimates for the prior, corrected fit,
 expansion point, the KL step's model and the new policy's estimator); the defaults are the
 paper's method.
 """
@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from .. import lqg
-from ..estimator import FilteredPolicy
 from ..models import LinearGaussianPolicy
-from ..noise_strategy import NoiseStrategy, resolve
+from ..noise.estimator import FilteredPolicy
+from ..noise.strategy import NoiseStrategy, resolve
 from .base import MethodBase
 from .config import LQRFLMConfig, with_paper_scale
 from .state import PreviousStep, RunState, improved, record, state_rng

@@ -10,9 +10,9 @@ from __future__ import annotations
 from typing import Callable
 
 from ..config import ConfigError
-from ..ilqg import ILQG_METHOD
 from .base import Method, run_method
 from .dpsoc_em import DPSOC_EM
+from .ilqg import ILQG_METHOD
 from .lqr_flm import LQR_FLM
 
 __all__ = ["METHODS", "get_method", "register", "check_config", "sections_of", "sample_based", "run"]

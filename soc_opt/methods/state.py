@@ -15,11 +15,11 @@ from typing import TYPE_CHECKING, Literal, NamedTuple
 
 import numpy as np
 
-from ..estimator import FilteredPolicy
 from ..models import LinearGaussianPolicy, Rollouts
+from ..noise.estimator import FilteredPolicy
 
 if TYPE_CHECKING:
-    from ..fit import MixturePrior
+    from ..learning.fit import MixturePrior
     from ..lqg import LocalModel
 
 __all__ = ["BestPolicy", "PreviousStep", "EMDiagnostics", "IterationRecord", "RunState", "state_rng",

@@ -72,7 +72,7 @@ import numpy as np
 from .. import linalg as la
 from ..models import symmetrize
 from .config import MStepConfig
-from .constraints import clean_sigma, Resolved
+from .constraints import Resolved, clean_sigma
 from .errors import SolverError
 from .objectives import MIN_NORM_HINT, ti_degenerate, ti_normal_equations
 

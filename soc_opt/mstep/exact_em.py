@@ -28,10 +28,10 @@ from .. import linalg as la
 from ..estep import Moments
 from ..models import AugmentedModel, LinearGaussianPolicy, symmetrize
 from .config import MStepConfig
-from .constraints import feasible_sigma, Resolved
+from .constraints import Resolved, feasible_sigma
 from .cvx import get_problem, kron_eig, set_spectral_params, solve_cvx, spectral_data, spectral_F, vec_batch
 from .errors import ClosedFormUnavailableError, NonUniqueMaximizerError
-from .objectives import atil, min_eig_rel, policy_F, exact_objective_from_moments
+from .objectives import atil, exact_objective_from_moments, min_eig_rel, policy_F
 
 __all__: list[str] = []  # internal: used by soc_opt.mstep.maximize
 

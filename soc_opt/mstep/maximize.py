@@ -33,12 +33,12 @@ from .objectives import (
     check_moments,
     check_policy,
     degeneracy,
+    moment_stats,
     policy_F,
     raise_if_degenerate,
-    moment_stats,
+    surrogate_from_moments,
     ti_degenerate,
     ti_normal_equations,
-    surrogate_from_moments,
 )
 
 __all__ = ["MStepResult", "maximize", "maximize_moments"]

@@ -9,12 +9,12 @@ loop then calls exactly what it called before this module existed.
 * ``"none"``: the paper's fit (docs/math.md §2), ``s_{k+1}`` regressed on ``(s_k, a_k)``.
 * ``"moments"``: the NIW posterior moments of each step's tuple ``(s_k, a_k, s_{k+1}[, y_k])``
   are mapped to moments of the true tuple ``(x_k, a_k, x_{k+1}[, y_k])`` by
-  :func:`soc_opt.noisefit.correct_joint` before conditioning (``fit.fit_dynamics(correct=...)``),
+  :func:`soc_opt.noise.noisefit.correct_joint` before conditioning (``fit.fit_dynamics(correct=...)``),
   with ``X_k = Cov(eps_k, a_k)`` of the policy that *sampled* the rollouts
   (:func:`sampler_noise_action_cov`).
 * ``"ssm_em"``: EM for the state-space model with latent ``x`` and known ``R``, started from the
   paper's fit (the ``"moments"`` fit can be far off when ``M`` is close to ``n + m``, see
-  ``docs/noise.md`` §10): E-step the RTS smoother of :func:`soc_opt.noisefit.smooth_states`, M-step
+  ``docs/noise.md`` §10): E-step the RTS smoother of :func:`soc_opt.noise.noisefit.smooth_states`, M-step
   the smoothed tuple moments combined with the (noise-corrected) NIW prior of the step exactly as
   the plain fit combines empirical moments with it, then conditioned (:func:`ssm_em_fit`).
 
@@ -23,7 +23,7 @@ fit (:func:`pool_moments`): with ``M`` rollouts of a few tens of steps and ``rho
 the spread of the states, per-step moments cannot resolve ``A_k`` (``docs/noise.md`` §10).
 
 ``estimator = "kalman"`` (docs/math.md §10.2): the policy is a
-:class:`~soc_opt.estimator.FilteredPolicy` acting on ``xhat``, whose filter is built from the
+:class:`~soc_opt.noise.estimator.FilteredPolicy` acting on ``xhat``, whose filter is built from the
 model fitted in the iteration that produced it (:func:`loop_filter`); rollouts run it online.
 The KL step and the step adaptation work on the innovation form (:func:`innovation_local_model`),
 DPSOC-EM's E-/M-step on the augmented model in ``xhat`` (:func:`filtered_em_model`).
@@ -42,8 +42,18 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from . import fit
-from .config import Config, Interval, Options, config_error
+from ..config import Config, Interval, Options, config_error
+from ..learning import fit
+from ..lqg import LocalModel
+from ..models import (
+    AugmentedModel,
+    LinearGaussianDynamics,
+    LinearGaussianPolicy,
+    NotPositiveDefiniteError,
+    QuadraticCost,
+    Rollouts,
+    symmetrize,
+)
 from .estimator import (
     FilteredPolicy,
     KalmanFilter,
@@ -54,16 +64,6 @@ from .estimator import (
     innovation_dynamics,
     kalman_filter,
     measurement_noise,
-)
-from .lqg import LocalModel
-from .models import (
-    AugmentedModel,
-    LinearGaussianDynamics,
-    LinearGaussianPolicy,
-    NotPositiveDefiniteError,
-    QuadraticCost,
-    Rollouts,
-    symmetrize,
 )
 from .noisefit import condition_joint, correct_joint, noise_action_cov, smooth_states
 
@@ -89,11 +89,11 @@ __all__ = [
 
 
 #: The estimators of ``[baseline.noise] estimator``: name -> ``"module:Class"`` of its
-#: :class:`soc_opt.noise_strategy.NoiseStrategy` (imported when a run resolves it).  A new
+#: :class:`soc_opt.noise.strategy.NoiseStrategy` (imported when a run resolves it).  A new
 #: estimator is one class and one line here.
 ESTIMATORS: dict[str, str] = {
-    "none": "soc_opt.noise_strategy:MeasuredState",
-    "kalman": "soc_opt.noise_strategy:KalmanEstimator",
+    "none": "soc_opt.noise.strategy:MeasuredState",
+    "kalman": "soc_opt.noise.strategy:KalmanEstimator",
 }
 
 
@@ -118,8 +118,8 @@ class NoiseConfig(Config):
                      which needs it positive definite (a known start makes it ~0).
     em_max_iter:     maximum EM iterations of ``"ssm_em"`` in the loop (:func:`ssm_em_fit`, one fit
                      per iteration, warm from the paper's fit and pulled by the NIW prior: 20 by
-                     default).  :class:`soc_opt.noisefit.NoiseFitConfig` configures the library's
-                     stand-alone SSM-EM (:func:`soc_opt.noisefit.ssm_em`, no prior, run to
+                     default).  :class:`soc_opt.noise.noisefit.NoiseFitConfig` configures the library's
+                     stand-alone SSM-EM (:func:`soc_opt.noise.noisefit.ssm_em`, no prior, run to
                      convergence: 500, ``em_tol`` 1e-8); the two are different fits and keep
                      separate settings.  ``min_reliability`` has the same meaning and default in both.
     em_tol:          ``"ssm_em"`` stops when ``log p(s | a)`` changes by less than ``em_tol`` per
@@ -269,7 +269,7 @@ def pool_noise_action_cov(X: np.ndarray, h: int) -> np.ndarray:
 
 
 def moment_correction(R, X, n: int, m: int, min_reliability: float, time_window: int = 0, pool: str = "union"):
-    """The ``correct`` hook of :func:`soc_opt.fit.fit_dynamics` / ``fit_augmented``: joint moments of
+    """The ``correct`` hook of :func:`soc_opt.learning.fit.fit_dynamics` / ``fit_augmented``: joint moments of
     ``(s_k, a_k, s_{k+1}[, y_k])`` -> moments of ``(x_k, a_k, x_{k+1}[, y_k])`` (``noisefit.correct_joint``),
     after pooling over ``time_window`` (:func:`pool_moments`)."""
     Xp = pool_noise_action_cov(np.asarray(X, dtype=float), time_window)

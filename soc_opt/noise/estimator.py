@@ -35,9 +35,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .linalg import T as _T
-from .linalg import chol, right_cho_solve, tr, tri_solve
-from .models import (
+from ..linalg import T as _T
+from ..linalg import chol, right_cho_solve, tr, tri_solve
+from ..models import (
     AugmentedModel,
     LinearGaussianDynamics,
     LinearGaussianPolicy,

@@ -2,7 +2,7 @@
 
 For ``x_{k+1} = A x + B a + c + w`` (``w ~ N(0, W)``), ``s = x + eps`` (``eps ~ N(0, R)``),
 ``x_0 ~ N(mu0, P0)`` and a quadratic cost on ``(x, a)``, the optimum over causal policies of the
-measurements is the Kalman filter of the true model (:mod:`soc_opt.estimator`) plus the LQR gains
+measurements is the Kalman filter of the true model (:mod:`soc_opt.noise.estimator`) plus the LQR gains
 (docs/math.md §6 with ``nu = inf``) acting on ``xhat`` (separation principle).
 
 The expected cost of any filtered policy, including one whose filter model differs from the true
@@ -29,11 +29,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import lqg as _lqg
+from .. import lqg as _lqg
+from ..linalg import T as _T
+from ..linalg import as_generator
+from ..models import LinearGaussianDynamics, QuadraticCost, ShapeError, check_array, symmetrize
 from .estimator import FilteredPolicy, check_noise_covariance, kalman_filter, measurement_noise
-from .linalg import T as _T
-from .linalg import as_generator
-from .models import LinearGaussianDynamics, QuadraticCost, ShapeError, check_array, symmetrize
 
 __all__ = [
     "ClosedLoopMoments",
@@ -181,7 +181,7 @@ def lqg(dynamics: LinearGaussianDynamics, cost: QuadraticCost, R, mu0, P0, *, fi
     covariance ``S_0`` is singular, while every positive definite prior gives the exact filter
     ``G_k = I`` (``xhat = s = x``); pass e.g. ``filter_P0 = I`` (the cost is evaluated with ``P0``).
     Raises what :func:`soc_opt.lqg.lqr` raises when the cost-to-go is not strictly convex in the
-    action, and what :func:`soc_opt.estimator.kalman_filter` raises for a bad noise model.
+    action, and what :func:`soc_opt.noise.estimator.kalman_filter` raises for a bad noise model.
     """
     kf = kalman_filter(dynamics, R, mu0, P0 if filter_P0 is None else filter_P0)
     policy = _lqg.lqr(dynamics, cost, kf.mu0, kf.P0)

@@ -13,7 +13,7 @@ Model: ``x_{k+1} = A_k x_k + B_k a_k + c_k + w_k``, ``s_k = x_k + eps_k``, ``eps
   ``(x_k, a_k, x_{k+1}[, y_k])``, so that the usual conditioning gives the corrected model.
 * **SSM-EM** (:func:`ssm_em`): maximum likelihood of the linear-Gaussian state-space model with
   latent ``x`` and known ``R`` by EM; E-step :func:`smooth_states` (Kalman filter of
-  :mod:`soc_opt.estimator` + RTS smoother), M-step closed-form per step.
+  :mod:`soc_opt.noise.estimator` + RTS smoother), M-step closed-form per step.
 
 Public functions:
     noise_action_cov(R, K, G=None)            -> X (T, n, m)
@@ -34,11 +34,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .config import Config, Interval
+from ..config import Config, Interval
+from ..linalg import T as _T
+from ..linalg import cho_solve, chol, right_cho_solve, tri_solve
+from ..models import LinearGaussianDynamics, ShapeError, Smoothed, check_array, symmetrize
 from .estimator import check_noise_covariance, filter_pass, kalman_filter
-from .linalg import T as _T
-from .linalg import cho_solve, chol, right_cho_solve, tri_solve
-from .models import LinearGaussianDynamics, ShapeError, Smoothed, check_array, symmetrize
 
 __all__ = [
     "NoiseFitConfig",
@@ -229,7 +229,7 @@ def condition_joint(mu, Lam, nz: int, min_eig: float = 1e-9):
     """Condition ``N(mu, Lam)`` on its first ``nz`` coordinates -> ``(Ao (T, dy, nz), co (T, dy), So (T, dy, dy))``.
 
     Cholesky solve of the leading block; ``So`` symmetrised and its eigenvalues floored at
-    ``max(min_eig * |mean diag Lam_yy|, 1e-12)`` (the rule of ``soc_opt.fit``).
+    ``max(min_eig * |mean diag Lam_yy|, 1e-12)`` (the rule of ``soc_opt.learning.fit``).
     """
     L = chol(Lam[:, :nz, :nz], "covariance of the regressors (x_k, a_k)")
     Szy = Lam[:, :nz, nz:]
@@ -273,7 +273,7 @@ def corrected_fit(s, a, R, X, config: NoiseFitConfig = NoiseFitConfig()) -> Line
 def smooth_states(kf, s, a) -> Smoothed:
     """RTS smoother of the latent ``x`` given ``s (M, T+1, n)`` and known actions ``a (M, T, m)``.
 
-    Forward pass: :func:`soc_opt.estimator.filter_pass`.  Backward, ``k = T-1..0``:
+    Forward pass: :func:`soc_opt.noise.estimator.filter_pass`.  Backward, ``k = T-1..0``:
     ``J_k = P_k A_k^T (P^-_{k+1})^{-1}``, ``xs_k = xhat_k + J_k (xs_{k+1} - xhat^-_{k+1})``,
     ``Ps_k = (I - J_k A_k) P_k (I - J_k A_k)^T + J_k (W_k + Ps_{k+1}) J_k^T``,
     ``Cov(x_{k+1}, x_k | s) = Ps_{k+1} J_k^T``.  Returns :class:`~soc_opt.models.Smoothed` with a

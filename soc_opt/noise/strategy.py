@@ -1,6 +1,6 @@
 """One noise strategy per run: what ``[baseline.noise]`` means to the LQR-FLM / DPSOC-EM loop.
 
-:func:`resolve` turns a task and its :class:`~soc_opt.noise_aware.NoiseConfig` into one
+:func:`resolve` turns a task and its :class:`~soc_opt.noise.aware.NoiseConfig` into one
 :class:`NoiseStrategy` object (memoised per task and configuration, so a run resolves it once).
 The loop (:mod:`soc_opt.methods.lqr_flm`, :mod:`soc_opt.methods.dpsoc_em`) calls only the
 strategy's operations and never branches on the configuration:
@@ -18,7 +18,7 @@ strategy's operations and never branches on the configuration:
 ============================  ==================================================================
 
 The estimator (``NoiseConfig.estimator``) picks the class from
-:data:`soc_opt.noise_aware.ESTIMATORS`; the fit correction, expansion point and prior data are
+:data:`soc_opt.noise.aware.ESTIMATORS`; the fit correction, expansion point and prior data are
 options every estimator shares through :class:`NoiseStrategy`.  Adding an estimator is one new
 class (a subclass of :class:`NoiseStrategy` overriding what differs, usually ``lqg_model``,
 ``em_model`` and ``gains``) and one entry ``"name": "module:Class"`` in ``ESTIMATORS``.  The
@@ -33,14 +33,15 @@ from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import numpy as np
 
-from . import fit, noise_aware
-from .config import ConfigError
+from ..config import ConfigError
+from ..learning import fit
+from ..lqg import LocalModel
+from ..models import AugmentedModel, LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, Rollouts
+from . import aware as noise_aware
 from .estimator import FilteredPolicy
-from .lqg import LocalModel
-from .models import AugmentedModel, LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, Rollouts
 
 if TYPE_CHECKING:
-    from .noise_aware import NoiseConfig
+    from .aware import NoiseConfig
 
 __all__ = ["NoiseStrategy", "MeasuredState", "KalmanEstimator", "LoopModel", "EMModel", "resolve",
            "strategy_class"]
@@ -104,7 +105,7 @@ class NoiseStrategy:
     def estimate(self, prior, rollouts: Rollouts, fit_cfg: fit.FitConfig, sampler,
                  rng: np.random.Generator) -> tuple[fit.MixturePrior | None, Rollouts | None]:
         """Step 2a: the mixture prior on the measured tuples (the paper), or on state estimates
-        (``prior_data = "smoothed"``: :func:`soc_opt.noise_aware.update_prior`); returns
+        (``prior_data = "smoothed"``: :func:`soc_opt.noise.aware.update_prior`); returns
         ``(prior or None, rollouts with estimated states or None)``."""
         if fit_cfg.prior != "mixture":
             return None, None
@@ -122,7 +123,7 @@ class NoiseStrategy:
                                      denoised=estimates)
 
     def expansion_point(self, rollouts: Rollouts, dynamics: LinearGaussianDynamics) -> np.ndarray:
-        """Step 3: where the cost is expanded (``expand_at``; :func:`soc_opt.noise_aware.expansion_point`)."""
+        """Step 3: where the cost is expanded (``expand_at``; :func:`soc_opt.noise.aware.expansion_point`)."""
         if self.cfg.expand_at == "measured":
             return rollouts.s.mean(axis=0)
         return noise_aware.expansion_point(rollouts, dynamics, self.noise, self.cfg)
@@ -146,7 +147,7 @@ class MeasuredState(NoiseStrategy):
 
 class KalmanEstimator(NoiseStrategy):
     """``estimator = "kalman"`` (docs/math.md §10.2): policies act on ``xhat_k`` of a Kalman filter of
-    the iteration's fitted model (:class:`~soc_opt.estimator.FilteredPolicy`); the KL step runs on
+    the iteration's fitted model (:class:`~soc_opt.noise.estimator.FilteredPolicy`); the KL step runs on
     the innovation form, the EM phase on the augmented model in ``xhat``."""
 
     name = "kalman"
@@ -161,7 +162,7 @@ class KalmanEstimator(NoiseStrategy):
 
 
 def strategy_class(name: str) -> type[NoiseStrategy]:
-    """The class registered for estimator ``name`` in :data:`soc_opt.noise_aware.ESTIMATORS`."""
+    """The class registered for estimator ``name`` in :data:`soc_opt.noise.aware.ESTIMATORS`."""
     ref = noise_aware.ESTIMATORS.get(name)
     if ref is None:
         raise ConfigError(f"estimator: unknown estimator {name!r}; use one of "

@@ -30,11 +30,11 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.ticker import MaxNLocator  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from .report import COLORS, LABELS  # noqa: E402
-from .sweep import RESULT, SweepSpec, describe, read_json, setting_table  # noqa: E402
+from ..experiments.report import COLORS, LABELS  # noqa: E402
+from .spec import RESULT, SweepSpec, describe, read_json, setting_table  # noqa: E402
 
 __all__ = ["write_report", "aggregate", "versus_key", "QUANTITIES"]
 

@@ -1,7 +1,7 @@
 """Running a sweep on Ray core tasks: scheduling, retries, status, live progress.
 
-Each trial of a :class:`~soc_opt.sweep.SweepSpec` is one Ray task calling
-:func:`soc_opt.sweep.run_trial` on its run directory ``OUT/trials/<task>/<setting>/<method>/seed_<n>``.
+Each trial of a :class:`~soc_opt.sweeps.spec.SweepSpec` is one Ray task calling
+:func:`soc_opt.sweeps.spec.run_trial` on its run directory ``OUT/trials/<task>/<setting>/<method>/seed_<n>``.
 Why Ray core tasks and not Ray Tune: docs/choices.md ("Sweeps").
 
 - Local by default: a private Ray instance on this machine's cores (no dashboard, quiet logs),
@@ -12,7 +12,7 @@ Why Ray core tasks and not Ray Tune: docs/choices.md ("Sweeps").
   re-executed by Ray (``max_retries``) and resumes from its last checkpoint; when the retries are
   exhausted it is recorded as failed like any other error.
 - ``status.json`` (all trials' states and errors) is rewritten on every change; the aggregated
-  report (:mod:`soc_opt.sweep_report`) is written at the end.
+  report (:mod:`soc_opt.sweeps.report`) is written at the end.
 """
 
 from __future__ import annotations
@@ -25,9 +25,20 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from .experiment import same_settings
-from .sweep import (ERROR, PROGRESS, RESULT, TRIAL, SweepError, SweepSpec, TrialSpec, as_json, read_json, run_trial,
-                    write_json)
+from ..experiments.run import same_settings
+from .spec import (
+    ERROR,
+    PROGRESS,
+    RESULT,
+    TRIAL,
+    SweepError,
+    SweepSpec,
+    TrialSpec,
+    as_json,
+    read_json,
+    run_trial,
+    write_json,
+)
 
 __all__ = ["run_sweep", "prepare_out", "ProgressBoard", "STATES"]
 
@@ -141,7 +152,7 @@ def run_sweep(
             ray.shutdown()
     result = {"status": status.trials, "counts": status.counts()}
     if report:
-        from .sweep_report import write_report
+        from .report import write_report
 
         result["report"] = str(write_report(spec, out, status.trials))
     return result

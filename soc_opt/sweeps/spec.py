@@ -2,7 +2,7 @@
 
 This module is the pure part of ``soc-opt sweep`` (docs/sweeps.md): reading and validating a
 sweep file, expanding it into :class:`TrialSpec` objects, and running *one* trial in its own
-run directory (:func:`run_trial`, called inside a Ray worker by :mod:`soc_opt.sweep_runner`,
+run directory (:func:`run_trial`, called inside a Ray worker by :mod:`soc_opt.sweeps.runner`,
 but an ordinary function).  Nothing here imports Ray.
 
 A sweep file (every key optional except ``tasks``, ``methods`` and ``seeds``)::
@@ -55,10 +55,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .methods.config import DPSOCConfig
-from .methods.registry import check_config, sample_based, sections_of
-from .methods.state import RunState
-from .config import ConfigError, read_toml
+from ..config import ConfigError, read_toml
+from ..methods.config import DPSOCConfig
+from ..methods.registry import check_config, sample_based, sections_of
+from ..methods.state import RunState
 
 __all__ = [
     "METHODS",
@@ -294,7 +294,7 @@ def _seeds(v) -> tuple[int, ...]:
 
 def _resolve_task(ref: str, base_dir: Path, i: int) -> tuple[str, str, Path]:
     """``(task reference passed to workers, label, task TOML path)``."""
-    from .tasks.loading import BUILTIN_TASKS, problems_dir
+    from ..tasks.loading import BUILTIN_TASKS, problems_dir
 
     if ref in BUILTIN_TASKS:
         return ref, ref, problems_dir() / BUILTIN_TASKS[ref]
@@ -378,7 +378,7 @@ def _lookup(table: dict, path: tuple[str, ...]):
 
 
 def _config(task_ref, cfg_file, paper, common, setting, method) -> DPSOCConfig:
-    from .experiment import load_run_config as load_config
+    from ..experiments.run import load_run_config as load_config
 
     base = load_config(task_ref, cfg_file, paper=paper, method="dpsoc-em").to_dict()
     d = _merge(_merge(base, common), setting)
@@ -392,7 +392,7 @@ def _config(task_ref, cfg_file, paper, common, setting, method) -> DPSOCConfig:
 
 
 def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
-    from .tasks import load_task
+    from ..tasks import load_task
 
     if not isinstance(data, dict):
         raise ConfigError("expected a table")
@@ -464,7 +464,8 @@ def check_finite(state: RunState) -> None:
 
 
 def _result(spec: TrialSpec, task, state: RunState, trial_dir: Path) -> dict:
-    from .compare import evaluate_policy as _evaluate, spreads as _spreads
+    from ..experiments.compare import evaluate_policy as _evaluate
+    from ..experiments.compare import spreads as _spreads
 
     ro = _evaluate(task, state.policy, spec.eval_samples, spec.seed, spec.config.baseline.workers)
     np.savez_compressed(trial_dir / "final_eval.npz", **ro.to_dict())
@@ -488,14 +489,14 @@ def run_trial(spec: TrialSpec, trial_dir: str | Path,
               on_iteration: Callable[[str, RunState, Path], None] | None = None) -> dict:
     """Run (or resume) one trial in ``trial_dir``; return its status record.
 
-    An ordinary run directory (soc_opt.experiment) plus ``trial.json`` (the spec),
+    An ordinary run directory (soc_opt.experiments.run) plus ``trial.json`` (the spec),
     ``progress.json`` (state, attempt, iteration, pid), ``final_eval.npz`` and ``result.json``
     (written last: its presence marks the trial finished), or ``error.txt`` (the traceback) when
     the trial failed.  Exceptions of the trial (including :class:`TrialDiverged`) are recorded,
     not raised.  ``on_iteration(trial_id, state, trial_dir)`` runs after each checkpoint.
     """
-    from .experiment import run_experiment
-    from .tasks import load_task
+    from ..experiments.run import run_experiment
+    from ..tasks import load_task
 
     d = Path(trial_dir)
     d.mkdir(parents=True, exist_ok=True)

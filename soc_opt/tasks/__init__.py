@@ -22,14 +22,14 @@ from __future__ import annotations
 from .base import RolloutNoise, SimulationError, Task
 from .config import (
     GYM_PREFIX,
-    TERM_TYPES,
-    FloatOrList,
+    TERM_TYPES,  # noqa: F401 (public: the cost term kinds)
+    FloatOrList,  # noqa: F401
     GymConfig,
     LinearConfig,
     MetricConfig,
     PointTermConfig,
     QuadraticTermConfig,
-    Ramp,
+    Ramp,  # noqa: F401
     StateConfig,
     StateTermConfig,
     TaskConfig,

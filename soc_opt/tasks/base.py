@@ -21,7 +21,6 @@ from ..costs import (
     StateCost,
     TorqueCost,
 )
-from ..estimator import FilteredPolicy
 from ..models import (
     LinearGaussianDynamics,
     LinearGaussianPolicy,
@@ -29,6 +28,7 @@ from ..models import (
     Rollouts,
     ShapeError,
 )
+from ..noise.estimator import FilteredPolicy
 from .config import (
     MetricConfig,
     PointTermConfig,
@@ -289,7 +289,7 @@ class TaskBase:
     def _check_policy(self, policy) -> tuple[LinearGaussianPolicy, FilteredPolicy | None]:
         """``(gains, filtered)`` of a rollout policy, checked against the task's ``(T, m, n)``.
 
-        A :class:`~soc_opt.estimator.FilteredPolicy` (docs/math.md §10.2) acts on the filter's estimate
+        A :class:`~soc_opt.noise.estimator.FilteredPolicy` (docs/math.md §10.2) acts on the filter's estimate
         ``xhat_k``, run online inside the rollout; ``gains`` is its linear-Gaussian part.  A plain
         :class:`LinearGaussianPolicy` acts on the measured ``s_k`` (``filtered`` is ``None``).
         """

@@ -76,7 +76,7 @@ class LinearTask(TaskBase):
     def rollouts(self, policy, M, rng, noise=True, workers=1, x0=None) -> Rollouts:
         """``M`` rollouts (vectorised; ``workers`` is ignored).  Draw order: ``eps``, ``w``, process noise.
 
-        A :class:`~soc_opt.estimator.FilteredPolicy` acts on ``xhat_k``, its filter run online
+        A :class:`~soc_opt.noise.estimator.FilteredPolicy` acts on ``xhat_k``, its filter run online
         (causal: ``xhat_k`` from ``s_0..s_k`` and ``a_0..a_{k-1}``, docs/math.md §10.2); the draws are the
         same as for a plain policy.
         """

@@ -1,7 +1,7 @@
 """Finding and building tasks: built-in names, TOML files, config objects (docs/math.md §8; ``docs/tasks.md``).
 
 Every task built here carries ``task.provenance``, what a run directory records in its
-``task.json`` (:mod:`soc_opt.rundir`): the resolved task configuration, the SHA-256 of every MJCF
+``task.json`` (:mod:`soc_opt.experiments.rundir`): the resolved task configuration, the SHA-256 of every MJCF
 file the model reads (:func:`mjcf_files`), and for a task TOML its path, text and SHA-256.
 """
 
@@ -20,12 +20,11 @@ __all__ = ["BUILTIN_TASKS", "build_task", "load_task", "mjcf_files"]
 
 
 def problems_dir() -> Path:
-    try:
-        import problems
-
-        return Path(problems.__file__).resolve().parent
-    except ImportError:  # pragma: no cover - source checkout without install
-        return Path(__file__).resolve().parents[2] / "problems"
+    """The directory of the built-in task and experiment files: ``soc_opt/problems`` in an installed
+    package (pyproject maps the repository's ``problems/`` there), else ``problems/`` of the source
+    checkout.  Every reader of those files goes through this function."""
+    installed = Path(__file__).resolve().parents[1] / "problems"
+    return installed if installed.is_dir() else Path(__file__).resolve().parents[2] / "problems"
 
 
 BUILTIN_TASKS = {"linear2d": "linear2d/linear2d.toml", "peg": "peg/peg.toml", "door": "door/door.toml"}

@@ -342,6 +342,7 @@ class MujocoTask(TaskBase):
         for i in samples:
             self.reset_data(d, x0)
             xi, si, ai, ei, oi = x[i], s[i], a[i], eps[i], offs[i]
+            xhat = None
             for k in range(T):
                 if split:
                     step1(m, d)
@@ -394,7 +395,7 @@ class MujocoTask(TaskBase):
         ``workers``.  ``x0``: another initial state in task coordinates (its joint
         components are used; default ``self.x0``).  ``a`` records the policy's action
         before MuJoCo clamps it to ``ctrlrange``.  Raises :class:`SimulationError`
-        naming the sample and step on divergence.  A :class:`~soc_opt.estimator.FilteredPolicy`
+        naming the sample and step on divergence.  A :class:`~soc_opt.noise.estimator.FilteredPolicy`
         acts on ``xhat_k``, its filter run online on the measurements and the recorded actions
         (docs/math.md §10.2); the draws are the same as for a plain policy.
         """
