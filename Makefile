@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 TASK ?= linear2d
 OUT ?= runs/compare-$(TASK)
 
-.PHONY: install run test test-slow bench verify clean
+.PHONY: install run test test-slow lint bench verify clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -19,7 +19,10 @@ run: install
 	$(BIN)/soc-opt compare $(TASK) --out $(OUT)
 
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/ruff check soc_opt tests examples && $(BIN)/lint-imports && $(BIN)/python -m pytest
+
+lint: install
+	$(BIN)/ruff check soc_opt tests examples && $(BIN)/lint-imports
 
 test-slow: install
 	$(BIN)/python -m pytest -m slow
