@@ -129,18 +129,19 @@ def test_em_records_keep_the_metrics_columns_in_their_order():
 def test_em_update_passes_its_mstep_config_to_the_m_step(monkeypatch):
     from soc_opt import mstep
     from soc_opt.algorithms import em_update
+    from soc_opt.mstep import recipe
 
     task = load_task("linear2d", overrides={"T": 10})
     mcfg = mstep.MStepConfig(eig_tol=1e-11, feas_tol=1e-8)
     cfg = DPSOCConfig(i_switch=0, baseline=LQRFLMConfig(iterations=1, samples=6), em=EMConfig(mstep=mcfg))
     seen = []
-    original = mstep.maximize
+    original = recipe.maximize
 
     def spy(*args, **kwargs):
         seen.append(kwargs.get("config"))
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(mstep, "maximize", spy)
+    monkeypatch.setattr(recipe, "maximize", spy)  # the M-step recipe's call
     rng = np.random.default_rng(0)
     policy = task.initial_policy(2.0)
     em_update(task, cfg, policy, task.rollouts(policy, 6, rng), None, rng)

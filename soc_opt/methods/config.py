@@ -12,12 +12,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
-from .. import lqg, mstep
+from .. import lqg
 from ..config import Config, Interval, Options
 from ..learning import fit
 from ..learning.fit import COST_MODES
 from ..lqg import KL_METHODS
-from ..mstep import MSTEP_METHODS
+from ..mstep.recipe import MStepRecipe
 from ..noise.aware import NoiseConfig
 from .ilqg import ILQGConfig
 
@@ -96,45 +96,25 @@ class LQRFLMConfig(Config):
 
 
 @dataclass(frozen=True)
-class EMConfig(Config):
-    """The EM phase of DPSOC-EM (docs/math.md §3–§5, paper Algorithm 1).
+class EMConfig(MStepRecipe):
+    """The EM phase of DPSOC-EM (docs/math.md §3–§5, paper Algorithm 1): the M-step recipe
+    (:class:`soc_opt.mstep.recipe.MStepRecipe`: ``method``, ``variant``, ``objective``,
+    ``cov_floor_scale``, ``entropy_floor``, ``trust_region``, ``min_norm``, ``mstep``) plus:
 
     n_em:          EM recursions at the switch (each samples ``M`` rollouts of the current EM policy).
     y_mode:        cost observations ``Y``: "model" (the paper), "measured", "optimistic" (docs/math.md §3).
     y_samples:     number of ``Y`` sequences drawn in "model" mode (default: ``samples``).
-    method:        M-step solver, "closed_form" or "cvxpy" (``mstep.maximize(method=...)``).
-    variant:       "time_varying" (the Proposition's DP sweep) or "time_invariant".
-    objective:     "surrogate" (the paper's Lbar) or "exact" (exact EM).
-    cov_floor_scale:  ``Sigma_k >= scale * Sigma_k^i`` (covariance floor relative to the
-                   current policy, docs/math.md §5); ignored when ``entropy_floor`` is true.
-    entropy_floor: use the entropy floor ``log det Sigma_k >= log det Sigma_k^i`` instead.
-    trust_region:  optional Frobenius trust region on ``[K k]`` around the current policy (cvxpy only).
-    min_norm:      minimum-norm M-step where the maximiser is not unique.
-    mstep:         the M-step's solver tolerances and limits (:class:`soc_opt.mstep.MStepConfig`,
-                   passed as ``mstep.maximize(config=...)``; its ``solver`` picks the CVXPY solver).
     """
 
     n_em: int = 1
     y_mode: Literal["model", "measured", "optimistic"] = "model"
     y_samples: int | None = None
-    method: str = "closed_form"
-    variant: Literal["time_varying", "time_invariant"] = "time_varying"
-    objective: Literal["surrogate", "exact"] = "surrogate"
-    cov_floor_scale: float = 0.5
-    entropy_floor: bool = False
-    trust_region: float | None = None
-    min_norm: bool = True
-    mstep: mstep.MStepConfig = field(default_factory=mstep.MStepConfig)
 
     _constraints = {
+        **MStepRecipe._constraints,
         "n_em": [Interval(1)],
         "y_mode": [Options(COST_MODES)],
         "y_samples": [None, Interval(1)],
-        "method": [Options(MSTEP_METHODS)],
-        "variant": [Options(("time_varying", "time_invariant"))],
-        "objective": [Options(("surrogate", "exact"))],
-        "cov_floor_scale": [Interval(0, None, "neither")],
-        "trust_region": [None, Interval(0, None, "neither")],
     }
 
 

@@ -22,7 +22,7 @@ from ..learning import fit
 from ..models import LinearGaussianPolicy, Rollouts
 from ..noise.estimator import FilteredPolicy
 from ..noise.strategy import NoiseStrategy, resolve
-from .config import DPSOCConfig, EMConfig
+from .config import DPSOCConfig
 from .lqr_flm import LQRFLM, lqr_flm_iteration
 from .state import EMDiagnostics, RunState, improved, record, state_rng
 
@@ -30,17 +30,6 @@ if TYPE_CHECKING:
     from ..tasks import Task
 
 __all__ = ["em_update", "dpsoc_iteration", "DPSOCEM", "DPSOC_EM"]
-
-
-def _mstep_constraints(em: EMConfig, policy: LinearGaussianPolicy) -> mstep.MStepConstraints:
-    """The M-step's feasible set relative to the current policy (docs/math.md §5)."""
-    if em.entropy_floor:
-        cons = mstep.MStepConstraints(entropy_floor=np.linalg.slogdet(policy.cov)[1].tolist())
-    else:
-        cons = mstep.MStepConstraints(cov_floor=(em.cov_floor_scale * np.asarray(policy.cov)).tolist())
-    if em.trust_region is not None:
-        cons = dataclasses.replace(cons, trust_region=em.trust_region)
-    return cons
 
 
 def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | FilteredPolicy, rollouts: Rollouts,
@@ -69,12 +58,8 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | Filte
     sm = estep.smooth(model, policy, Y, mu0, P0)
     t_estep = time.perf_counter() - t0
 
-    cons = _mstep_constraints(em, policy)
     t0 = time.perf_counter()
-    new = mstep.maximize(
-        model, sm, Y, constraints=cons, method=em.method, variant=em.variant,
-        objective=em.objective, previous=policy, min_norm=em.min_norm, config=em.mstep,
-    )
+    new = em.maximize(model, sm, Y, previous=policy)  # the M-step recipe (mstep.recipe)
     t_mstep = time.perf_counter() - t0
     diag = EMDiagnostics(
         recursion=recursion,

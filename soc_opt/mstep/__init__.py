@@ -37,6 +37,7 @@ from .objectives import (
     surrogate_from_moments,
     surrogate_grad_hess,
 )
+from .recipe import MStepRecipe
 
 __all__ = [
     "SolverError",
@@ -45,6 +46,7 @@ __all__ = [
     "ClosedFormUnavailableError",
     "MStepConstraints",
     "MStepConfig",
+    "MStepRecipe",
     "MSTEP_METHODS",
     "MSTEP_SOLVERS",
     "MSTEP_VARIANTS",
