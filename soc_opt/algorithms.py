@@ -55,6 +55,7 @@ __all__ = [
     "ILQGConfig",
     "RUN_SECTIONS",
     "with_paper_scale",
+    "with_task_init_var",
     "BestPolicy",
     "PreviousStep",
     "EMDiagnostics",
@@ -102,7 +103,9 @@ class LQRFLMConfig(Config):
 
     iterations:  number of sample -> fit -> LQG rounds (default: the paper's, ``PAPER.iterations``).
     samples:     rollouts per iteration ``M`` (default: the paper's, ``PAPER.samples``).
-    init_var:    initial policy covariance ``Sigma = init_var * I``.
+    init_var:    initial policy covariance ``Sigma = init_var * I``; unset (``None``): the task's
+                 ``init_var`` (its TOML, default 1.0).  Set here it overrides the task's
+                 (:func:`with_task_init_var`; docs/configuration.md).
     kl_budget:   base KL budget per time step; the total budget is ``kl_budget * T * mult``.
     kl_mode:     "total" (one budget ``nu = sum nu_k``, one multiplier: the GPS form) or
                  "per_step" (``nu_k = kl_budget * mult`` with one multiplier per step).
@@ -118,7 +121,7 @@ class LQRFLMConfig(Config):
 
     iterations: int = PAPER.iterations
     samples: int = PAPER.samples
-    init_var: float = 1.0
+    init_var: float | None = None
     kl_budget: float = 0.5
     kl_mode: Literal["total", "per_step"] = "total"
     kl_method: Literal["closed_form", "casadi"] = "closed_form"
@@ -133,8 +136,12 @@ class LQRFLMConfig(Config):
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         if self.samples < 2:
             raise ValueError(f"samples must be >= 2 (dynamics fitting needs 2 rollouts), got {self.samples}")
-        if self.init_var <= 0 or self.kl_budget <= 0:
-            raise ValueError("init_var and kl_budget must be positive")
+        for key in ("init_var", "kl_budget"):
+            value = getattr(self, key)
+            if value is not None and not value > 0:
+                err = ConfigError(f"{key}: must be positive, got {value!r}")
+                err.key = key  # Config.from_dict prefixes the table: "baseline.init_var: ..."
+                raise err
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
 
@@ -366,6 +373,19 @@ class RunState:
     best: BestPolicy | None = None
     em_done: bool = False
     last_rollouts: Rollouts | None = None
+
+
+def with_task_init_var(cfg: DPSOCConfig, task: Task) -> DPSOCConfig:
+    """``cfg`` with ``baseline.init_var`` set to the task's ``init_var`` when it is unset.
+
+    Precedence of the initial policy covariance: ``[baseline] init_var`` of the run configuration,
+    else the task's ``init_var`` (task TOML; default 1.0).  Run directories record the result.
+    """
+    if cfg.baseline.init_var is not None:
+        return cfg
+    task_cfg = getattr(task, "config", None)
+    var = float(getattr(task_cfg, "init_var", 1.0))
+    return cfg.replace(baseline=cfg.baseline.replace(init_var=var))
 
 
 def initial_state(task: Task, cfg: LQRFLMConfig, seed: int) -> RunState:

@@ -2,12 +2,12 @@
 
 Subcommands::
 
-    soc-opt [--debug] run TASK --method dpsoc-em|lqr-flm|ilqg [--config FILE] [--seed N] [--out DIR] [--paper]
-                                [--iterations N] [--restart | --previous-checkpoint]
+    soc-opt [--debug] run TASK [--method dpsoc-em|lqr-flm|ilqg] [--config FILE] [--seed N] [--out DIR] [--paper]
+                                [--iterations N] [--i-switch N] [--restart | --previous-checkpoint]
     soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper] [--restart]
     soc-opt verify [--json] [--seed N] [--instances N]
     soc-opt solvers [--json] [--quick]
-    soc-opt bench [--json] [--only NAMES]
+    soc-opt bench [--json] [--only NAMES] [--quick]
     soc-opt tasks
     soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--dry-run]
     soc-opt config-doc [--out FILE]
@@ -18,7 +18,7 @@ Configurations are validated before any simulation starts and before anything is
 public for scripts).  Every method writes a resumable run directory (:mod:`soc_opt.rundir`).
 
 Every error ends the command with one line ``soc-opt: error: ...`` on standard error and exit
-status 2 (``--debug``: the traceback instead).  Iterations are numbered from 0 on the console
+status 2 (``--debug``: the traceback before that line, same exit status).  Iterations are numbered from 0 on the console
 as in ``metrics.csv``.
 """
 
@@ -28,6 +28,7 @@ import argparse
 import json
 import sys
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -82,12 +83,9 @@ def _cmd_tasks(args) -> int:
 
 def _run_method(args, task, out: Path) -> int:
     """One method (``RUNNERS``) in a resumable run directory; figures and a filmstrip at the end."""
-    from .experiment import load_run_config, run_experiment
+    from .experiment import run_experiment
 
-    cfg = load_run_config(args.task, args.config, paper=args.paper,
-                          overrides={"iterations": args.iterations, "samples": args.samples,
-                                     "workers": args.workers},
-                          method=args.method)
+    cfg = _load_run_config(args, args.method)
     state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_progress(args),
                            restart=args.restart, previous_checkpoint=args.previous_checkpoint)
     _write_run_figures(task, args.method, state, out)
@@ -112,6 +110,25 @@ def _run_method(args, task, out: Path) -> int:
 
 #: ``soc-opt run --method``: one runner per method.
 RUNNERS = {"dpsoc-em": _run_method, "lqr-flm": _run_method, "ilqg": _run_method}
+
+
+def _load_run_config(args, method: str):
+    """The run configuration of ``run``/``compare``; a bad ``i_switch`` gets a hint naming its
+    source and ``--i-switch``."""
+    from .experiment import EXPERIMENTS, load_run_config
+
+    try:
+        return load_run_config(args.task, args.config, paper=args.paper, method=method,
+                               overrides={"iterations": args.iterations, "samples": args.samples,
+                                          "workers": args.workers, "i_switch": args.i_switch})
+    except ConfigError as e:
+        if str(e).startswith("i_switch"):
+            default = EXPERIMENTS / f"{Path(args.task).stem}.toml"
+            source = ("--i-switch" if args.i_switch is not None else "--paper" if args.paper
+                      else args.config or (str(default) if default.is_file() else "the default (DPSOCConfig)"))
+            e.add_note(f"i_switch comes from {source}; choose the EM switch with --i-switch N "
+                       "(0 <= N < --iterations), raise --iterations, or use --method lqr-flm")
+        raise
 
 
 def _cmd_run(args) -> int:
@@ -142,15 +159,12 @@ def _write_run_figures(task, method: str, state, out: Path) -> None:
 
 def _cmd_compare(args) -> int:
     from .compare import compare
-    from .experiment import load_run_config
     from .tasks import load_task
 
     if args.seed < 0 or args.seeds < 1:
         raise ConfigError(f"--seed must be >= 0 and --seeds >= 1, got {args.seed} and {args.seeds}")
     task = load_task(args.task)
-    cfg = load_run_config(args.task, args.config, paper=args.paper,
-                          overrides={"iterations": args.iterations, "samples": args.samples,
-                                     "workers": args.workers, "i_switch": args.i_switch})
+    cfg = _load_run_config(args, "dpsoc-em")
     out = Path(args.out or f"runs/compare-{Path(args.task).stem}")
     seeds = list(range(args.seed, args.seed + args.seeds))
     _print(f"comparing LQR-FLM and DPSOC-EM on {args.task}: seeds {seeds}, {cfg.baseline.iterations} iterations, "
@@ -196,13 +210,11 @@ def _cmd_solvers(args) -> int:
 
 
 def _cmd_bench(args) -> int:
-    import importlib
+    from .bench import parse_parts, run_part
 
-    names = args.only.split(",") if args.only else ["rollouts", "fit", "estep", "mstep", "lqg", "iteration"]
     out = {}
-    for name in names:
-        mod = importlib.import_module(f"soc_opt.bench.{name}")
-        rows = mod.run()
+    for name in parse_parts(args.only):
+        rows = run_part(name, quick=args.quick)
         out[name] = rows
         if not args.json:
             _print(f"\n== {name}\n" + _table(rows))
@@ -239,10 +251,22 @@ def _cmd_config_doc(args) -> int:
     return 0
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """``--help`` with each option's default, except for flags and options without one."""
+
+    def _get_help_string(self, action):
+        if action.default is None or isinstance(action.default, bool) or action.default is argparse.SUPPRESS:
+            return action.help
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="soc-opt", description="EM-based stochastic optimal control (DPSOC-EM).")
-    p.add_argument("--debug", action="store_true", help="show the traceback of an error")
+    p = argparse.ArgumentParser(prog="soc-opt", description="EM-based stochastic optimal control (DPSOC-EM).",
+                                formatter_class=_HelpFormatter)
+    p.add_argument("--debug", action="store_true", help="show the traceback of an error (exit status still 2)")
     sub = p.add_subparsers(dest="command", required=True)
+    _add_parser = sub.add_parser
+    sub.add_parser = lambda *a, **kw: _add_parser(*a, formatter_class=_HelpFormatter, **kw)
 
     def common_algo(sp):
         sp.add_argument("task", help="built-in task (linear2d, peg, door) or a task TOML file")
@@ -252,16 +276,18 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--iterations", type=int, help="override baseline.iterations")
         sp.add_argument("--samples", type=int, help="override baseline.samples")
         sp.add_argument("--workers", type=int, help="parallel rollout workers")
+        sp.add_argument("--i-switch", dest="i_switch", type=int,
+                        help="override i_switch: the DPSOC-EM iteration after which the EM phase runs")
         sp.add_argument("--out", help="run directory (resumes if it holds a checkpoint)")
         sp.add_argument("--restart", action="store_true",
                         help="discard the run(s) already in --out and start from scratch")
         sp.add_argument("--progress", choices=["auto", "bar", "lines"], default="auto",
-                        help="progress bar (auto: on a terminal) or plain lines (default: auto)")
+                        help="progress bar (auto: on a terminal) or plain lines")
 
     r = sub.add_parser("run", help="run one method on a task, writing a resumable run directory")
     common_algo(r)
-    r.add_argument("--method", choices=list(RUNNERS), default="dpsoc-em")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--method", choices=list(RUNNERS), default="dpsoc-em", help="the method to run")
+    r.add_argument("--seed", type=int, default=0, help="random seed of the run")
     r.add_argument("--previous-checkpoint", dest="previous_checkpoint", action="store_true",
                    help="resume from the checkpoint before the last (when the last one is damaged)")
     r.set_defaults(func=_cmd_run)
@@ -270,13 +296,12 @@ def build_parser() -> argparse.ArgumentParser:
     common_algo(c)
     c.add_argument("--seeds", type=int, default=3, help="number of seeds")
     c.add_argument("--seed", type=int, default=0, help="first seed")
-    c.add_argument("--i-switch", dest="i_switch", type=int, help="override i_switch")
     c.set_defaults(func=_cmd_compare)
 
     v = sub.add_parser("verify", help="check the paper's claims (SPEC §9, 1-4) numerically")
-    v.add_argument("--json", action="store_true")
-    v.add_argument("--seed", type=int, default=0)
-    v.add_argument("--instances", type=int, default=20)
+    v.add_argument("--json", action="store_true", help="JSON instead of a table")
+    v.add_argument("--seed", type=int, default=0, help="seed of the random instances")
+    v.add_argument("--instances", type=int, default=20, help="random instances per check")
     v.set_defaults(func=_cmd_verify)
 
     s = sub.add_parser("solvers", help="compare closed forms with CVXPY, CasADi/IPOPT and fatrop")
@@ -284,9 +309,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quick", action="store_true", help="small sizes only")
     s.set_defaults(func=_cmd_solvers)
 
+    from .bench import DEFAULT_PARTS as bench_default, PARTS as bench_parts
+
     b = sub.add_parser("bench", help="benchmarks: rollouts, fitting, E-step, M-step, LQG, full iterations")
     b.add_argument("--json", action="store_true")
-    b.add_argument("--only", help="comma-separated subset")
+    b.add_argument("--only", help="comma-separated subset of: " + ", ".join(bench_parts) + " (default: "
+                   + ",".join(bench_default) + ")")
+    b.add_argument("--quick", action="store_true", help="tiny sizes: checks every code path in seconds")
     b.set_defaults(func=_cmd_bench)
 
     t = sub.add_parser("tasks", help="list the built-in tasks")
@@ -308,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _one_line(e: BaseException) -> str:
+def _one_line(e: BaseException, *, hint: bool = True) -> str:
     """The error as one line: its message (type name too when it is not one of ours) and notes."""
     from .errors import SolverError
     from .tasks import SimulationError
@@ -316,7 +345,7 @@ def _one_line(e: BaseException) -> str:
     ours = (ConfigError, FileNotFoundError, SimulationError, SolverError)
     text = str(e) if isinstance(e, ours) else f"{type(e).__name__}: {e}"
     parts = [text] + list(getattr(e, "__notes__", ()))
-    if not isinstance(e, ours):
+    if hint and not isinstance(e, ours):
         parts.append("rerun with --debug for the traceback")
     return " ".join("; ".join(p.strip() for p in parts if p.strip()).split())
 
@@ -333,8 +362,8 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except Exception as e:
         if debug:
-            raise
-        print(f"soc-opt: error: {_one_line(e)}", file=sys.stderr)
+            traceback.print_exc()
+        print(f"soc-opt: error: {_one_line(e, hint=not debug)}", file=sys.stderr)
         return 2
 
 

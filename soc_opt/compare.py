@@ -19,7 +19,7 @@ import numpy as np
 
 from . import report
 from . import algorithms
-from .algorithms import DPSOCConfig, EvalConfig, RunState
+from .algorithms import DPSOCConfig, EvalConfig, RunState, with_task_init_var
 from .experiment import fork_state, run_experiment
 from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory
 from .models import LinearGaussianPolicy, Rollouts
@@ -105,6 +105,7 @@ def compare(
     bar over its iterations, or plain lines), a callable printing lines, or ``None``.
     """
     cfg.check_for("dpsoc-em")
+    cfg = with_task_init_var(cfg, task)  # the task's init_var unless the configuration sets one
     progress = as_progress(progress)
     out = Path(out)
     with lock_directory(out):

@@ -194,6 +194,7 @@ def run_experiment(
     one line per iteration, or ``None`` (silent).  ``bar_level``: nesting of the bar (compare).
     """
     _check_inputs(task, method, cfg, seed)
+    cfg = algorithms.with_task_init_var(cfg, task)  # recorded in config.json: the value the run uses
     prog = as_progress(progress)
     if out is None:
         return _run(task, method, cfg, seed, None, start_state, on_iteration, prog, bar_level, None)

@@ -175,7 +175,8 @@ def test_console_counts_iterations_like_metrics_csv_and_labels_times(tmp_path, c
             re.search(rf"(time|total) {re.escape(t)}", ln) for t in re.findall(r"\d+(?:\.\d+)?s\b", ln))
 
 
-def test_unexpected_errors_are_one_line_and_debug_shows_the_traceback(tmp_path, capsys, monkeypatch):
+def test_unexpected_errors_are_one_line_and_debug_shows_the_traceback_with_the_same_exit_status(
+        tmp_path, capsys, monkeypatch):
     import soc_opt.experiment as experiment
 
     def boom(*a, **k):
@@ -186,8 +187,10 @@ def test_unexpected_errors_are_one_line_and_debug_shows_the_traceback(tmp_path, 
     assert main(args) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert "RuntimeError: deliberate failure" in line and "--debug" in line
-    with pytest.raises(RuntimeError):
-        main(["--debug"] + args)
+    assert main(["--debug"] + args) == 2
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err and 'raise RuntimeError("deliberate' in err
+    assert err.rstrip().splitlines()[-1].startswith("soc-opt: error: RuntimeError: deliberate failure")
 
 
 def test_a_second_run_on_a_directory_in_use_is_refused_naming_the_first(tmp_path, capsys):

@@ -23,7 +23,7 @@ from ..lqg_reference import simulate as simulate_filtered
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy
 from ..noisefit import NoiseFitConfig, corrected_fit, naive_fit, noise_action_cov, ssm_em
 
-__all__ = ["problem", "simulate", "relative_errors", "population_naive", "bias_table", "format_table", "run"]
+__all__ = ["QUICK", "problem", "simulate", "relative_errors", "population_naive", "bias_table", "format_table", "run"]
 
 
 def problem(seed: int = 0, n: int = 2, m: int = 1, T: int = 8, rho2: float = 0.1, filtered: bool = False) -> dict:
@@ -166,6 +166,10 @@ def format_table(rows: list[dict]) -> str:
 def run(Ms=(100, 1000, 10000), reps: int = 10, seed: int = 0) -> list[dict]:
     """The bias table for a sampler acting on ``s`` and for one acting on the Kalman estimate."""
     return bias_table(Ms, reps, seed, filtered=False) + bias_table(Ms, reps, seed, filtered=True)
+
+
+#: ``soc-opt bench --quick``: tiny sizes that run every code path in seconds.
+QUICK = {"Ms": (20,), "reps": 2}
 
 
 if __name__ == "__main__":  # pragma: no cover
