@@ -56,6 +56,8 @@ def make_gym_env(env_id: str, kwargs: dict | None = None):
     if not env_id:
         raise ConfigError(f"{name!r}: no environment id after {GYM_PREFIX!r} (e.g. gym:InvertedPendulum-v5)")
     kwargs = dict(kwargs or {})
+    if "render_mode" in kwargs:  # checked before the environment exists: a window must never open
+        raise ConfigError("gym.kwargs: 'render_mode' is not allowed (soc_opt renders with render_filmstrip)")
     try:
         env = gymnasium.make(env_id, **kwargs)
     except gymnasium.error.DependencyNotInstalled as e:
