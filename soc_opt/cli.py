@@ -265,8 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=_HelpFormatter)
     p.add_argument("--debug", action="store_true", help="show the traceback of an error (exit status still 2)")
     sub = p.add_subparsers(dest="command", required=True)
-    _add_parser = sub.add_parser
-    sub.add_parser = lambda *a, **kw: _add_parser(*a, formatter_class=_HelpFormatter, **kw)
+
+    def add(name: str, **kw) -> argparse.ArgumentParser:
+        return sub.add_parser(name, formatter_class=_HelpFormatter, **kw)
 
     def common_algo(sp):
         sp.add_argument("task", help="built-in task (linear2d, peg, door) or a task TOML file")
@@ -284,7 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--progress", choices=["auto", "bar", "lines"], default="auto",
                         help="progress bar (auto: on a terminal) or plain lines")
 
-    r = sub.add_parser("run", help="run one method on a task, writing a resumable run directory")
+    r = add("run", help="run one method on a task, writing a resumable run directory")
     common_algo(r)
     r.add_argument("--method", choices=list(RUNNERS), default="dpsoc-em", help="the method to run")
     r.add_argument("--seed", type=int, default=0, help="random seed of the run")
@@ -292,46 +293,47 @@ def build_parser() -> argparse.ArgumentParser:
                    help="resume from the checkpoint before the last (when the last one is damaged)")
     r.set_defaults(func=_cmd_run)
 
-    c = sub.add_parser("compare", help="LQR-FLM vs DPSOC-EM on the same seeds, with a Markdown report")
+    c = add("compare", help="LQR-FLM vs DPSOC-EM on the same seeds, with a Markdown report")
     common_algo(c)
     c.add_argument("--seeds", type=int, default=3, help="number of seeds")
     c.add_argument("--seed", type=int, default=0, help="first seed")
     c.set_defaults(func=_cmd_compare)
 
-    v = sub.add_parser("verify", help="check the paper's claims (SPEC §9, 1-4) numerically")
+    v = add("verify", help="check the paper's claims (SPEC §9, 1-4) numerically")
     v.add_argument("--json", action="store_true", help="JSON instead of a table")
     v.add_argument("--seed", type=int, default=0, help="seed of the random instances")
     v.add_argument("--instances", type=int, default=20, help="random instances per check")
     v.set_defaults(func=_cmd_verify)
 
-    s = sub.add_parser("solvers", help="compare closed forms with CVXPY, CasADi/IPOPT and fatrop")
+    s = add("solvers", help="compare closed forms with CVXPY, CasADi/IPOPT and fatrop")
     s.add_argument("--json", action="store_true")
     s.add_argument("--quick", action="store_true", help="small sizes only")
     s.set_defaults(func=_cmd_solvers)
 
     from .bench import DEFAULT_PARTS as bench_default, PARTS as bench_parts
 
-    b = sub.add_parser("bench", help="benchmarks: rollouts, fitting, E-step, M-step, LQG, full iterations")
+    b = add("bench", help="benchmarks: rollouts, fitting, E-step, M-step, LQG, full iterations")
     b.add_argument("--json", action="store_true")
     b.add_argument("--only", help="comma-separated subset of: " + ", ".join(bench_parts) + " (default: "
                    + ",".join(bench_default) + ")")
     b.add_argument("--quick", action="store_true", help="tiny sizes: checks every code path in seconds")
     b.set_defaults(func=_cmd_bench)
 
-    t = sub.add_parser("tasks", help="list the built-in tasks")
+    t = add("tasks", help="list the built-in tasks")
     t.set_defaults(func=_cmd_tasks)
 
-    w = sub.add_parser("sweep", help="a grid of trials (tasks x settings x methods x seeds) on Ray (docs/sweeps.md)")
+    w = add("sweep", help="a grid of trials (tasks x settings x methods x seeds) on Ray (docs/sweeps.md)")
     w.add_argument("file", help="sweep TOML file")
     w.add_argument("--out", help="output directory (default runs/sweep-NAME); a rerun skips finished trials")
-    w.add_argument("--address", help="join this Ray cluster (default: start a local Ray on this machine's cores)")
+    w.add_argument("--address", help="join this Ray cluster (default: start a local Ray on this machine's cores; "
+                   "token authentication: docs/sweeps.md)")
     w.add_argument("--workers", type=int, help="at most this many trials at once (default: all cores)")
     w.add_argument("--max-retries", dest="max_retries", type=int, default=3,
                    help="re-executions of a trial whose worker process died (resumes from its checkpoint)")
     w.add_argument("--dry-run", dest="dry_run", action="store_true", help="validate and list the trials only")
     w.set_defaults(func=_cmd_sweep)
 
-    d = sub.add_parser("config-doc", help="write the configuration reference (docs/configuration.md)")
+    d = add("config-doc", help="write the configuration reference (docs/configuration.md)")
     d.add_argument("--out", help="write to this file instead of standard output")
     d.set_defaults(func=_cmd_config_doc)
     return p
