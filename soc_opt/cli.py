@@ -5,7 +5,7 @@ Subcommands::
     soc-opt [--debug] run TASK --method dpsoc-em|lqr-flm|ilqg [--config FILE] [--seed N] [--out DIR] [--paper]
                                 [--iterations N] [--restart | --previous-checkpoint]
     soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper] [--restart]
-    soc-opt verify [--json] [--seed N] [--instances N]
+    soc-opt verify [--json] [--seed N] [--instances N] [--full] [--replay FILE..] [--write-certificates DIR] [--rows]
     soc-opt solvers [--json] [--quick]
     soc-opt bench [--json] [--only NAMES]
     soc-opt tasks
@@ -167,14 +167,51 @@ def _cmd_compare(args) -> int:
 
 
 def _cmd_verify(args) -> int:
+    """Claims table (exit 1 when a verdict differs from the expected one), ``--replay`` of certificates
+    (exit 1 when one does not reproduce), ``--write-certificates`` (the counterexample searches) or the
+    older per-row table (``--rows``)."""
     from . import verification
+    from .verification import registry
 
-    results = verification.run_all(seed=args.seed, instances=args.instances)
+    if args.replay:
+        from .verification.replay import replay_file
+
+        ok_all = True
+        for path in args.replay:
+            ok, lines = replay_file(path)
+            ok_all &= ok
+            _print("\n".join(lines))
+        return 0 if ok_all else 1
+    if args.write_certificates:
+        from .verification.certificates import write_certificates
+
+        for p in write_certificates(args.write_certificates):
+            _print(f"wrote {p}")
+        return 0
+    if args.instances is not None and args.instances < 1:
+        raise ConfigError(f"--instances must be >= 1, got {args.instances}")
+    if args.rows:
+        results = verification.run_all(seed=args.seed, instances=args.instances or 20)
+        _print(json.dumps(verification.to_json(results), indent=1) if args.json else verification.format_table(results))
+        return 0
+    t0 = time.perf_counter()
+    only = None
+    if args.only:
+        only = tuple(k.strip() for k in args.only.split(","))
+        known = [c.key for c in registry.CLAIMS]
+        bad = [k for k in only if k not in known]
+        if bad:
+            raise ConfigError(f"--only: unknown claim key(s) {bad}; known: {known}")
+    res = registry.run_claims(args.seed, full=args.full, instances=args.instances, only=only)
+    doc = registry.verdicts_json(res)
+    doc["seconds"] = round(time.perf_counter() - t0, 2)
     if args.json:
-        _print(json.dumps(verification.to_json(results), indent=1))
+        _print(json.dumps(doc, indent=1))
     else:
-        _print(verification.format_table(results))
-    return 0
+        _print(registry.format_verdicts(res))
+        _print(f"\n{'all verdicts as expected' if doc['ok'] else 'VERDICT DIFFERS FROM EXPECTED'} "
+               f"({doc['seconds']:.1f} s)")
+    return 0 if doc["ok"] else 1
 
 
 def _cmd_solvers(args) -> int:
@@ -273,10 +310,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--i-switch", dest="i_switch", type=int, help="override i_switch")
     c.set_defaults(func=_cmd_compare)
 
-    v = sub.add_parser("verify", help="check the paper's claims (SPEC §9, 1-4) numerically")
+    v = sub.add_parser("verify", help="check the paper's claims (docs/math.md §9) numerically; exit 1 if a "
+                                      "verdict differs from the expected one")
     v.add_argument("--json", action="store_true")
     v.add_argument("--seed", type=int, default=0)
-    v.add_argument("--instances", type=int, default=20)
+    v.add_argument("--instances", type=int, help="instances per claim (default 20; --full 100)")
+    v.add_argument("--full", action="store_true", help="more instances and the literal CVXPY sweep")
+    v.add_argument("--replay", nargs="+", metavar="FILE", help="re-check certificate files with plain numpy")
+    v.add_argument("--write-certificates", dest="write_certificates", metavar="DIR",
+                   help="run the counterexample searches and write their certificates to DIR")
+    v.add_argument("--only", help="comma-separated claim keys (uniqueness, uniqueness_sigma, ltv, dpsoc, "
+                                  "em_lemma, cost_decrease, free_energy, hessian_impl)")
+    v.add_argument("--rows", action="store_true", help="the older per-row table (claims 1-4, rows 1a..4e)")
     v.set_defaults(func=_cmd_verify)
 
     s = sub.add_parser("solvers", help="compare closed forms with CVXPY, CasADi/IPOPT and fatrop")
