@@ -6,7 +6,7 @@ Subcommands::
                                 [--iterations N] [--restart | --previous-checkpoint]
     soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper] [--restart]
     soc-opt verify [--json] [--seed N] [--instances N] [--full] [--replay FILE..] [--write-certificates DIR] [--rows]
-    soc-opt solvers [--json] [--quick]
+    soc-opt solvers [--json] [--quick] [--sizes NxM,..] [--instances N] [--T N] [--out DIR] [--no-kl]
     soc-opt bench [--json] [--only NAMES]
     soc-opt tasks
     soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--dry-run]
@@ -214,21 +214,53 @@ def _cmd_verify(args) -> int:
     return 0 if doc["ok"] else 1
 
 
-def _cmd_solvers(args) -> int:
-    from .bench import lqg as bench_lqg
-    from .bench import mstep as bench_mstep
+def _parse_sizes(text: str) -> tuple[tuple[int, int], ...]:
+    """``"2x1,4x2"`` -> ``((2, 1), (4, 2))``; a clear error names a bad entry."""
+    out = []
+    for part in text.split(","):
+        try:
+            n, m = (int(x) for x in part.lower().split("x"))
+        except ValueError:
+            raise ConfigError(f"--sizes: {part!r} is not NxM (e.g. 26x7)") from None
+        if n < 1 or m < 1:
+            raise ConfigError(f"--sizes: {part!r} needs n >= 1 and m >= 1")
+        out.append((n, m))
+    return tuple(out)
 
-    if args.quick:
-        m_rows = bench_mstep.run(sizes=((6, 2),), T=5)
-        l_rows = bench_lqg.run(sizes=((4, 2, 20),))
-    else:
-        m_rows = bench_mstep.run()
-        l_rows = bench_lqg.run()
+
+def _cmd_solvers(args) -> int:
+    """M-step solver benchmark (every constraint set and solver; files in ``--out``) and the
+    KL-step comparison (closed form vs CasADi/IPOPT and fatrop) unless ``--no-kl``."""
+    from .bench import lqg as bench_lqg
+    from .bench import solvers as bench_solvers
+    from .bench import solvers_report
+
+    sizes = _parse_sizes(args.sizes) if args.sizes else (((2, 1), (4, 2)) if args.quick else bench_solvers.SIZES)
+    instances = args.instances or (2 if args.quick else 10)
+    T = args.T or (2 if args.quick else 3)
+    if instances < 1 or T < 1:
+        raise ConfigError(f"--instances and --T must be >= 1, got {instances} and {T}")
+    t0 = time.perf_counter()
+    with solvers_report.quiet_stdout():
+        rows = bench_solvers.run(sizes=sizes, T=T, instances=instances, seed=args.seed)
+        warm = [w for n, m in sizes[-2:] for w in bench_solvers.warm_vs_cold(n, m, seed=args.seed)]
+        l_rows = [] if args.no_kl else (bench_lqg.run(sizes=((4, 2, 20),)) if args.quick else bench_lqg.run())
+    summary = solvers_report.summarize(rows)
+    meta = {"sizes": sizes, "T": T, "instances": instances, "seed": args.seed,
+            "seconds": round(time.perf_counter() - t0, 1)}
+    if args.out:
+        for p in solvers_report.write(rows, warm, args.out, meta):
+            print(f"wrote {p}", file=sys.stderr if args.json else sys.stdout, flush=True)
+        if l_rows:
+            Path(args.out, "kl_step.json").write_text(json.dumps(l_rows, indent=1, default=float))
     if args.json:
-        _print(json.dumps({"mstep": m_rows, "kl_step": l_rows}, indent=1, default=float))
+        _print(json.dumps({"meta": meta, "mstep": summary, "warm_vs_cold": warm, "kl_step": l_rows}, indent=1,
+                          default=float))
     else:
-        _print("M-step: closed form vs CVXPY (Clarabel, SCS)\n" + _table(m_rows))
-        _print("\nKL-constrained LQG step: closed form vs CasADi/IPOPT and fatrop\n" + _table(l_rows))
+        _print("M-step: every constraint set and solver against the closed form or an independent reference\n"
+               + solvers_report.markdown(summary, warm))
+        if l_rows:
+            _print("\nKL-constrained LQG step: closed form vs CasADi/IPOPT and fatrop\n" + _table(l_rows))
     return 0
 
 
@@ -324,9 +356,16 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--rows", action="store_true", help="the older per-row table (claims 1-4, rows 1a..4e)")
     v.set_defaults(func=_cmd_verify)
 
-    s = sub.add_parser("solvers", help="compare closed forms with CVXPY, CasADi/IPOPT and fatrop")
+    s = sub.add_parser("solvers", help="M-step solver benchmark (every constraint set and solver) and the KL step "
+                                       "(closed form vs CasADi/IPOPT and fatrop)")
     s.add_argument("--json", action="store_true")
-    s.add_argument("--quick", action="store_true", help="small sizes only")
+    s.add_argument("--quick", action="store_true", help="tiny sizes only")
+    s.add_argument("--sizes", help="M-step sizes NxM, comma-separated (default 2x1,4x2,8x3,16x5,26x7)")
+    s.add_argument("--instances", type=int, help="random instances per size (default 10)")
+    s.add_argument("--T", type=int, help="steps per instance, each one problem (default 3)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", help="write the table (md/CSV/JSON), profiles and plots into this directory")
+    s.add_argument("--no-kl", dest="no_kl", action="store_true", help="skip the KL-step comparison")
     s.set_defaults(func=_cmd_solvers)
 
     b = sub.add_parser("bench", help="benchmarks: rollouts, fitting, E-step, M-step, LQG, full iterations")
