@@ -204,11 +204,25 @@ def _cmd_verify(args) -> int:
             raise ConfigError(f"--only: unknown claim key(s) {bad}; known: {known}")
     res = registry.run_claims(args.seed, full=args.full, instances=args.instances, only=only)
     doc = registry.verdicts_json(res)
+    if args.full:  # rerun the counterexample searches and replay what they find
+        from .verification.certificates import SEARCHES
+        from .verification.replay import replay
+
+        doc["searches"] = []
+        for name, search in SEARCHES.items():
+            cert = search()
+            ok, _ = replay(json.loads(json.dumps(cert)))
+            doc["searches"].append({"certificate": name, "n": cert["n"], "m": cert["m"], "T": cert["T"],
+                                    "replay_ok": ok})
+            doc["ok"] = doc["ok"] and ok
     doc["seconds"] = round(time.perf_counter() - t0, 2)
     if args.json:
         _print(json.dumps(doc, indent=1))
     else:
         _print(registry.format_verdicts(res))
+        for srch in doc.get("searches", []):
+            _print(f"search {srch['certificate']}: found at (n, m, T) = ({srch['n']}, {srch['m']}, {srch['T']}), "
+                   f"replay {'ok' if srch['replay_ok'] else 'FAILED'}")
         _print(f"\n{'all verdicts as expected' if doc['ok'] else 'VERDICT DIFFERS FROM EXPECTED'} "
                f"({doc['seconds']:.1f} s)")
     return 0 if doc["ok"] else 1
