@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["summarize", "profiles", "write", "markdown", "quiet_stdout"]
+__all__ = ["summarize", "profiles", "write", "markdown", "per_size", "quiet_stdout"]
 
 #: a solve counts as a success when its relative objective gap and violation are at most this
 SUCCESS_TOL = 1e-6
@@ -131,6 +131,27 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def per_size(rows: list[dict]) -> str:
+    """Markdown: per method (rows) and size (columns) over all constraint sets, ``median gap / max gap
+    / median solve time (ms)``."""
+    sizes = sorted({(r["n"], r["m"]) for r in rows})
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    head = "| method | " + " | ".join(f"n={n}, m={m}" for n, m in sizes) + " |"
+    lines = [head, "|---|" + "---|" * len(sizes)]
+    for meth in methods:
+        cells = []
+        for n, m in sizes:
+            rs = [r for r in rows if r["method"] == meth and (r["n"], r["m"]) == (n, m) and r["step"] >= 0]
+            if not rs:
+                cells.append("-")
+                continue
+            g = np.array([max(r["abs_gap"], r["violation"]) for r in rs])
+            t = np.array([r["solve_s"] for r in rs if math.isfinite(r["solve_s"])])
+            cells.append(f"{np.median(g):.0e} / {np.max(g):.0e} / {1e3 * np.median(t):.2g}" if t.size else "failed")
+        lines.append(f"| {meth} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def markdown(summary: list[dict], warm: list[dict] | None = None) -> str:
     cols = ["n", "m", "constraints", "method", "problems", "solved", "median_gap", "max_gap", "max_violation",
             "median_solve_s", "build_s", "warnings"]
@@ -169,7 +190,10 @@ def write(rows: list[dict], warm: list[dict], out_dir, meta: dict | None = None)
                             default=lambda x: None if isinstance(x, float) and not math.isfinite(x) else str(x)))
     paths.append(p)
     p = out / "table.md"
-    p.write_text(markdown(summary, warm))
+    p.write_text("Per method and size, all constraint sets: median error / max error / median solve time (ms); "
+                 "error = max(relative objective gap, constraint violation) against the closed form or the "
+                 "independent reference.\n\n" + per_size(rows) + "\nPer size, constraint set and method:\n\n"
+                 + markdown(summary, warm))
     paths.append(p)
     return paths + _plots(rows, out)
 
@@ -189,3 +213,35 @@ def quiet_stdout():
         sys.stdout.flush()
         os.dup2(saved, 1)
         os.close(saved)
+
+
+def _parse(v: str):
+    if v == "" or v == "None":
+        return None
+    for cast in (int, float):
+        try:
+            return cast(v)
+        except ValueError:
+            pass
+    return v
+
+
+def rerender(out_dir) -> list[Path]:
+    """Rewrite the summary, table and plots of ``out_dir`` from its ``rows.csv`` (no solver runs)."""
+    out = Path(out_dir)
+    with open(out / "rows.csv", newline="") as f:
+        rows = [{k: _parse(v) for k, v in r.items()} for r in csv.DictReader(f)]
+    for r in rows:
+        for k in ("solve_s", "abs_gap", "violation", "rel_gap", "param_err"):
+            r[k] = math.nan if r[k] is None else float(r[k])
+        r["warning"] = r["warning"] or ""
+        r["status"] = str(r["status"])
+    old = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() else {}
+    return write(rows, old.get("warm_vs_cold", []), out, old.get("meta"))
+
+
+if __name__ == "__main__":
+    import sys
+
+    for p in rerender(sys.argv[1]):
+        print(p)
