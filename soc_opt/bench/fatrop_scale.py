@@ -99,9 +99,39 @@ def mx_stages():
         F._stage_function = orig
 
 
-def measure(n: int, m: int, T: int, *, mx: bool, seed: int = 0, budget: str = "per_step") -> dict:
+class _Built(Exception):
+    """Raised instead of solving when only the build is measured."""
+
+
+@contextlib.contextmanager
+def _build_only(record: dict):
+    """Make ``casadi.nlpsol`` record its construction time and return a solver that stops the run."""
+    import casadi as ca
+
+    orig = ca.nlpsol
+
+    def timed(*a, **kw):
+        t0 = time.perf_counter()
+        solver = orig(*a, **kw)
+        record["nlpsol_s"] = time.perf_counter() - t0
+
+        def stop(**_):
+            raise _Built()
+
+        return stop if solver is not None else solver
+
+    ca.nlpsol = timed
+    try:
+        yield
+    finally:
+        ca.nlpsol = orig
+
+
+def measure(n: int, m: int, T: int, *, mx: bool, seed: int = 0, budget: str = "per_step",
+            build_only: bool = False) -> dict:
     """One KL step at ``(n, m, T)`` (the instance of :mod:`soc_opt.bench.lqg`) by fatrop, SX (library)
-    or MX (``mx``) stages: build and solve seconds, iterations, policy difference to the closed form."""
+    or MX (``mx``) stages: build and solve seconds, iterations, policy difference to the closed form.
+    ``build_only``: stop after the solver is built and report ``build_s`` (graph + ``nlpsol``)."""
     from ..lqg import KLStepConfig, kl_step
     from .lqg import _budget, make_instance
 
@@ -114,9 +144,14 @@ def measure(n: int, m: int, T: int, *, mx: bool, seed: int = 0, budget: str = "p
     t_cf = time.perf_counter() - t0
     out = {"n": n, "m": m, "T": T, "stages": "MX" if mx else "SX (library)", "closed_form_s": t_cf}
     ctx = mx_stages() if mx else contextlib.nullcontext()
-    with ctx:
+    rec: dict = {}
+    with ctx, (_build_only(rec) if build_only else contextlib.nullcontext()):
+        t0 = time.perf_counter()
         try:
             fr = kl_step(*prob[:3], nu, *prob[3:], method="fatrop", config=cfg)
+        except _Built:
+            out.update(build_s=time.perf_counter() - t0, nlpsol_s=rec.get("nlpsol_s"))
+            return out
         except Exception as e:  # reported, not raised: this is a measurement
             out["error"] = f"{type(e).__name__}: {e}"[:300]
             return out
