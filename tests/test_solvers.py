@@ -123,3 +123,16 @@ def test_write_produces_table_csv_json_and_plots(tmp_path):
 def test_solvers_command_rejects_bad_sizes(capsys):
     assert main(["solvers", "--sizes", "4by2", "--no-kl"]) == 2
     assert "4by2" in capsys.readouterr().err
+
+
+def test_fatrop_mx_stage_formulation_matches_the_closed_form():
+    casadi = pytest.importorskip("casadi")
+    if not casadi.has_nlpsol("fatrop"):
+        pytest.skip("CasADi built without fatrop")
+    from soc_opt.bench.fatrop_scale import measure
+
+    r = measure(3, 2, 6, mx=True)
+    assert "error" not in r, r
+    assert r["max_policy_diff"] <= 1e-7 and r["max_rel_eta_diff"] <= 1e-6, r
+    b = measure(3, 2, 6, mx=True, build_only=True)
+    assert b["build_s"] > 0 and b["nlpsol_s"] is not None and "max_policy_diff" not in b
