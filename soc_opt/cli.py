@@ -256,7 +256,8 @@ def _cmd_solvers(args) -> int:
         raise ConfigError(f"--instances and --T must be >= 1, got {instances} and {T}")
     t0 = time.perf_counter()
     with solvers_report.quiet_stdout():
-        rows = bench_solvers.run(sizes=sizes, T=T, instances=instances, seed=args.seed)
+        progress = (lambda rs: solvers_report.write_rows(rs, args.out)) if args.out else None
+        rows = bench_solvers.run(sizes=sizes, T=T, instances=instances, seed=args.seed, on_progress=progress)
         warm = [w for n, m in sizes[-2:] for w in bench_solvers.warm_vs_cold(n, m, seed=args.seed)]
         l_rows = [] if args.no_kl else (bench_lqg.run(sizes=((4, 2, 20),)) if args.quick else bench_lqg.run())
     summary = solvers_report.summarize(rows)

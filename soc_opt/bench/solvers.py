@@ -44,7 +44,7 @@ from .mstep import random_instance
 __all__ = ["SIZES", "SETS", "run", "problem_data", "trust_region_reference", "offset_reference"]
 
 SIZES = ((2, 1), (4, 2), (8, 3), (16, 5), (26, 7))
-SETS = ("cov_floor", "entropy_floor", "offset_bound", "trust_region")
+SETS = ("offset_bound", "trust_region", "cov_floor", "entropy_floor")  # CVXPY-only sets first
 CVX_QP = ("CLARABEL", "SCS", "OSQP", "HIGHS")
 CASADI_QP = ("qrqp", "osqp", "daqp", "qpoases", "highs")
 _CVX_OPTS = {"CLARABEL": {}, "SCS": {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iters": 200_000},
@@ -386,8 +386,10 @@ def warm_vs_cold(n: int, m: int, seed: int = 0, iterations: int = 5, solvers=("O
     return out
 
 
-def run(sizes=SIZES, T: int = 3, instances: int = 10, seed: int = 0, sets=SETS, methods=None) -> list[dict]:
-    """One row per (size, constraint set, method, instance, step); see the module docstring."""
+def run(sizes=SIZES, T: int = 3, instances: int = 10, seed: int = 0, sets=SETS, methods=None,
+        on_progress=None) -> list[dict]:
+    """One row per (size, constraint set, method, instance, step); see the module docstring.
+    ``on_progress(rows)`` is called after every (size, constraint set) with the rows so far."""
     rows: list[dict] = []
     for n, m in sizes:
         rng = np.random.default_rng([seed, n, m])
@@ -407,4 +409,6 @@ def run(sizes=SIZES, T: int = 3, instances: int = 10, seed: int = 0, sets=SETS, 
                     _run_cvx_qp(rows, base, insts, kind, name, refs)
                 else:
                     _run_casadi(rows, base, insts, kind, name, refs)
+            if on_progress is not None:
+                on_progress(rows)
     return rows

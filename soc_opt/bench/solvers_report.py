@@ -172,6 +172,18 @@ def markdown(summary: list[dict], warm: list[dict] | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_rows(rows: list[dict], out_dir) -> Path:
+    """``out_dir/rows.csv`` only (a partial run's progress)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    p = out / "rows.csv"
+    with open(p, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return p
+
+
 def write(rows: list[dict], warm: list[dict], out_dir, meta: dict | None = None) -> list[Path]:
     """Write every file of the benchmark into ``out_dir`` (module docstring); returns the paths."""
     out = Path(out_dir)
@@ -226,22 +238,29 @@ def _parse(v: str):
     return v
 
 
-def rerender(out_dir) -> list[Path]:
-    """Rewrite the summary, table and plots of ``out_dir`` from its ``rows.csv`` (no solver runs)."""
+def rerender(out_dir, parts=()) -> list[Path]:
+    """Rewrite the summary, table and plots of ``out_dir`` from its ``rows.csv`` (no solver runs), or
+    from the ``rows.csv`` and ``summary.json`` of the directories ``parts`` (e.g. one run per size)."""
     out = Path(out_dir)
-    with open(out / "rows.csv", newline="") as f:
-        rows = [{k: _parse(v) for k, v in r.items()} for r in csv.DictReader(f)]
+    rows, warm, metas = [], [], []
+    for d in [Path(p) for p in parts] or [out]:
+        with open(d / "rows.csv", newline="") as f:
+            rows += [{k: _parse(v) for k, v in r.items()} for r in csv.DictReader(f)]
+        if (d / "summary.json").exists():
+            old = json.loads((d / "summary.json").read_text())
+            warm += old.get("warm_vs_cold", [])
+            metas.append(old.get("meta"))
     for r in rows:
         for k in ("solve_s", "abs_gap", "violation", "rel_gap", "param_err"):
             r[k] = math.nan if r[k] is None else float(r[k])
         r["warning"] = r["warning"] or ""
         r["status"] = str(r["status"])
-    old = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() else {}
-    return write(rows, old.get("warm_vs_cold", []), out, old.get("meta"))
+    meta = metas[0] if len(metas) == 1 else {"parts": metas}
+    return write(rows, warm, out, meta)
 
 
 if __name__ == "__main__":
     import sys
 
-    for p in rerender(sys.argv[1]):
+    for p in rerender(sys.argv[1], sys.argv[2:]):
         print(p)
