@@ -133,7 +133,7 @@ def _fmt(v) -> str:
 
 def per_size(rows: list[dict]) -> str:
     """Markdown: per method (rows) and size (columns) over all constraint sets, ``median gap / max gap
-    / median solve time (ms)``."""
+    / median solve CPU time (ms)``."""
     sizes = sorted({(r["n"], r["m"]) for r in rows})
     methods = list(dict.fromkeys(r["method"] for r in rows))
     head = "| method | " + " | ".join(f"n={n}, m={m}" for n, m in sizes) + " |"
@@ -166,7 +166,7 @@ def markdown(summary: list[dict], warm: list[dict] | None = None) -> str:
         lines += ["", "Non-optimal statuses:", *fails[:30]]
     if warm:
         lines += ["", "Warm vs cold start (offset-bound QP, 5 consecutive EM iterations, R moving 1%):", "",
-                  "| n | m | solver | mode | median solve (s) | median iterations |", "|---|---|---|---|---|---|"]
+                  "| n | m | solver | mode | median solve (CPU s) | median iterations |", "|---|---|---|---|---|---|"]
         lines += [f"| {w['n']} | {w['m']} | {w['solver']} | {w['mode']} | {w['median_solve_s']:.3g} | "
                   f"{w['median_iters']:.0f} |" for w in warm]
     return "\n".join(lines) + "\n"
@@ -202,7 +202,7 @@ def write(rows: list[dict], warm: list[dict], out_dir, meta: dict | None = None)
                             default=lambda x: None if isinstance(x, float) and not math.isfinite(x) else str(x)))
     paths.append(p)
     p = out / "table.md"
-    p.write_text("Per method and size, all constraint sets: median error / max error / median solve time (ms); "
+    p.write_text("Per method and size, all constraint sets: median error / max error / median solve CPU time (ms); "
                  "error = max(relative objective gap, constraint violation) against the closed form or the "
                  "independent reference.\n\n" + per_size(rows) + "\nPer size, constraint set and method:\n\n"
                  + markdown(summary, warm))
