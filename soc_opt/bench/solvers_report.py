@@ -85,7 +85,9 @@ def _plots(rows: list[dict], out: Path) -> list[Path]:
     paths = []
     for kind in sorted({r["constraints"] for r in rows}):
         methods, ratios = profiles(rows, kind)
+        colors = plt.cm.tab20(np.linspace(0, 1, max(len(methods), 2)))
         fig, ax = plt.subplots(figsize=(7, 4.5))
+        ax.set_prop_cycle(color=colors)
         tau_max = max([float(v[np.isfinite(v)].max()) for v in ratios.values() if np.isfinite(v).any()] + [2.0])
         for s in methods:
             v = ratios[s]
@@ -104,6 +106,7 @@ def _plots(rows: list[dict], out: Path) -> list[Path]:
         plt.close(fig)
         paths.append(p)
         fig, ax = plt.subplots(figsize=(7, 4.5))
+        ax.set_prop_cycle(color=colors)
         for s in methods:
             pts = [(r["solve_s"], max(r["abs_gap"], r["violation"], 1e-17)) for r in rows
                    if r["constraints"] == kind and r["method"] == s and r["step"] >= 0 and math.isfinite(r["solve_s"])
