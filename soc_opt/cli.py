@@ -5,8 +5,8 @@ Subcommands::
     soc-opt [--debug] run TASK [--method dpsoc-em|lqr-flm|ilqg] [--config FILE] [--seed N] [--out DIR] [--paper]
                                 [--iterations N] [--i-switch N] [--restart | --previous-checkpoint]
     soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper] [--restart]
-    soc-opt verify [--json] [--seed N] [--instances N]
-    soc-opt solvers [--json] [--quick]
+    soc-opt verify [--json] [--seed N] [--instances N] [--full] [--replay FILE..] [--write-certificates DIR] [--rows]
+    soc-opt solvers [--json] [--quick] [--sizes NxM,..] [--instances N] [--T N] [--out DIR] [--no-kl]
     soc-opt bench [--json] [--only NAMES] [--quick]
     soc-opt tasks
     soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--dry-run]
@@ -181,31 +181,115 @@ def _cmd_compare(args) -> int:
 
 
 def _cmd_verify(args) -> int:
+    """Claims table (exit 1 when a verdict differs from the expected one), ``--replay`` of certificates
+    (exit 1 when one does not reproduce), ``--write-certificates`` (the counterexample searches) or the
+    older per-row table (``--rows``)."""
     from . import verification
+    from .verification import registry
 
-    results = verification.run_all(seed=args.seed, instances=args.instances)
+    if args.replay:
+        from .verification.replay import replay_file
+
+        ok_all = True
+        for path in args.replay:
+            ok, lines = replay_file(path)
+            ok_all &= ok
+            _print("\n".join(lines))
+        return 0 if ok_all else 1
+    if args.write_certificates:
+        from .verification.certificates import write_certificates
+
+        for p in write_certificates(args.write_certificates):
+            _print(f"wrote {p}")
+        return 0
+    if args.instances is not None and args.instances < 1:
+        raise ConfigError(f"--instances must be >= 1, got {args.instances}")
+    if args.rows:
+        results = verification.run_all(seed=args.seed, instances=args.instances or 20)
+        _print(json.dumps(verification.to_json(results), indent=1) if args.json else verification.format_table(results))
+        return 0
+    t0 = time.perf_counter()
+    only = None
+    if args.only:
+        only = tuple(k.strip() for k in args.only.split(","))
+        known = [c.key for c in registry.CLAIMS]
+        bad = [k for k in only if k not in known]
+        if bad:
+            raise ConfigError(f"--only: unknown claim key(s) {bad}; known: {known}")
+    res = registry.run_claims(args.seed, full=args.full, instances=args.instances, only=only)
+    doc = registry.verdicts_json(res)
+    if args.full:  # rerun the counterexample searches and replay what they find
+        from .verification.certificates import SEARCHES
+        from .verification.replay import replay
+
+        doc["searches"] = []
+        for name, search in SEARCHES.items():
+            cert = search()
+            ok, _ = replay(json.loads(json.dumps(cert)))
+            doc["searches"].append({"certificate": name, "n": cert["n"], "m": cert["m"], "T": cert["T"],
+                                    "replay_ok": ok})
+            doc["ok"] = doc["ok"] and ok
+    doc["seconds"] = round(time.perf_counter() - t0, 2)
     if args.json:
-        _print(json.dumps(verification.to_json(results), indent=1))
+        _print(json.dumps(doc, indent=1))
     else:
-        _print(verification.format_table(results))
-    return 0
+        _print(registry.format_verdicts(res))
+        for srch in doc.get("searches", []):
+            _print(f"search {srch['certificate']}: found at (n, m, T) = ({srch['n']}, {srch['m']}, {srch['T']}), "
+                   f"replay {'ok' if srch['replay_ok'] else 'FAILED'}")
+        _print(f"\n{'all verdicts as expected' if doc['ok'] else 'VERDICT DIFFERS FROM EXPECTED'} "
+               f"({doc['seconds']:.1f} s)")
+    return 0 if doc["ok"] else 1
+
+
+def _parse_sizes(text: str) -> tuple[tuple[int, int], ...]:
+    """``"2x1,4x2"`` -> ``((2, 1), (4, 2))``; a clear error names a bad entry."""
+    out = []
+    for part in text.split(","):
+        try:
+            n, m = (int(x) for x in part.lower().split("x"))
+        except ValueError:
+            raise ConfigError(f"--sizes: {part!r} is not NxM (e.g. 26x7)") from None
+        if n < 1 or m < 1:
+            raise ConfigError(f"--sizes: {part!r} needs n >= 1 and m >= 1")
+        out.append((n, m))
+    return tuple(out)
 
 
 def _cmd_solvers(args) -> int:
+    """M-step solver benchmark (every constraint set and solver; files in ``--out``) and the
+    KL-step comparison (closed form vs CasADi/IPOPT and fatrop) unless ``--no-kl``."""
     from .bench import lqg as bench_lqg
-    from .bench import mstep as bench_mstep
+    from .bench import solvers as bench_solvers
+    from .bench import solvers_report
 
-    if args.quick:
-        m_rows = bench_mstep.run(sizes=((6, 2),), T=5)
-        l_rows = bench_lqg.run(sizes=((4, 2, 20),))
-    else:
-        m_rows = bench_mstep.run()
-        l_rows = bench_lqg.run()
+    sizes = _parse_sizes(args.sizes) if args.sizes else (((2, 1), (4, 2)) if args.quick else bench_solvers.SIZES)
+    instances = args.instances or (2 if args.quick else 10)
+    T = args.T or (2 if args.quick else 3)
+    if instances < 1 or T < 1:
+        raise ConfigError(f"--instances and --T must be >= 1, got {instances} and {T}")
+    t0 = time.perf_counter()
+    with solvers_report.quiet_stdout():
+        progress = (lambda rs: solvers_report.write_rows(rs, args.out)) if args.out else None
+        rows = bench_solvers.run(sizes=sizes, T=T, instances=instances, seed=args.seed, on_progress=progress)
+        warm = [w for n, m in sizes[-2:] for w in bench_solvers.warm_vs_cold(n, m, seed=args.seed)]
+        l_rows = [] if args.no_kl else (bench_lqg.run(sizes=((4, 2, 20),)) if args.quick else bench_lqg.run())
+    summary = solvers_report.summarize(rows)
+    meta = {"sizes": sizes, "T": T, "instances": instances, "seed": args.seed,
+            "seconds": round(time.perf_counter() - t0, 1)}
+    if args.out:
+        for p in solvers_report.write(rows, warm, args.out, meta):
+            print(f"wrote {p}", file=sys.stderr if args.json else sys.stdout, flush=True)
+        if l_rows:
+            Path(args.out, "kl_step.json").write_text(json.dumps(l_rows, indent=1, default=float))
     if args.json:
-        _print(json.dumps({"mstep": m_rows, "kl_step": l_rows}, indent=1, default=float))
+        _print(json.dumps({"meta": meta, "mstep": summary, "warm_vs_cold": warm, "kl_step": l_rows}, indent=1,
+                          default=float))
     else:
-        _print("M-step: closed form vs CVXPY (Clarabel, SCS)\n" + _table(m_rows))
-        _print("\nKL-constrained LQG step: closed form vs CasADi/IPOPT and fatrop\n" + _table(l_rows))
+        _print("M-step: every constraint set and solver against the closed form or an independent reference\n"
+               + solvers_report.markdown(summary, warm))
+        if l_rows:
+            _print("\nKL-constrained LQG step: closed form vs CasADi/IPOPT and fatrop\n" + _table(l_rows))
     return 0
 
 
@@ -299,15 +383,30 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=int, default=0, help="first seed")
     c.set_defaults(func=_cmd_compare)
 
-    v = add("verify", help="check the paper's claims (SPEC §9, 1-4) numerically")
-    v.add_argument("--json", action="store_true", help="JSON instead of a table")
-    v.add_argument("--seed", type=int, default=0, help="seed of the random instances")
-    v.add_argument("--instances", type=int, default=20, help="random instances per check")
+    v = add("verify", help="check the paper's claims (docs/math.md §9) numerically; exit 1 if a "
+                                      "verdict differs from the expected one")
+    v.add_argument("--json", action="store_true")
+    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--instances", type=int, help="instances per claim (default 20; --full 100)")
+    v.add_argument("--full", action="store_true", help="more instances and the literal CVXPY sweep")
+    v.add_argument("--replay", nargs="+", metavar="FILE", help="re-check certificate files with plain numpy")
+    v.add_argument("--write-certificates", dest="write_certificates", metavar="DIR",
+                   help="run the counterexample searches and write their certificates to DIR")
+    v.add_argument("--only", help="comma-separated claim keys (uniqueness, uniqueness_sigma, ltv, dpsoc, "
+                                  "em_lemma, cost_decrease, free_energy, hessian_impl)")
+    v.add_argument("--rows", action="store_true", help="the older per-row table (claims 1-4, rows 1a..4e)")
     v.set_defaults(func=_cmd_verify)
 
-    s = add("solvers", help="compare closed forms with CVXPY, CasADi/IPOPT and fatrop")
+    s = add("solvers", help="M-step solver benchmark (every constraint set and solver) and the KL step "
+                                       "(closed form vs CasADi/IPOPT and fatrop)")
     s.add_argument("--json", action="store_true")
-    s.add_argument("--quick", action="store_true", help="small sizes only")
+    s.add_argument("--quick", action="store_true", help="tiny sizes only")
+    s.add_argument("--sizes", help="M-step sizes NxM, comma-separated (default 2x1,4x2,8x3,16x5,26x7)")
+    s.add_argument("--instances", type=int, help="random instances per size (default 10)")
+    s.add_argument("--T", type=int, help="steps per instance, each one problem (default 3)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", help="write the table (md/CSV/JSON), profiles and plots into this directory")
+    s.add_argument("--no-kl", dest="no_kl", action="store_true", help="skip the KL-step comparison")
     s.set_defaults(func=_cmd_solvers)
 
     from .bench import DEFAULT_PARTS as bench_default, PARTS as bench_parts

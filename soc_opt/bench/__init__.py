@@ -13,13 +13,16 @@ import importlib
 
 from ..config import ConfigError
 
-__all__ = ["PARTS", "DEFAULT_PARTS", "parse_parts", "run_part"]
+__all__ = ["PARTS", "DEFAULT_PARTS", "SUPPORT", "parse_parts", "run_part"]
 
 #: Every benchmark part, in the order ``soc-opt bench`` runs them.
 PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration", "noisefit", "gym_envs")
 #: The parts of a plain ``soc-opt bench`` (``noisefit``: ~3 CPU minutes, ``gym_envs``: minutes per
 #: environment; both only on request).
 DEFAULT_PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration")
+#: Modules of this package that are not ``bench`` parts: the solver benchmark of ``soc-opt solvers``
+#: (``solvers``, its report ``solvers_report``) and the fatrop build-time study (``fatrop_scale``).
+SUPPORT = ("solvers", "solvers_report", "fatrop_scale")
 
 
 def parse_parts(only: str | None) -> tuple[str, ...]:
