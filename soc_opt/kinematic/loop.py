@@ -35,9 +35,12 @@ def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig) -> tuple[Roll
     if cfg.warm_start and isinstance(sampler, KinematicFilteredPolicy):
         init = sampler.filter.accel()
     res = em.fit(km, rollouts.s, rollouts.a, float(task.rho2), cfg, init)
-    xs = km.measure(res.smoothed.mean, False)
-    cost = np.asarray(task.cost(xs, rollouts.a))
-    smoothed = dataclasses.replace(rollouts, s=xs, cost=cost, y=np.exp(-task.y_scale * cost))
+    if float(task.rho2) == 0.0:  # exact: the smoother returns the measured states (h(z(s)) = s to 1e-15)
+        smoothed = rollouts
+    else:
+        xs = km.measure(res.smoothed.mean, False)
+        cost = np.asarray(task.cost(xs, rollouts.a))
+        smoothed = dataclasses.replace(rollouts, s=xs, cost=cost, y=np.exp(-task.y_scale * cost))
     lg = em.z_model(km, res.accel, cfg)
     filt = build_filter(km, res.accel, lg, res.smoothed.mean.mean(axis=0), float(task.rho2)).attach(km)
     diag = {"kin_loglik_first": float(res.loglik[0]), "kin_loglik_last": float(res.loglik[-1]),
