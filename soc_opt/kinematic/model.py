@@ -153,29 +153,34 @@ class KinematicModel:
         jp, jr = np.zeros((3, nv)), np.zeros((3, nv))
         jdp, jdr = np.zeros((3, nv)), np.zeros((3, nv))
         o_p, o_v = self.pos_sl.start, self.vel_sl.start
-        site_body = m.site_bodyid
+        # joints outside z keep their initial angle and zero velocity (written once: the
+        # kinematics calls read qpos/qvel and never write them)
+        d.qpos[:] = self._qinit
+        d.qvel[:] = 0.0
+        plan = []
+        for j, (kind, pid) in enumerate(self.points):
+            ps, vs = slice(o_p + 3 * j, o_p + 3 * j + 3), slice(o_v + 3 * j, o_v + 3 * j + 3)
+            if kind == "site":
+                plan.append((d.site_xpos[pid], int(m.site_bodyid[pid]), mj.mj_jacSite, pid, ps, vs))
+            else:
+                plan.append((d.xpos[pid], pid, mj.mj_jacBody, pid, ps, vs))
+        qpos, qvel = d.qpos, d.qvel
+        kin, compos, comvel, jacdot = mj.mj_kinematics, mj.mj_comPos, mj.mj_comVel, mj.mj_jacDot
         for i in range(zf.shape[0]):
-            d.qpos[:] = self._qinit
-            d.qpos[qadr] = zf[i, :nq]
-            d.qvel[:] = 0.0
-            d.qvel[dof] = zf[i, nq:]
-            mj.mj_kinematics(m, d)
-            mj.mj_comPos(m, d)
+            qd = zf[i, nq:]
+            qpos[qadr] = zf[i, :nq]
+            qvel[dof] = qd
+            kin(m, d)
+            compos(m, d)
             if H is not None:
-                mj.mj_comVel(m, d)
-            for j, (kind, pid) in enumerate(self.points):
-                if kind == "site":
-                    pos, body = d.site_xpos[pid], int(site_body[pid])
-                    mj.mj_jacSite(m, d, jp, jr, pid)
-                else:
-                    pos, body = d.xpos[pid], pid
-                    mj.mj_jacBody(m, d, jp, jr, pid)
+                comvel(m, d)
+            for pos, body, jac, pid, ps, vs in plan:
+                jac(m, d, jp, jr, pid)
                 Jq = jp[:, dof]
-                ps, vs = slice(o_p + 3 * j, o_p + 3 * j + 3), slice(o_v + 3 * j, o_v + 3 * j + 3)
                 hx[i, ps] = pos
-                hx[i, vs] = Jq @ zf[i, nq:]
+                hx[i, vs] = Jq @ qd
                 if H is not None:
-                    mj.mj_jacDot(m, d, jdp, jdr, pos, body)
+                    jacdot(m, d, jdp, jdr, pos, body)
                     H[i, ps, :nq] = Jq
                     H[i, vs, :nq] = jdp[:, dof]
                     H[i, vs, nq:] = Jq
