@@ -434,6 +434,9 @@ def _local_model(task: Task, cfg: LQRFLMConfig, dyn, cost, iteration: int):
         return lqg.LocalModel(dyn, cost, mu0, P0), None
     if cfg.noise.estimator == "kinematic":  # the fit is on smoothed states; the start is known
         nm = noise_aware.noise_model(task)
+        if cfg.noise.kinematic.kl_model == "innovation":
+            kf = noise_aware.loop_filter(dyn, nm, cfg.noise, f" (iteration {iteration})")
+            return noise_aware.innovation_local_model(kf, cost), None
         return lqg.LocalModel(dyn, cost, nm.mu0, nm.P0), None
     kf = noise_aware.loop_filter(dyn, noise_aware.noise_model(task), cfg.noise, f" (iteration {iteration})")
     return noise_aware.innovation_local_model(kf, cost), kf

@@ -47,3 +47,15 @@ def test_dpsoc_em_with_the_kinematic_estimator_returns_a_filtered_em_policy():
     assert "estimator" in em_rec.timings and np.isfinite(em_rec.em.loglik_new)
     ro = task.rollouts(st.policy, 2, np.random.default_rng(0))
     assert np.isfinite(ro.x).all()
+
+
+def test_innovation_kl_model_runs_the_kl_step_on_the_innovation_form():
+    task = load_task("peg", overrides={"T": 30})
+    noise = NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"kl_model": "innovation"}})
+    base = LQRFLMConfig(iterations=2, samples=8, init_var=1.0, noise=noise)
+    st = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
+    assert isinstance(st.policy, KinematicFilteredPolicy)
+    # the innovation form's initial distribution is that of the estimate, not the known start
+    assert not np.allclose(st.prev.model.P0, 1e-6 * np.eye(task.n))
+    with pytest.raises(ConfigError, match="kl_model"):
+        NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"kl_model": "lqg"}})

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -32,6 +33,10 @@ class KinematicConfig(Config):
     p0:             variance of the known start state ``z_0`` (times ``I``).
     warm_start:     start EM from the acceleration map of the sampling policy's filter (the
                     previous iteration's) instead of ``B = D = c = 0``.
+    kl_model:       the LQR-FLM KL step's model: ``"plain"`` (the fit on the smoothed states as if
+                    the state were known) or ``"innovation"`` (its innovation form with the
+                    Kalman filter of that fit and ``R``, as in ``docs/noise.md`` §5: filter-error
+                    cost term and innovation noise; the policy still acts on the kinematic filter).
     """
 
     relin: int = 1
@@ -42,6 +47,7 @@ class KinematicConfig(Config):
     s_floor: float = 1e-4
     p0: float = 1e-6
     warm_start: bool = True
+    kl_model: Literal["plain", "innovation"] = "plain"
 
     def __post_init__(self):
         for name in ("relin", "em_iters"):
@@ -52,6 +58,8 @@ class KinematicConfig(Config):
         for name in ("prior_strength", "q_noise"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"kinematic.{name} must be a finite number >= 0, got {getattr(self, name)!r}")
+        if self.kl_model not in ("plain", "innovation"):
+            raise ValueError(f"kinematic.kl_model must be 'plain' or 'innovation', got {self.kl_model!r}")
         for name in ("s_floor", "p0"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"kinematic.{name} must be a positive number, got {getattr(self, name)!r}")
