@@ -3,7 +3,7 @@
 
 The filter is linearised along a nominal trajectory ``zbar_k`` (the mean smoothed trajectory of
 the iteration that produced the policy): ``s_k ~ h(zbar_k) + H_k (z_k - zbar_k) + eps_k``.  Its
-gains are then data-independent (computed once, like SPEC §10.2's), and one step is::
+gains are then data-independent (computed once, like those of docs/math.md §10.2), and one step is::
 
     z^-_k  = A_{k-1} zhat_{k-1} + Bz_{k-1} a_{k-1} + cz_{k-1}            (z^-_0 = z_0)
     zhat_k = z^-_k + G_k (s_k - h(zbar_k) - H_k (z^-_k - zbar_k))
