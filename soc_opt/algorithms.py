@@ -37,8 +37,10 @@ import numpy as np
 from . import estep, fit, lqg, mstep, noise_aware
 from .config import Config, ConfigError
 from .estimator import FilteredPolicy
+from .kinematic import loop as kinematic_loop
+from .kinematic.filter import KinematicFilteredPolicy
 from .ilqg import ILQGConfig, ilqg
-from .models import LinearGaussianPolicy, Rollouts
+from .models import LinearGaussianPolicy, Rollouts, symmetrize
 from .noise_aware import NoiseConfig
 
 if TYPE_CHECKING:
@@ -450,6 +452,12 @@ def _local_model(task: Task, cfg: LQRFLMConfig, dyn, cost, iteration: int):
     if cfg.noise.estimator == "none":
         mu0, P0 = _initial_distribution(task)
         return lqg.LocalModel(dyn, cost, mu0, P0), None
+    if cfg.noise.estimator == "kinematic":  # the fit is on smoothed states; the start is known
+        nm = noise_aware.noise_model(task)
+        if cfg.noise.kinematic.kl_model == "innovation":
+            kf = noise_aware.loop_filter(dyn, nm, cfg.noise, f" (iteration {iteration})")
+            return noise_aware.innovation_local_model(kf, cost), None
+        return lqg.LocalModel(dyn, cost, nm.mu0, nm.P0), None
     kf = noise_aware.loop_filter(dyn, noise_aware.noise_model(task), cfg.noise, f" (iteration {iteration})")
     return noise_aware.innovation_local_model(kf, cost), kf
 
@@ -472,6 +480,23 @@ def _fit_dynamics(task: Task, cfg: LQRFLMConfig, rollouts: Rollouts, prior, samp
                                  denoised=denoised)
 
 
+def _kinematic(task: Task, cfg: LQRFLMConfig, rollouts: Rollouts, sampler, timings: dict):
+    """``(learner's rollouts, kinematic filter or None)``: the rollouts themselves (the paper, §10),
+    or their structured smoothing (``noise.estimator = "kinematic"``, docs/math.md §11.3)."""
+    if cfg.noise.estimator != "kinematic":
+        return rollouts, None
+    learn, filt, diag = kinematic_loop.learn(task, rollouts, sampler, cfg.noise.kinematic)
+    timings["estimator"] = diag["kin_time"]
+    return learn, filt
+
+
+def _wrap(policy: LinearGaussianPolicy, kf, kin):
+    """The new policy with its filter: Kalman (§10.2), kinematic (§11.3) or none (the paper)."""
+    if kin is not None:
+        return KinematicFilteredPolicy(policy, kin)
+    return policy if kf is None else FilteredPolicy(policy, kf)
+
+
 def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
                       reference: LinearGaussianPolicy | FilteredPolicy | None = None,
                       phase: str = "baseline") -> RunState:
@@ -482,13 +507,14 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     rollouts = task.rollouts(state.policy, cfg.samples, rng, workers=cfg.workers)
     timings["rollouts"] = time.perf_counter() - t0
 
+    learn, kin = _kinematic(task, cfg, rollouts, state.policy, timings)
     t0 = time.perf_counter()
-    prior, denoised = _update_prior(task, cfg, state.prior, rollouts, state.policy, rng)
-    dyn = _fit_dynamics(task, cfg, rollouts, prior, state.policy, denoised)
+    prior, denoised = _update_prior(task, cfg, state.prior, learn, state.policy, rng)
+    dyn = _fit_dynamics(task, cfg, learn, prior, state.policy, denoised)
     timings["fit"] = time.perf_counter() - t0
 
     if cfg.noise.expand_at == "measured":
-        s_bar = rollouts.s.mean(axis=0)
+        s_bar = learn.s.mean(axis=0)
     else:
         s_bar = noise_aware.expansion_point(rollouts, dyn, noise_aware.noise_model(task), cfg.noise)
     a_bar = rollouts.a.mean(axis=0)
@@ -515,7 +541,7 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     return dataclasses.replace(
         state,
         iteration=state.iteration + 1,
-        policy=res.policy if kf is None else FilteredPolicy(res.policy, kf),
+        policy=_wrap(res.policy, kf, kin),
         mult=mult,
         prior=prior,
         rng_state=rng.bit_generator.state,
@@ -552,6 +578,9 @@ def _em_model(task: Task, cfg: DPSOCConfig, rollouts: Rollouts, prior, policy, r
     if base.noise.estimator == "none":
         mu0, P0 = _initial_distribution(task)
         return model, mu0, P0, None
+    if base.noise.estimator == "kinematic":
+        nm = noise_aware.noise_model(task)
+        return model, nm.mu0, symmetrize(nm.P0 + base.noise.estep_p0_jitter * np.eye(model.n)), None
     model, kf, mu0, P0 = noise_aware.filtered_em_model(model, noise_aware.noise_model(task), base.noise,
                                                        f" (EM recursion {recursion})")
     return model, mu0, P0, kf
@@ -559,7 +588,7 @@ def _em_model(task: Task, cfg: DPSOCConfig, rollouts: Rollouts, prior, policy, r
 
 def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | FilteredPolicy, rollouts: Rollouts,
               prior: fit.MixturePrior | None, rng: np.random.Generator,
-              recursion: int = 0, denoised: Rollouts | None = None
+              recursion: int = 0, denoised: Rollouts | None = None, kin=None
               ) -> tuple[LinearGaussianPolicy | FilteredPolicy, EMDiagnostics]:
     """One EM recursion (paper Algorithm 1): fit augmented model, generate ``Y``, E-step, DP M-step.
 
@@ -567,6 +596,8 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | Filte
     :class:`EMDiagnostics` (surrogate and ``log p(Y)`` before/after, timings).  With the
     estimator (SPEC §10.2) the E-/M-step run on the augmented model in ``xhat``, ``policy``'s gains
     read as acting on the new filter's estimate, and the EM policy is returned with that filter.
+    With the kinematic estimator (docs/math.md §11.3) ``rollouts`` are the smoothed ones and the
+    EM policy is returned with the kinematic filter ``kin``.
     """
     em = cfg.em
     t0 = time.perf_counter()
@@ -596,7 +627,7 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | Filte
         time_estep=t_estep,
         time_mstep=t_mstep,
     )
-    return (new if kf is None else FilteredPolicy(new, kf)), diag
+    return _wrap(new, kf, kin), diag
 
 
 def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
@@ -610,10 +641,11 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
         for r in range(cfg.em.n_em):
             t0 = time.perf_counter()
             rollouts = task.rollouts(policy, cfg.baseline.samples, rng, workers=cfg.baseline.workers)
-            t_roll = time.perf_counter() - t0
-            prior, denoised = _update_prior(task, cfg.baseline, prior, rollouts, policy, rng)
-            new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r, denoised=denoised)
-            rec = _record(state.iteration, "em", task, rollouts, timings={"rollouts": t_roll}, em=diag)
+            timings = {"rollouts": time.perf_counter() - t0}
+            learn, kin = _kinematic(task, cfg.baseline, rollouts, policy, timings)
+            prior, denoised = _update_prior(task, cfg.baseline, prior, learn, policy, rng)
+            new, diag = em_update(task, cfg, policy, learn, prior, rng, recursion=r, denoised=denoised, kin=kin)
+            rec = _record(state.iteration, "em", task, rollouts, timings=timings, em=diag)
             history = history + (rec,)
             best = _improved(best, float(np.mean(rec.cost)), policy, state.iteration)
             policy = new

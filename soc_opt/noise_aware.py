@@ -37,7 +37,7 @@ the *measured* ``s_0``, so the true ``x_0`` has covariance ``task.P0 - R = 1e-6 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -55,6 +55,7 @@ from .estimator import (
     kalman_filter,
     measurement_noise,
 )
+from .kinematic.config import KinematicConfig
 from .lqg import LocalModel
 from .models import (
     AugmentedModel,
@@ -93,9 +94,14 @@ class NoiseConfig(Config):
 
     Defaults select the paper's methods (no correction, no estimator).
 
-    estimator:       ``"none"`` (the policy acts on the measured ``s_k``: the paper) or
+    estimator:       ``"none"`` (the policy acts on the measured ``s_k``: the paper),
                      ``"kalman"`` (it acts on ``xhat_k`` of a time-varying Kalman filter built
-                     from the iteration's fitted model; KL step on the innovation form).
+                     from the iteration's fitted model; KL step on the innovation form) or
+                     ``"kinematic"`` (MuJoCo tasks; ``docs/noise.md`` §11: the learner fits on the
+                     states of a structured smoother that knows the robot's kinematics, not its
+                     masses, inertia or damping, and the policy acts on that model's online
+                     filter; parameters in ``[baseline.noise.kinematic]``; needs the other
+                     options at their defaults).
                      Allowed at ``rho2 = 0`` (the filter is then ``xhat = s``).
     fit_correction:  ``"none"`` (the paper's fit), ``"moments"`` (bias-corrected NIW posterior
                      moments) or ``"ssm_em"`` (EM with latent true state and the NIW prior,
@@ -124,9 +130,11 @@ class NoiseConfig(Config):
     time_window:     ``h``: the noise-aware fits pool the tuple moments of the steps ``k-h..k+h``
                      (:func:`pool_moments`); ``0``: per step (SPEC §2's time-varying fit), ``h >= T``:
                      one time-invariant model.  Needs a ``fit_correction``.
+    kinematic:       parameters of ``estimator = "kinematic"``
+                     (:class:`soc_opt.kinematic.config.KinematicConfig`).
     """
 
-    estimator: Literal["none", "kalman"] = "none"
+    estimator: Literal["none", "kalman", "kinematic"] = "none"
     fit_correction: Literal["none", "moments", "ssm_em"] = "none"
     min_reliability: float = 0.05
     filter_w_floor: float = 1e-3
@@ -137,10 +145,17 @@ class NoiseConfig(Config):
     expand_at: Literal["measured", "smoothed"] = "measured"
     prior_data: Literal["measured", "smoothed"] = "measured"
     pool: Literal["union", "anchored"] = "union"
+    kinematic: KinematicConfig = field(default_factory=KinematicConfig)
 
     def __post_init__(self):
-        if self.estimator not in ("none", "kalman"):
-            raise ValueError(f"estimator must be 'none' or 'kalman', got {self.estimator!r}")
+        if self.estimator not in ("none", "kalman", "kinematic"):
+            raise ValueError(f"estimator must be 'none', 'kalman' or 'kinematic', got {self.estimator!r}")
+        if self.estimator == "kinematic":
+            other = {"fit_correction": "none", "expand_at": "measured", "prior_data": "measured", "time_window": 0}
+            bad = [f"{k} = {getattr(self, k)!r}" for k, v in other.items() if getattr(self, k) != v]
+            if bad:
+                raise ValueError(f"estimator = 'kinematic' learns from its own smoothed states; {', '.join(bad)} "
+                                 "cannot be combined with it (leave them at their defaults)")
         if self.fit_correction not in ("none", "moments", "ssm_em"):
             raise ValueError(f"fit_correction must be 'none', 'moments' or 'ssm_em', got {self.fit_correction!r}")
         if not 0.0 < self.min_reliability <= 1.0:
