@@ -346,14 +346,20 @@ class RunDirectory:
         if not isinstance(old_meta, dict) or not (old_task is None or isinstance(old_task, dict)):
             raise RunDirectoryError(f"run directory {str(self.path)!r}: config.json or task.json is not a JSON "
                                     "table; use another --out, or --restart to discard that run")
-        diffs = differences(contract(old_meta), contract(meta))
-        if old_task is not None:
-            diffs += differences(_task_settings(old_task), _task_settings(task), "task")
-            diffs += _file_differences(old_task.get("model_files", {}), task.get("model_files", {}))
+        try:
+            diffs = differences(contract(old_meta), contract(meta))
+            if old_task is not None:
+                diffs += differences(_task_settings(old_task), _task_settings(task), "task")
+                diffs += _file_differences(dict(old_task.get("model_files", {})), task.get("model_files", {}))
+        except (TypeError, ValueError, AttributeError, KeyError) as e:
+            raise RunDirectoryError(f"run directory {str(self.path)!r}: config.json or task.json holds unexpected "
+                                    f"content ({type(e).__name__}: {e}); use another --out, or --restart to "
+                                    "discard that run") from None
         if diffs:
             more = f" (and {len(diffs) - 8} more)" if len(diffs) > 8 else ""
             raise RunDirectoryError(
-                f"run directory {str(self.path)!r} holds a run with a different configuration: "
+                f"run directory {str(self.path)!r} holds a run with a different configuration (config.json, "
+                f"task.json): "
                 f"{'; '.join(diffs[:8])}{more}; use another --out, or --restart to discard that run"
             )
 
