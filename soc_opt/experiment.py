@@ -200,15 +200,13 @@ def run_experiment(
     prog = as_progress(progress)
     if out is None:
         return _run(task, method, cfg, seed, None, start_state, on_iteration, prog, bar_level, None)
-    rd = RunDirectory(out)
-    meta = _meta(task, method, cfg, seed, task_name)
-    done = _done(method, cfg)
     if not restart and not previous_checkpoint:
-        finished = rd.finished(meta, _task_record(task, task_name), _contract, done)
+        finished = finished_run(task, method, cfg, seed, out, task_name=task_name)
         if finished is not None:  # read only: no lock, no file written
             if prog:
-                prog.message(f"{method} run in {rd.path} already finished ({finished.iteration} iterations)")
+                prog.message(f"{method} run in {out} already finished ({finished.iteration} iterations)")
             return finished
+    rd, meta, done = RunDirectory(out), _meta(task, method, cfg, seed, task_name), _done(method, cfg)
     with rd.lock():
         if restart:
             rd.clear()

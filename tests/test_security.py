@@ -14,7 +14,6 @@ reading the sources).
 
 from __future__ import annotations
 
-import io
 import pickle
 import re
 import shutil
