@@ -2,7 +2,7 @@
 in a fresh process with the same command, compared with the uninterrupted run.
 
     python examples/fault_table.py OUT [--task peg] [--methods lqr-flm dpsoc-em ilqg]
-                                   [--after 1 4 5 8 12] [--random 6] [--seed 0]
+                                   [--after 1 4 5 8 12] [--random 6] [--seed 0] [--signals SIGINT SIGKILL]
 
 Every run is ``soc-opt run TASK --method M --out DIR`` (``--paper`` for the sample-based methods)
 in its own interpreter.  "after k" sends the signal as soon as ``metrics.json`` holds k
@@ -71,8 +71,13 @@ def _compare(a: Path, b: Path) -> str:
     return "identical"
 
 
+def _default_sigint():
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # a background shell starts its jobs with SIGINT ignored
+
+
 def _interrupted(task, method, out, sig, after=None, at=None) -> tuple[int, int]:
-    p = subprocess.Popen(_cmd(task, method, out), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    p = subprocess.Popen(_cmd(task, method, out), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         preexec_fn=_default_sigint)
     t0 = time.perf_counter()
     while p.poll() is None:
         if (after is not None and _rows(out) >= after) or (at is not None and time.perf_counter() - t0 >= at):
@@ -91,6 +96,7 @@ def main(argv=None) -> int:
     ap.add_argument("--after", nargs="+", type=int, default=[1, 4, 5, 8, 12])
     ap.add_argument("--random", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--signals", nargs="+", default=["SIGINT", "SIGKILL"], help="signals sent after k iterations")
     args = ap.parse_args(argv)
     out = Path(args.out)
     rng = np.random.default_rng(args.seed)
@@ -101,7 +107,8 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         subprocess.run(_cmd(args.task, method, ref), env=_env(), check=True, stdout=subprocess.DEVNULL)
         wall = time.perf_counter() - t0
-        faults = [(f"{s.name} after iteration {k}", s, k, None) for k in args.after for s in (signal.SIGINT, signal.SIGKILL)
+        faults = [(f"{s.name} after iteration {k}", s, k, None) for k in args.after
+                  for s in (signal.Signals[n] for n in args.signals)
                   if k < _rows(ref)]
         faults += [(f"SIGKILL at {t:.1f} s", signal.SIGKILL, None, t)
                    for t in np.sort(rng.uniform(0.05, 1.0, args.random)) * wall]
