@@ -11,6 +11,7 @@ Subcommands::
     soc-opt tasks
     soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--dry-run]
     soc-opt config-doc [--out FILE]
+    soc-opt convert-checkpoint --trust DIR
 
 ``TASK`` is a built-in name (``linear2d``, ``peg``, ``door``) or the path of a task TOML file.
 Configurations are validated before any simulation starts and before anything is written to
@@ -83,9 +84,15 @@ def _cmd_tasks(args) -> int:
 
 def _run_method(args, task, out: Path) -> int:
     """One method (``RUNNERS``) in a resumable run directory; figures and a filmstrip at the end."""
-    from .experiment import run_experiment
+    from .experiment import finished_run, run_experiment
 
     cfg = _load_run_config(args, args.method)
+    if not args.restart and not args.previous_checkpoint:
+        done = finished_run(task, args.method, cfg, args.seed, out, task_name=args.task)
+        if done is not None:  # reopening a finished run reads only: no figure, event file or lock written
+            _print(f"{args.method} run in {out} already finished ({done.iteration} iterations); nothing to do "
+                   "(--restart to run it again)")
+            return 0
     state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_progress(args),
                            restart=args.restart, previous_checkpoint=args.previous_checkpoint)
     _write_run_figures(task, args.method, state, out)
@@ -435,7 +442,24 @@ def build_parser() -> argparse.ArgumentParser:
     d = add("config-doc", help="write the configuration reference (docs/configuration.md)")
     d.add_argument("--out", help="write to this file instead of standard output")
     d.set_defaults(func=_cmd_config_doc)
+
+    k = add("convert-checkpoint",
+                       help="convert the old pickle checkpoints under DIR (only for a directory you trust)")
+    k.add_argument("dir", help="run, compare or sweep directory")
+    k.add_argument("--trust", action="store_true",
+                   help="required: reading a pickle runs the code it holds; give it only for files you trust")
+    k.set_defaults(func=_cmd_convert_checkpoint)
     return p
+
+
+def _cmd_convert_checkpoint(args) -> int:
+    from .convert_checkpoint import convert_directory
+
+    done = convert_directory(args.dir, trust=args.trust)
+    for old, new in done:
+        _print(f"converted {old} -> {new.name}")
+    _print(f"{len(done)} checkpoint{'s' if len(done) != 1 else ''} converted under {args.dir}")
+    return 0
 
 
 def _one_line(e: BaseException, *, hint: bool = True) -> str:

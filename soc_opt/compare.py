@@ -21,7 +21,7 @@ from . import report
 from . import algorithms
 from .algorithms import DPSOCConfig, EvalConfig, RunState, with_task_init_var
 from .experiment import fork_state, run_experiment
-from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory
+from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory, refuse_legacy
 from .models import LinearGaussianPolicy, Rollouts
 from .progress import Progress, as_progress
 
@@ -140,9 +140,11 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
     level = 1 if progress is not None and progress.mode == "bar" else 0
     sdir = out / f"seed_{seed}"
     sdir.mkdir(exist_ok=True)
-    fork_path = sdir / "fork_state.pkl"
-    if restart and fork_path.exists():
-        fork_path.unlink()
+    fork_path = sdir / "fork_state.npz"  # a checkpoint (soc_opt.statefile): data only
+    if restart:
+        for p in (fork_path, sdir / "fork_state.pkl"):
+            p.unlink(missing_ok=True)
+    refuse_legacy(sdir, ("fork_state.pkl",))
 
     def keep_fork(st: RunState, _p=fork_path):
         if st.iteration == cfg.i_switch and not _p.exists():

@@ -122,7 +122,7 @@ def test_ilqg_writes_a_resumable_run_directory_and_reads_the_shared_config(tmp_p
     rows = list(csv.DictReader(open(out / "metrics.csv")))
     assert [r["iteration"] for r in rows] == ["0"]  # --iterations overrides [ilqg] iterations = 5
     assert "metric_min_distance" in rows[0] and float(rows[0]["cost_mean"]) > 0
-    for name in ("config.json", "task.json", "checkpoint.pkl", "best_policy.npz", "policies/iter_001.npz"):
+    for name in ("config.json", "task.json", "checkpoint.npz", "best_policy.npz", "policies/iter_001.npz"):
         assert (out / name).exists(), name
     capsys.readouterr()
     assert main(args + ["--iterations", "1"]) == 0
