@@ -6,8 +6,10 @@ task's stage cost of the measured state, an episode is ``T`` steps.  The budget 
 environment steps, the unit in which LQR-FLM / DPSOC-EM spend ``iterations x samples x T``.
 
 Every finished training episode is logged (:class:`EpisodeLog`): the environment steps so far,
-the episode's task cost (sum of stage costs, ``-return``), and the task's own metrics
-(``success_rate`` and ``min_distance`` for peg, ``min_hinge`` for door; docs/tasks.md).  After
+``cost_measured`` (sum of the stage costs of the measured states, ``-return``: what the agent
+is rewarded with), and the task's own metrics (``cost``: the total cost of the true states, as
+the project reports it; ``success_rate`` and ``min_distance`` for peg, ``min_hinge`` for door;
+docs/tasks.md).  After
 training, the deterministic policy is scored on ``eval_episodes`` fresh episodes (seed
 ``10000 + seed``, as the project's final evaluations).
 
@@ -48,14 +50,27 @@ SETTINGS: dict[tuple[str, str], tuple[dict, dict | None]] = {
 
 
 def make_env(task: str, rho2: float):
-    """``soc_opt/<Task>-v0`` with the task's ``rho2`` replaced (everything else as the task's TOML)."""
+    """``soc_opt/<Task>-v0`` with the task's ``rho2`` replaced (everything else as the task's TOML).
+
+    The env's ``info["episode"]`` (the finished episode's arrays) is renamed
+    ``info["soc_opt_episode"]``: stable-baselines3 reads ``info["episode"]`` as its Monitor's
+    ``{"r", "l", "t"}`` record and fails on anything else.
+    """
     import gymnasium
 
     import soc_opt.envs  # noqa: F401  (registers the ids)
 
     if task not in ENV_IDS:
         raise ValueError(f"unknown RL task {task!r}; choose from {sorted(ENV_IDS)}")
-    return gymnasium.make(ENV_IDS[task], overrides={"rho2": float(rho2)})
+
+    class _RenameEpisode(gymnasium.Wrapper):
+        def step(self, action):
+            obs, r, term, trunc, info = self.env.step(action)
+            if "episode" in info:
+                info["soc_opt_episode"] = info.pop("episode")
+            return obs, r, term, trunc, info
+
+    return _RenameEpisode(gymnasium.make(ENV_IDS[task], overrides={"rho2": float(rho2)}))
 
 
 def _callback_class():
@@ -73,7 +88,7 @@ def _callback_class():
             info = self.locals["infos"][0]
             self._cost += float(info.get("stage_cost", 0.0))
             if "metrics" in info:
-                self.rows.append({"steps": int(self.num_timesteps), "cost": self._cost,
+                self.rows.append({"steps": int(self.num_timesteps), "cost_measured": self._cost,
                                   **{k: float(v) for k, v in info["metrics"].items()}})
                 self._cost = 0.0
             return True
@@ -92,7 +107,7 @@ def _evaluate(model, task: str, rho2: float, seed: int, episodes: int, vecnorm) 
             action, _ = model.predict(o, deterministic=True)
             obs, _, _, done, info = env.step(action[0])
             cost += info["stage_cost"]
-        rows.append({"cost": cost, **{k: float(v) for k, v in info["metrics"].items()}})
+        rows.append({"cost_measured": cost, **{k: float(v) for k, v in info["metrics"].items()}})
     env.close()
     keys = rows[0].keys()
     return {k: float(np.mean([r[k] for r in rows])) for k in keys}
@@ -103,8 +118,8 @@ def train(algo: str, setting: str, task: str, rho2: float, seed: int, budget: in
     """Train one agent for ``budget`` environment steps; returns the log and the evaluation.
 
     Keys: ``algo, setting, task, rho2, seed, budget, wall_s, steps_per_s, episodes`` (list of
-    per-episode rows: ``steps, cost`` and the task's metrics) and ``final`` (mean of the
-    deterministic policy's ``eval_episodes`` episodes: ``cost`` and the metrics).
+    per-episode rows: ``steps, cost_measured`` and the task's metrics, ``cost`` among them) and
+    ``final`` (mean of the deterministic policy's ``eval_episodes`` episodes, same keys).
     """
     torch = require("torch")
     sb3 = require("stable_baselines3")
@@ -113,7 +128,8 @@ def train(algo: str, setting: str, task: str, rho2: float, seed: int, budget: in
     if (algo, setting) not in SETTINGS:
         raise ValueError(f"unknown RL setting {(algo, setting)!r}; choose from {sorted(SETTINGS)}")
     kwargs, norm = SETTINGS[(algo, setting)]
-    venv = vec.DummyVecEnv([lambda: make_env(task, rho2)])
+    monitor = require("stable_baselines3.common.monitor")
+    venv = vec.DummyVecEnv([lambda: monitor.Monitor(make_env(task, rho2))])
     venv.seed(seed)
     if norm is not None:
         venv = vec.VecNormalize(venv, gamma=kwargs.get("gamma", 0.99), **norm)

@@ -10,7 +10,9 @@ with independent noises.  The two meet when the augmented model has no action in
 (``By_k = 0``) and a block-diagonal ``So_k``: then ``S_k`` is block diagonal and
 ``F_k = A_k + B_k K_k``, ``b_k = B_k k_k + c_k``, ``Q_k = W_k + B_k Sigma_k B_k^T``,
 ``H_k = Ay_k``, ``d_k = cy_k``, ``R_k = Syy_k``.  :func:`random_uncorrelated` builds such an
-instance; :func:`to_lgssm` gives the peers' arrays.  soc_opt also returns ``s_T`` (predicted,
+instance, with a constant observation noise variance ``R`` (pykalman's ``loglikelihood`` takes one
+observation covariance, although its filter and smoother accept a time-varying one; everything
+else varies with time); :func:`to_lgssm` gives the peers' arrays.  soc_opt also returns ``s_T`` (predicted,
 unobserved): the peers' ``T`` states are compared with soc_opt's first ``T``.
 
 Public functions:
@@ -68,7 +70,7 @@ def random_uncorrelated(rng: np.random.Generator, n: int, m: int, T: int):
     """A stable augmented model with ``By = 0`` and block-diagonal ``So``, and a policy.
 
     ``A_k = 0.95 Q_k`` (orthogonal), ``B_k ~ 0.1 N``, cost row ``Ay_k ~ 0.1 N``, ``So`` blocks
-    ``L L^T + 0.01 I`` (``L ~ 0.1 N``) and ``Syy ~ 0.01 + 0.1 U``; policy ``K ~ 0.1 N``,
+    ``L L^T + 0.01 I`` (``L ~ 0.1 N``) and ``Syy = 0.05`` (constant, see the module docstring); policy ``K ~ 0.1 N``,
     ``k ~ N``, ``Sigma = 0.1 I``; ``mu0 ~ N``, ``P0 = I``.  Returns ``(model, policy, mu0, P0)``.
     """
     A = 0.95 * np.linalg.qr(rng.standard_normal((T, n, n)))[0]
@@ -78,7 +80,7 @@ def random_uncorrelated(rng: np.random.Generator, n: int, m: int, T: int):
     L = 0.1 * rng.standard_normal((T, n, n))
     So = np.zeros((T, n + 1, n + 1))
     So[:, :n, :n] = symmetrize(L @ np.swapaxes(L, 1, 2)) + 0.01 * np.eye(n)
-    So[:, n, n] = 0.01 + 0.1 * rng.random(T)
+    So[:, n, n] = 0.05
     model = AugmentedModel(Ao, 0.1 * rng.standard_normal((T, n + 1)), So, n)
     policy = LinearGaussianPolicy(0.1 * rng.standard_normal((T, m, n)), rng.standard_normal((T, m)),
                                   np.broadcast_to(0.1 * np.eye(m), (T, m, m)).copy())
@@ -111,14 +113,17 @@ def run_soc_opt(model, policy, Y, mu0, P0) -> SmootherOutput:
 
 
 def _dynamax_params(lg: LGSSM, mu0, P0):
+    """dynamax's time-varying dynamics: entry ``t + 1`` moves ``z_t`` to ``z_{t+1}`` (entry 0 unused),
+    so the transitions are shifted by one step."""
     from dynamax.linear_gaussian_ssm.inference import (ParamsLGSSM, ParamsLGSSMDynamics,
                                                        ParamsLGSSMEmissions, ParamsLGSSMInitial)
     jnp = require("jax.numpy")
     T, n = lg.b.shape
     return ParamsLGSSM(
         initial=ParamsLGSSMInitial(mean=jnp.asarray(mu0), cov=jnp.asarray(P0)),
-        dynamics=ParamsLGSSMDynamics(weights=jnp.asarray(lg.F), bias=jnp.asarray(lg.b),
-                                     input_weights=jnp.zeros((T, n, 0)), cov=jnp.asarray(lg.Q)),
+        dynamics=ParamsLGSSMDynamics(weights=jnp.asarray(np.roll(lg.F, 1, axis=0)),
+                                     bias=jnp.asarray(np.roll(lg.b, 1, axis=0)),
+                                     input_weights=jnp.zeros((T, n, 0)), cov=jnp.asarray(np.roll(lg.Q, 1, axis=0))),
         emissions=ParamsLGSSMEmissions(weights=jnp.asarray(lg.H), bias=jnp.asarray(lg.d),
                                        input_weights=jnp.zeros((T, 1, 0)), cov=jnp.asarray(lg.R)),
     )
@@ -153,12 +158,15 @@ def run_pykalman(lg: LGSSM, Y, mu0, P0) -> SmootherOutput:
     """pykalman ``KalmanFilter.smooth`` and ``loglikelihood`` per sequence (it has no batch axis).
 
     The time is that of the ``M`` smoother calls; ``loglikelihood`` (a second filter pass) is
-    not timed.  Covariances are those of the first sequence (identical for all).
+    not timed.  Covariances are those of the first sequence (identical for all).  ValueError if
+    ``R`` varies with time (pykalman's ``loglikelihood`` would silently mis-shape it).
     """
     pk = require("pykalman")
+    if not np.all(lg.R == lg.R[0]):
+        raise ValueError("pykalman's loglikelihood takes one observation covariance: R must be constant over time")
     kf = pk.KalmanFilter(transition_matrices=lg.F[:-1], transition_offsets=lg.b[:-1],
                          transition_covariance=lg.Q[:-1], observation_matrices=lg.H,
-                         observation_offsets=lg.d, observation_covariance=lg.R,
+                         observation_offsets=lg.d, observation_covariance=lg.R[0],
                          initial_state_mean=mu0, initial_state_covariance=P0)
     means, covs = [], None
     t0 = time.perf_counter()
