@@ -24,7 +24,9 @@ Public functions:
 
 from __future__ import annotations
 
+import json
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -79,10 +81,11 @@ def _callback_class():
     class EpisodeLog(BaseCallback):
         """Records ``(steps, cost, metrics)`` at the end of every training episode."""
 
-        def __init__(self):
+        def __init__(self, partial: str | None = None, header: dict | None = None):
             super().__init__()
             self.rows: list[dict] = []
             self._cost = 0.0
+            self._partial, self._header = partial, header or {}
 
         def _on_step(self) -> bool:
             info = self.locals["infos"][0]
@@ -91,6 +94,9 @@ def _callback_class():
                 self.rows.append({"steps": int(self.num_timesteps), "cost_measured": self._cost,
                                   **{k: float(v) for k, v in info["metrics"].items()}})
                 self._cost = 0.0
+                if self._partial is not None and len(self.rows) % 10 == 0:
+                    Path(self._partial).write_text(json.dumps({**self._header, "partial": True,
+                                                               "episodes": self.rows}))
             return True
 
     return EpisodeLog
@@ -114,12 +120,14 @@ def _evaluate(model, task: str, rho2: float, seed: int, episodes: int, vecnorm) 
 
 
 def train(algo: str, setting: str, task: str, rho2: float, seed: int, budget: int,
-          eval_episodes: int = 20) -> dict:
+          eval_episodes: int = 20, partial: str | None = None) -> dict:
     """Train one agent for ``budget`` environment steps; returns the log and the evaluation.
 
     Keys: ``algo, setting, task, rho2, seed, budget, wall_s, steps_per_s, episodes`` (list of
     per-episode rows: ``steps, cost_measured`` and the task's metrics, ``cost`` among them) and
     ``final`` (mean of the deterministic policy's ``eval_episodes`` episodes, same keys).
+    ``partial``: a file rewritten every 10 episodes with the log so far (a run cut short by a
+    time limit still leaves its learning curve).
     """
     torch = require("torch")
     sb3 = require("stable_baselines3")
@@ -135,7 +143,9 @@ def train(algo: str, setting: str, task: str, rho2: float, seed: int, budget: in
         venv = vec.VecNormalize(venv, gamma=kwargs.get("gamma", 0.99), **norm)
     cls = {"ppo": sb3.PPO, "sac": sb3.SAC}[algo]
     model = cls("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **kwargs)
-    log = _callback_class()()
+    header = {"algo": algo, "setting": setting, "task": task, "rho2": float(rho2), "seed": int(seed),
+              "budget": int(budget)}
+    log = _callback_class()(partial, header)
     t0 = time.perf_counter()
     model.learn(total_timesteps=int(budget), callback=log)
     wall = time.perf_counter() - t0

@@ -56,14 +56,27 @@ def soc_curves(root: Path, samples: int = 20, T: int = 100) -> dict:
     return out
 
 
-def rl_curves(root: Path, bin_steps: int = 2000) -> dict:
-    """``{(label, task, rho2, budget): {"steps", "seeds": {metric: (S, B)}, "final", "wall_s", "steps_to_90"}}``."""
-    groups: dict = {}
+def _rl_runs(root: Path) -> list[dict]:
+    """Finished runs (``*.json``) and, for runs cut short, their partial logs (``*.json.partial``:
+    no ``final`` evaluation)."""
+    runs = []
     for f in sorted(Path(root).glob("*.json")):
-        r = json.loads(f.read_text())
+        runs.append(json.loads(f.read_text()))
+    for f in sorted(Path(root).glob("*.json.partial")):
+        if not f.with_suffix("").exists():
+            runs.append(json.loads(f.read_text()))
+    return runs
+
+
+def rl_curves(root: Path, bin_steps: int = 2000) -> dict:
+    """``{(label, task, rho2, budget): {"steps", "seeds": {metric: (S, B)}, "final", "last20", "wall_s",
+    "steps_to_90", "reached"}}``; bins a run did not reach are NaN."""
+    groups: dict = {}
+    for r in _rl_runs(root):
         key = (f"{r['algo'].upper()} {r['setting']}", r["task"], r["rho2"], r["budget"])
         groups.setdefault(key, []).append(r)
     out = {}
+    nan = float("nan")
     for key, runs in groups.items():
         task, budget = key[1], key[3]
         edges = np.arange(bin_steps, budget + 1, bin_steps)
@@ -73,20 +86,26 @@ def rl_curves(root: Path, bin_steps: int = 2000) -> dict:
             for r in runs:
                 st = np.array([e["steps"] for e in r["episodes"]])
                 v = np.array([e[m] for e in r["episodes"]])
-                arr.append([v[(st > b - bin_steps) & (st <= b)].mean() for b in edges])
+                arr.append([v[(st > b - bin_steps) & (st <= b)].mean() if (st >= b).any() else nan for b in edges])
             seeds[m] = np.array(arr)
         s90 = None
         if task == "peg":
             s90 = [steps_to([e["steps"] for e in r["episodes"]], [e["success_rate"] for e in r["episodes"]])
                    for r in runs]
         out[key] = {"steps": edges, "seeds": seeds, "n_seeds": len(runs),
-                    "final": {m: [r["final"][m] for r in runs] for m in (METRIC[task], "cost")},
-                    "wall_s": [r["wall_s"] for r in runs], "steps_to_90": s90}
+                    "final": {m: [r["final"][m] if "final" in r else nan for r in runs] for m in (METRIC[task], "cost")},
+                    "last20": {m: [np.mean([e[m] for e in r["episodes"][-20:]]) for r in runs]
+                               for m in (METRIC[task], "cost")},
+                    "wall_s": [r.get("wall_s", nan) for r in runs], "steps_to_90": s90,
+                    "reached": [r["episodes"][-1]["steps"] if r["episodes"] else 0 for r in runs]}
     return out
 
 
 def _ms(v) -> str:
     v = np.asarray(v, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return "n/a"
     return f"{v.mean():.2f} ± {v.std():.2f}" if v.size > 1 else f"{v.mean():.2f}"
 
 
@@ -101,20 +120,25 @@ def _fmt_s90(v) -> str:
 
 
 def rl_table(soc: dict, rl: dict) -> list[dict]:
-    """Rows: method, task, rho2, budget, metric (mean ± std over seeds), cost, steps to 90%, wall time."""
+    """Rows: method, task, rho2, env steps, seeds; the task metric (success rate / min hinge) and
+    the true-state cost of the last 20 sampled episodes (mean ± std over seeds); for RL also of
+    the deterministic policy on 20 fresh episodes; steps to 90% peg success; wall time per run."""
     rows = []
     for (label, task, rho2), c in sorted(soc.items(), key=lambda kv: (kv[0][1], kv[0][2], kv[0][0])):
         m = METRIC[task]
-        rows.append({"method": label, "task": task, "rho2": rho2, "budget": int(c["steps"][-1]),
-                     "metric": _ms(c["seeds"][m][:, -1]), "cost": _ms(c["seeds"]["cost"][:, -1]),
-                     "seeds": c["seeds"][m].shape[0],
+        rows.append({"method": label, "task": task, "rho2": rho2, "env_steps": int(c["steps"][-1]),
+                     "seeds": c["seeds"][m].shape[0], "metric_last20": _ms(c["seeds"][m][:, -1]),
+                     "cost_last20": _ms(c["seeds"]["cost"][:, -1]), "metric_eval": "", "cost_eval": "",
                      "steps_to_90": _fmt_s90(_s90_soc(c)) if task == "peg" else "", "wall_s": ""})
     for (label, task, rho2, budget), c in sorted(rl.items(), key=lambda kv: (kv[0][1], kv[0][2], kv[0][3], kv[0][0])):
         m = METRIC[task]
-        rows.append({"method": label, "task": task, "rho2": rho2, "budget": budget,
-                     "metric": _ms(c["final"][m]), "cost": _ms(c["final"]["cost"]), "seeds": c["n_seeds"],
+        steps = f"{budget:,}" if min(c["reached"]) >= budget else \
+            f"{budget:,} planned; reached {', '.join(f'{x:,}' for x in c['reached'])}"
+        rows.append({"method": label, "task": task, "rho2": rho2, "env_steps": steps, "seeds": c["n_seeds"],
+                     "metric_last20": _ms(c["last20"][m]), "cost_last20": _ms(c["last20"]["cost"]),
+                     "metric_eval": _ms(c["final"][m]), "cost_eval": _ms(c["final"]["cost"]),
                      "steps_to_90": _fmt_s90(c["steps_to_90"]) if task == "peg" else "",
-                     "wall_s": f"{np.mean(c['wall_s']):.0f}"})
+                     "wall_s": _ms(c["wall_s"]).split(".")[0] if np.isfinite(c["wall_s"]).any() else "cut"})
     return rows
 
 

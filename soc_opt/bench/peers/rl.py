@@ -37,7 +37,7 @@ def _one(spec: dict, path: str) -> str:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from ...peers.rl import train
 
-    res = train(**spec)
+    res = train(**spec, partial=path + ".partial")
     Path(path).write_text(json.dumps(res))
     return path
 
