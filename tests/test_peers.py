@@ -142,6 +142,7 @@ def test_mpc_lqr_step_agrees_with_lqr_and_the_kl_step():
     assert row["kl_max_du"] < 1e-8 and row["kl_max_dx"] < 1e-8
 
 
+@pytest.mark.slow  # two SAC episodes and one evaluation: about 2 min on a loaded 2-core machine
 def test_sb3_run_logs_every_episode_and_evaluates():
     _peer("stable_baselines3")
     from soc_opt.peers.rl import train

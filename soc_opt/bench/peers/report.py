@@ -158,6 +158,10 @@ def _cell(v) -> str:
     return str(v)
 
 
+_COLORS = {"LQR-FLM": "tab:blue", "DPSOC-EM": "tab:orange", "PPO default": "tab:green",
+           "PPO tuned": "tab:olive", "SAC default": "tab:red", "SAC tuned": "tab:purple"}
+
+
 def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
     import matplotlib
 
@@ -173,21 +177,27 @@ def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
         series = [(k[0], c) for k, c in soc.items() if k[1] == task and k[2] == rho2]
         series += [(f"{k[0]} ({k[3] // 1000}k)", c) for k, c in rl.items() if k[1] == task and k[2] == rho2]
         for label, c in series:
+            base = label.split(" (")[0]
+            color = _COLORS.get(base.replace(" noise-aware", ""), "gray")
+            ls = ":" if "noise-aware" in base else ("-" if base.startswith(("LQR", "DPSOC")) else "--")
             for i, key in enumerate((m, "cost")):
                 v = c["seeds"][key]
-                mu, sd = np.nanmean(v, axis=0), np.nanstd(v, axis=0)
-                ls = "-" if label.startswith(("LQR", "DPSOC")) else "--"
-                axes[i, j].plot(c["steps"], mu, ls, label=label)
-                axes[i, j].fill_between(c["steps"], mu - sd, mu + sd, alpha=0.12)
+                with np.errstate(all="ignore"):
+                    import warnings
+
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore", RuntimeWarning)
+                        mu, sd = np.nanmean(v, axis=0), np.nanstd(v, axis=0)
+                axes[i, j].plot(c["steps"], mu, ls, color=color, marker=".", label=label)
+                axes[i, j].fill_between(c["steps"], mu - sd, mu + sd, color=color, alpha=0.12)
         axes[0, j].set_title(f"{task}, rho^2 = {rho2:g}")
         axes[0, j].set_ylabel({"success_rate": "success rate", "min_hinge": "min hinge angle (rad)"}[m])
         axes[1, j].set_ylabel("task cost (true states)")
         axes[1, j].set_yscale("log")
         for i in range(2):
-            axes[i, j].set_xscale("log")
             axes[i, j].set_xlabel("environment steps")
             axes[i, j].grid(alpha=0.3)
-    axes[0, -1].legend(fontsize=7, loc="best")
+        axes[0, j].legend(fontsize=7, loc="best")
     fig.suptitle(f"{task}: soc_opt (solid) vs stable-baselines3 (dashed), mean ± std over seeds; "
                  "RL: training episodes in bins of 2,000 steps")
     fig.tight_layout()
