@@ -48,7 +48,11 @@ def soc_curves(root: Path, samples: int = 20, T: int = 100) -> dict:
                 continue
             n_it = min(len(r) for r in per_seed)
             key = (SOC_LABEL[variant].format(m=name), task, rho2)
+            summary = d / "summary.json"
+            eval_cost = (json.loads(summary.read_text())["per_seed"].get(method, {}).get("cost")
+                         if summary.exists() else None)
             out[key] = {
+                "eval_cost": eval_cost,
                 "steps": (np.arange(n_it) + 1) * samples * T,
                 "seeds": {m: np.array([[float(r[i][f"metric_{m}"]) for i in range(n_it)] for r in per_seed])
                           for m in (METRIC[task], "cost")},
@@ -106,7 +110,8 @@ def _ms(v) -> str:
     v = v[np.isfinite(v)]
     if v.size == 0:
         return "n/a"
-    return f"{v.mean():.2f} ± {v.std():.2f}" if v.size > 1 else f"{v.mean():.2f}"
+    f = ".2e" if 0 < abs(v.mean()) < 0.01 else ".2f"
+    return f"{v.mean():{f}} ± {v.std():{f}}" if v.size > 1 else f"{v.mean():{f}}"
 
 
 def _s90_soc(c) -> list:
@@ -128,7 +133,8 @@ def rl_table(soc: dict, rl: dict) -> list[dict]:
         m = METRIC[task]
         rows.append({"method": label, "task": task, "rho2": rho2, "env_steps": int(c["steps"][-1]),
                      "seeds": c["seeds"][m].shape[0], "metric_last20": _ms(c["seeds"][m][:, -1]),
-                     "cost_last20": _ms(c["seeds"]["cost"][:, -1]), "metric_eval": "", "cost_eval": "",
+                     "cost_last20": _ms(c["seeds"]["cost"][:, -1]), "metric_eval": "",
+                     "cost_eval": _ms(c["eval_cost"]) if c.get("eval_cost") else "",
                      "steps_to_90": _fmt_s90(_s90_soc(c)) if task == "peg" else "", "wall_s": ""})
     for (label, task, rho2, budget), c in sorted(rl.items(), key=lambda kv: (kv[0][1], kv[0][2], kv[0][3], kv[0][0])):
         m = METRIC[task]
