@@ -67,7 +67,12 @@ def mean_trajectory(dynamics: LinearGaussianDynamics, policy: LinearGaussianPoli
 def run_mpc(dynamics: LinearGaussianDynamics, cost: QuadraticCost, x0) -> tuple[np.ndarray, np.ndarray, float]:
     """mpc.pytorch's LQR step (float64, one batch element): ``x (T, n)``, ``u (T, m)``, seconds."""
     torch = require("torch")
-    mpc_mod = require("mpc.mpc")
+    try:
+        mpc_mod = require("mpc.mpc")
+    except ImportError as e:
+        raise ImportError("mpc (mpc.pytorch) is not installed and is not in the [peers] extra: its sdist's "
+                          "metadata is invalid for current setuptools; docs/results/peers/README.md shows how "
+                          "to build its wheel") from e
     T, n, m = dynamics.B.shape
     F = torch.as_tensor(np.concatenate([dynamics.A, dynamics.B], axis=2)[:-1, None])  # (T-1, 1, n, n+m)
     f = torch.as_tensor(dynamics.c[:-1, None])
