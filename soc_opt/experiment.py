@@ -264,6 +264,7 @@ def finished_run(task: Task, method: str, cfg: DPSOCConfig, seed: int, out: str 
     :class:`RunDirectoryError` as :func:`run_experiment` would."""
     if not Path(out).is_dir():
         return None
+    cfg = algorithms.with_task_init_var(cfg, task)  # compared as run_experiment records it
     return RunDirectory(out).finished(_meta(task, method, cfg, seed, task_name), _task_record(task, task_name),
                                       _contract, _done(method, cfg))
 
