@@ -18,6 +18,7 @@ from .methods.config import (
     LQRFLMConfig,
     PaperScale,
     with_paper_scale,
+    with_task_init_var,
 )
 from .methods.dpsoc_em import dpsoc_iteration, em_update
 from .methods.ilqg import ILQGConfig, ilqg
@@ -35,6 +36,7 @@ __all__ = [
     "DPSOCConfig",
     "ILQGConfig",
     "with_paper_scale",
+    "with_task_init_var",
     "BestPolicy",
     "PreviousStep",
     "EMDiagnostics",

@@ -2,15 +2,16 @@
 
 Subcommands::
 
-    soc-opt [--debug] run TASK --method dpsoc-em|lqr-flm|ilqg [--config FILE] [--seed N] [--out DIR] [--paper]
-                                [--iterations N] [--restart | --previous-checkpoint]
+    soc-opt [--debug] run TASK [--method dpsoc-em|lqr-flm|ilqg] [--config FILE] [--seed N] [--out DIR] [--paper]
+                                [--iterations N] [--i-switch N] [--restart | --previous-checkpoint]
     soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper] [--restart]
-    soc-opt verify [--json] [--seed N] [--instances N]
-    soc-opt solvers [--json] [--quick]
-    soc-opt bench [--json] [--only NAMES]
+    soc-opt verify [--json] [--seed N] [--instances N] [--full] [--replay FILE..] [--write-certificates DIR] [--rows]
+    soc-opt solvers [--json] [--quick] [--sizes NxM,..] [--instances N] [--T N] [--out DIR] [--no-kl]
+    soc-opt bench [--json] [--only NAMES] [--quick]
     soc-opt tasks
     soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--dry-run]
     soc-opt config-doc [--out FILE]
+    soc-opt convert-checkpoint --trust DIR
 
 ``TASK`` is a built-in name (``linear2d``, ``peg``, ``door``) or the path of a task TOML file.
 Configurations are validated before any simulation starts and before anything is written to
@@ -18,7 +19,7 @@ Configurations are validated before any simulation starts and before anything is
 public for scripts).  Every method writes a resumable run directory (:mod:`soc_opt.experiments.rundir`).
 
 Every error ends the command with one line ``soc-opt: error: ...`` on standard error and exit
-status 2 (``--debug``: the traceback instead).  Iterations are numbered from 0 on the console
+status 2 (``--debug``: the traceback before that line, same exit status).  Iterations are numbered from 0 on the console
 as in ``metrics.csv``.
 """
 
@@ -28,6 +29,7 @@ import argparse
 import json
 import sys
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -82,13 +84,16 @@ def _cmd_tasks(args) -> int:
 
 def _run_method(args, task, out: Path) -> int:
     """One registered method in a resumable run directory; figures and a filmstrip at the end."""
-    from .experiments.run import load_run_config, run_experiment
+    from .experiments.run import finished_run, run_experiment
     from .methods.registry import get_method
 
-    cfg = load_run_config(args.task, args.config, paper=args.paper,
-                          overrides={"iterations": args.iterations, "samples": args.samples,
-                                     "workers": args.workers},
-                          method=args.method)
+    cfg = _load_run_config(args, args.method)
+    if not args.restart and not args.previous_checkpoint:
+        done = finished_run(task, args.method, cfg, args.seed, out, task_name=args.task)
+        if done is not None:  # reopening a finished run reads only: no figure, event file or lock written
+            _print(f"{args.method} run in {out} already finished ({done.iteration} iterations); nothing to do "
+                   "(--restart to run it again)")
+            return 0
     state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_progress(args),
                            restart=args.restart, previous_checkpoint=args.previous_checkpoint)
     _write_run_figures(task, args.method, state, out)
@@ -101,6 +106,25 @@ def _run_method(args, task, out: Path) -> int:
     _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=max(state.iteration - 1, 0))
     _print(get_method(args.method).finish(state, out))
     return 0
+
+
+def _load_run_config(args, method: str):
+    """The run configuration of ``run``/``compare``; a bad ``i_switch`` gets a hint naming its
+    source and ``--i-switch``."""
+    from .experiments.run import EXPERIMENTS, load_run_config
+
+    try:
+        return load_run_config(args.task, args.config, paper=args.paper, method=method,
+                               overrides={"iterations": args.iterations, "samples": args.samples,
+                                          "workers": args.workers, "i_switch": args.i_switch})
+    except ConfigError as e:
+        if str(e).startswith("i_switch"):
+            default = EXPERIMENTS / f"{Path(args.task).stem}.toml"
+            source = ("--i-switch" if args.i_switch is not None else "--paper" if args.paper
+                      else args.config or (str(default) if default.is_file() else "the default (DPSOCConfig)"))
+            e.add_note(f"i_switch comes from {source}; choose the EM switch with --i-switch N "
+                       "(0 <= N < --iterations), raise --iterations, or use --method lqr-flm")
+        raise
 
 
 def _cmd_run(args) -> int:
@@ -132,15 +156,12 @@ def _write_run_figures(task, method: str, state, out: Path) -> None:
 
 def _cmd_compare(args) -> int:
     from .experiments.compare import compare
-    from .experiments.run import load_run_config
     from .tasks import load_task
 
     if args.seed < 0 or args.seeds < 1:
         raise ConfigError(f"--seed must be >= 0 and --seeds >= 1, got {args.seed} and {args.seeds}")
     task = load_task(args.task)
-    cfg = load_run_config(args.task, args.config, paper=args.paper,
-                          overrides={"iterations": args.iterations, "samples": args.samples,
-                                     "workers": args.workers, "i_switch": args.i_switch})
+    cfg = _load_run_config(args, "dpsoc-em")
     out = Path(args.out or f"runs/compare-{Path(args.task).stem}")
     seeds = list(range(args.seed, args.seed + args.seeds))
     _print(f"comparing LQR-FLM and DPSOC-EM on {args.task}: seeds {seeds}, {cfg.baseline.iterations} iterations, "
@@ -157,42 +178,124 @@ def _cmd_compare(args) -> int:
 
 
 def _cmd_verify(args) -> int:
+    """Claims table (exit 1 when a verdict differs from the expected one), ``--replay`` of certificates
+    (exit 1 when one does not reproduce), ``--write-certificates`` (the counterexample searches) or the
+    older per-row table (``--rows``)."""
     from . import verification
+    from .verification import registry
 
-    results = verification.run_all(seed=args.seed, instances=args.instances)
+    if args.replay:
+        from .verification.replay import replay_file
+
+        ok_all = True
+        for path in args.replay:
+            ok, lines = replay_file(path)
+            ok_all &= ok
+            _print("\n".join(lines))
+        return 0 if ok_all else 1
+    if args.write_certificates:
+        from .verification.certificates import write_certificates
+
+        for p in write_certificates(args.write_certificates):
+            _print(f"wrote {p}")
+        return 0
+    if args.instances is not None and args.instances < 1:
+        raise ConfigError(f"--instances must be >= 1, got {args.instances}")
+    if args.rows:
+        results = verification.run_all(seed=args.seed, instances=args.instances or 20)
+        _print(json.dumps(verification.to_json(results), indent=1) if args.json else verification.format_table(results))
+        return 0
+    t0 = time.perf_counter()
+    only = None
+    if args.only:
+        only = tuple(k.strip() for k in args.only.split(","))
+        known = [c.key for c in registry.CLAIMS]
+        bad = [k for k in only if k not in known]
+        if bad:
+            raise ConfigError(f"--only: unknown claim key(s) {bad}; known: {known}")
+    res = registry.run_claims(args.seed, full=args.full, instances=args.instances, only=only)
+    doc = registry.verdicts_json(res)
+    if args.full:  # rerun the counterexample searches and replay what they find
+        from .verification.certificates import SEARCHES
+        from .verification.replay import replay
+
+        doc["searches"] = []
+        for name, search in SEARCHES.items():
+            cert = search()
+            ok, _ = replay(json.loads(json.dumps(cert)))
+            doc["searches"].append({"certificate": name, "n": cert["n"], "m": cert["m"], "T": cert["T"],
+                                    "replay_ok": ok})
+            doc["ok"] = doc["ok"] and ok
+    doc["seconds"] = round(time.perf_counter() - t0, 2)
     if args.json:
-        _print(json.dumps(verification.to_json(results), indent=1))
+        _print(json.dumps(doc, indent=1))
     else:
-        _print(verification.format_table(results))
-    return 0
+        _print(registry.format_verdicts(res))
+        for srch in doc.get("searches", []):
+            _print(f"search {srch['certificate']}: found at (n, m, T) = ({srch['n']}, {srch['m']}, {srch['T']}), "
+                   f"replay {'ok' if srch['replay_ok'] else 'FAILED'}")
+        _print(f"\n{'all verdicts as expected' if doc['ok'] else 'VERDICT DIFFERS FROM EXPECTED'} "
+               f"({doc['seconds']:.1f} s)")
+    return 0 if doc["ok"] else 1
+
+
+def _parse_sizes(text: str) -> tuple[tuple[int, int], ...]:
+    """``"2x1,4x2"`` -> ``((2, 1), (4, 2))``; a clear error names a bad entry."""
+    out = []
+    for part in text.split(","):
+        try:
+            n, m = (int(x) for x in part.lower().split("x"))
+        except ValueError:
+            raise ConfigError(f"--sizes: {part!r} is not NxM (e.g. 26x7)") from None
+        if n < 1 or m < 1:
+            raise ConfigError(f"--sizes: {part!r} needs n >= 1 and m >= 1")
+        out.append((n, m))
+    return tuple(out)
 
 
 def _cmd_solvers(args) -> int:
+    """M-step solver benchmark (every constraint set and solver; files in ``--out``) and the
+    KL-step comparison (closed form vs CasADi/IPOPT and fatrop) unless ``--no-kl``."""
     from .bench import lqg as bench_lqg
-    from .bench import mstep as bench_mstep
+    from .bench import solvers as bench_solvers
+    from .bench import solvers_report
 
-    if args.quick:
-        m_rows = bench_mstep.run(sizes=((6, 2),), T=5)
-        l_rows = bench_lqg.run(sizes=((4, 2, 20),))
-    else:
-        m_rows = bench_mstep.run()
-        l_rows = bench_lqg.run()
+    sizes = _parse_sizes(args.sizes) if args.sizes else (((2, 1), (4, 2)) if args.quick else bench_solvers.SIZES)
+    instances = args.instances or (2 if args.quick else 10)
+    T = args.T or (2 if args.quick else 3)
+    if instances < 1 or T < 1:
+        raise ConfigError(f"--instances and --T must be >= 1, got {instances} and {T}")
+    t0 = time.perf_counter()
+    with solvers_report.quiet_stdout():
+        progress = (lambda rs: solvers_report.write_rows(rs, args.out)) if args.out else None
+        rows = bench_solvers.run(sizes=sizes, T=T, instances=instances, seed=args.seed, on_progress=progress)
+        warm = [w for n, m in sizes[-2:] for w in bench_solvers.warm_vs_cold(n, m, seed=args.seed)]
+        l_rows = [] if args.no_kl else (bench_lqg.run(sizes=((4, 2, 20),)) if args.quick else bench_lqg.run())
+    summary = solvers_report.summarize(rows)
+    meta = {"sizes": sizes, "T": T, "instances": instances, "seed": args.seed,
+            "seconds": round(time.perf_counter() - t0, 1)}
+    if args.out:
+        for p in solvers_report.write(rows, warm, args.out, meta):
+            print(f"wrote {p}", file=sys.stderr if args.json else sys.stdout, flush=True)
+        if l_rows:
+            Path(args.out, "kl_step.json").write_text(json.dumps(l_rows, indent=1, default=float))
     if args.json:
-        _print(json.dumps({"mstep": m_rows, "kl_step": l_rows}, indent=1, default=float))
+        _print(json.dumps({"meta": meta, "mstep": summary, "warm_vs_cold": warm, "kl_step": l_rows}, indent=1,
+                          default=float))
     else:
-        _print("M-step: closed form vs CVXPY (Clarabel, SCS)\n" + _table(m_rows))
-        _print("\nKL-constrained LQG step: closed form vs CasADi/IPOPT and fatrop\n" + _table(l_rows))
+        _print("M-step: every constraint set and solver against the closed form or an independent reference\n"
+               + solvers_report.markdown(summary, warm))
+        if l_rows:
+            _print("\nKL-constrained LQG step: closed form vs CasADi/IPOPT and fatrop\n" + _table(l_rows))
     return 0
 
 
 def _cmd_bench(args) -> int:
-    import importlib
+    from .bench import parse_parts, run_part
 
-    names = args.only.split(",") if args.only else ["rollouts", "fit", "estep", "mstep", "lqg", "iteration"]
     out = {}
-    for name in names:
-        mod = importlib.import_module(f"soc_opt.bench.{name}")
-        rows = mod.run()
+    for name in parse_parts(args.only):
+        rows = run_part(name, quick=args.quick)
         out[name] = rows
         if not args.json:
             _print(f"\n== {name}\n" + _table(rows))
@@ -229,12 +332,25 @@ def _cmd_config_doc(args) -> int:
     return 0
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """``--help`` with each option's default, except for flags and options without one."""
+
+    def _get_help_string(self, action):
+        if action.default is None or isinstance(action.default, bool) or action.default is argparse.SUPPRESS:
+            return action.help
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .methods.registry import METHODS
 
-    p = argparse.ArgumentParser(prog="soc-opt", description="EM-based stochastic optimal control (DPSOC-EM).")
-    p.add_argument("--debug", action="store_true", help="show the traceback of an error")
+    p = argparse.ArgumentParser(prog="soc-opt", description="EM-based stochastic optimal control (DPSOC-EM).",
+                                formatter_class=_HelpFormatter)
+    p.add_argument("--debug", action="store_true", help="show the traceback of an error (exit status still 2)")
     sub = p.add_subparsers(dest="command", required=True)
+
+    def add(name: str, **kw) -> argparse.ArgumentParser:
+        return sub.add_parser(name, formatter_class=_HelpFormatter, **kw)
 
     def common_algo(sp):
         sp.add_argument("task", help="built-in task (linear2d, peg, door) or a task TOML file")
@@ -244,63 +360,101 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--iterations", type=int, help="override baseline.iterations")
         sp.add_argument("--samples", type=int, help="override baseline.samples")
         sp.add_argument("--workers", type=int, help="parallel rollout workers")
+        sp.add_argument("--i-switch", dest="i_switch", type=int,
+                        help="override i_switch: the DPSOC-EM iteration after which the EM phase runs")
         sp.add_argument("--out", help="run directory (resumes if it holds a checkpoint)")
         sp.add_argument("--restart", action="store_true",
                         help="discard the run(s) already in --out and start from scratch")
         sp.add_argument("--progress", choices=["auto", "bar", "lines"], default="auto",
-                        help="progress bar (auto: on a terminal) or plain lines (default: auto)")
+                        help="progress bar (auto: on a terminal) or plain lines")
 
-    r = sub.add_parser("run", help="run one method on a task, writing a resumable run directory")
+    r = add("run", help="run one method on a task, writing a resumable run directory")
     common_algo(r)
-    r.add_argument("--method", choices=list(METHODS), default="dpsoc-em")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--method", choices=list(METHODS), default="dpsoc-em", help="the method to run")
+    r.add_argument("--seed", type=int, default=0, help="random seed of the run")
     r.add_argument("--previous-checkpoint", dest="previous_checkpoint", action="store_true",
                    help="resume from the checkpoint before the last (when the last one is damaged)")
     r.set_defaults(func=_cmd_run)
 
-    c = sub.add_parser("compare", help="LQR-FLM vs DPSOC-EM on the same seeds, with a Markdown report")
+    c = add("compare", help="LQR-FLM vs DPSOC-EM on the same seeds, with a Markdown report")
     common_algo(c)
     c.add_argument("--seeds", type=int, default=3, help="number of seeds")
     c.add_argument("--seed", type=int, default=0, help="first seed")
-    c.add_argument("--i-switch", dest="i_switch", type=int, help="override i_switch")
     c.set_defaults(func=_cmd_compare)
 
-    v = sub.add_parser("verify", help="check the paper's claims (docs/math.md §9, 1-4) numerically")
+    v = add("verify", help="check the paper's claims (docs/math.md §9) numerically; exit 1 if a "
+                           "verdict differs from the expected one")
     v.add_argument("--json", action="store_true")
     v.add_argument("--seed", type=int, default=0)
-    v.add_argument("--instances", type=int, default=20)
+    v.add_argument("--instances", type=int, help="instances per claim (default 20; --full 100)")
+    v.add_argument("--full", action="store_true", help="more instances and the literal CVXPY sweep")
+    v.add_argument("--replay", nargs="+", metavar="FILE", help="re-check certificate files with plain numpy")
+    v.add_argument("--write-certificates", dest="write_certificates", metavar="DIR",
+                   help="run the counterexample searches and write their certificates to DIR")
+    v.add_argument("--only", help="comma-separated claim keys (uniqueness, uniqueness_sigma, ltv, dpsoc, "
+                                  "em_lemma, cost_decrease, free_energy, hessian_impl)")
+    v.add_argument("--rows", action="store_true", help="the older per-row table (claims 1-4, rows 1a..4e)")
     v.set_defaults(func=_cmd_verify)
 
-    s = sub.add_parser("solvers", help="compare closed forms with CVXPY, CasADi/IPOPT and fatrop")
+    s = add("solvers", help="M-step solver benchmark (every constraint set and solver) and the KL step "
+                                       "(closed form vs CasADi/IPOPT and fatrop)")
     s.add_argument("--json", action="store_true")
-    s.add_argument("--quick", action="store_true", help="small sizes only")
+    s.add_argument("--quick", action="store_true", help="tiny sizes only")
+    s.add_argument("--sizes", help="M-step sizes NxM, comma-separated (default 2x1,4x2,8x3,16x5,26x7)")
+    s.add_argument("--instances", type=int, help="random instances per size (default 10)")
+    s.add_argument("--T", type=int, help="steps per instance, each one problem (default 3)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", help="write the table (md/CSV/JSON), profiles and plots into this directory")
+    s.add_argument("--no-kl", dest="no_kl", action="store_true", help="skip the KL-step comparison")
     s.set_defaults(func=_cmd_solvers)
 
-    b = sub.add_parser("bench", help="benchmarks: rollouts, fitting, E-step, M-step, LQG, full iterations")
+    from .bench import DEFAULT_PARTS as bench_default, PARTS as bench_parts
+
+    b = add("bench", help="benchmarks: rollouts, fitting, E-step, M-step, LQG, full iterations")
     b.add_argument("--json", action="store_true")
-    b.add_argument("--only", help="comma-separated subset")
+    b.add_argument("--only", help="comma-separated subset of: " + ", ".join(bench_parts) + " (default: "
+                   + ",".join(bench_default) + ")")
+    b.add_argument("--quick", action="store_true", help="tiny sizes: checks every code path in seconds")
     b.set_defaults(func=_cmd_bench)
 
-    t = sub.add_parser("tasks", help="list the built-in tasks")
+    t = add("tasks", help="list the built-in tasks")
     t.set_defaults(func=_cmd_tasks)
 
-    w = sub.add_parser("sweep", help="a grid of trials (tasks x settings x methods x seeds) on Ray (docs/sweeps.md)")
+    w = add("sweep", help="a grid of trials (tasks x settings x methods x seeds) on Ray (docs/sweeps.md)")
     w.add_argument("file", help="sweep TOML file")
     w.add_argument("--out", help="output directory (default runs/sweep-NAME); a rerun skips finished trials")
-    w.add_argument("--address", help="join this Ray cluster (default: start a local Ray on this machine's cores)")
+    w.add_argument("--address", help="join this Ray cluster (default: start a local Ray on this machine's cores; "
+                   "token authentication: docs/sweeps.md)")
     w.add_argument("--workers", type=int, help="at most this many trials at once (default: all cores)")
     w.add_argument("--max-retries", dest="max_retries", type=int, default=3,
                    help="re-executions of a trial whose worker process died (resumes from its checkpoint)")
     w.add_argument("--dry-run", dest="dry_run", action="store_true", help="validate and list the trials only")
     w.set_defaults(func=_cmd_sweep)
 
-    d = sub.add_parser("config-doc", help="write the configuration reference (docs/configuration.md)")
+    d = add("config-doc", help="write the configuration reference (docs/configuration.md)")
     d.add_argument("--out", help="write to this file instead of standard output")
     d.set_defaults(func=_cmd_config_doc)
+
+    k = add("convert-checkpoint",
+                       help="convert the old pickle checkpoints under DIR (only for a directory you trust)")
+    k.add_argument("dir", help="run, compare or sweep directory")
+    k.add_argument("--trust", action="store_true",
+                   help="required: reading a pickle runs the code it holds; give it only for files you trust")
+    k.set_defaults(func=_cmd_convert_checkpoint)
     return p
 
 
-def _one_line(e: BaseException) -> str:
+def _cmd_convert_checkpoint(args) -> int:
+    from .experiments.convert_checkpoint import convert_directory
+
+    done = convert_directory(args.dir, trust=args.trust)
+    for old, new in done:
+        _print(f"converted {old} -> {new.name}")
+    _print(f"{len(done)} checkpoint{'s' if len(done) != 1 else ''} converted under {args.dir}")
+    return 0
+
+
+def _one_line(e: BaseException, *, hint: bool = True) -> str:
     """The error as one line: its message (type name too when it is not one of ours) and notes."""
     from .errors import SolverError
     from .tasks import SimulationError
@@ -308,7 +462,7 @@ def _one_line(e: BaseException) -> str:
     ours = (ConfigError, FileNotFoundError, SimulationError, SolverError)
     text = str(e) if isinstance(e, ours) else f"{type(e).__name__}: {e}"
     parts = [text] + list(getattr(e, "__notes__", ()))
-    if not isinstance(e, ours):
+    if hint and not isinstance(e, ours):
         parts.append("rerun with --debug for the traceback")
     return " ".join("; ".join(p.strip() for p in parts if p.strip()).split())
 
@@ -325,8 +479,8 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except Exception as e:
         if debug:
-            raise
-        print(f"soc-opt: error: {_one_line(e)}", file=sys.stderr)
+            traceback.print_exc()
+        print(f"soc-opt: error: {_one_line(e, hint=not debug)}", file=sys.stderr)
         return 2
 
 

@@ -174,6 +174,11 @@ Precedence (`soc_opt.experiments.run.load_run_config`, used by the CLI): the tas
 switch at {i_switch}), then the flags `--iterations`, `--samples`, `--workers`, `--i-switch`
 (for `--method ilqg` only `--iterations`, which sets `ilqg.iterations`).
 
+The initial policy covariance `Sigma = init_var * I`: `[baseline] init_var` of the run
+configuration (the `--config` file, or the task's default file) when it sets one, else the task
+file's own `init_var` (docs/tasks.md; default 1.0).  `config.json` of a run directory records the
+value used.  In a sweep, `task.init_var` wins over the run-configuration file (docs/sweeps.md).
+
 Task configurations (model, horizon, state, cost terms, noise, metric) are described in
 `docs/tasks.md`.
 

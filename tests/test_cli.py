@@ -122,7 +122,7 @@ def test_ilqg_writes_a_resumable_run_directory_and_reads_the_shared_config(tmp_p
     rows = list(csv.DictReader(open(out / "metrics.csv")))
     assert [r["iteration"] for r in rows] == ["0"]  # --iterations overrides [ilqg] iterations = 5
     assert "metric_min_distance" in rows[0] and float(rows[0]["cost_mean"]) > 0
-    for name in ("config.json", "task.json", "checkpoint.pkl", "best_policy.npz", "policies/iter_001.npz"):
+    for name in ("config.json", "task.json", "checkpoint.npz", "best_policy.npz", "policies/iter_001.npz"):
         assert (out / name).exists(), name
     capsys.readouterr()
     assert main(args + ["--iterations", "1"]) == 0
@@ -175,7 +175,8 @@ def test_console_counts_iterations_like_metrics_csv_and_labels_times(tmp_path, c
             re.search(rf"(time|total) {re.escape(t)}", ln) for t in re.findall(r"\d+(?:\.\d+)?s\b", ln))
 
 
-def test_unexpected_errors_are_one_line_and_debug_shows_the_traceback(tmp_path, capsys, monkeypatch):
+def test_unexpected_errors_are_one_line_and_debug_shows_the_traceback_with_the_same_exit_status(
+        tmp_path, capsys, monkeypatch):
     import soc_opt.experiments.run as experiment
 
     def boom(*a, **k):
@@ -186,8 +187,10 @@ def test_unexpected_errors_are_one_line_and_debug_shows_the_traceback(tmp_path, 
     assert main(args) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert "RuntimeError: deliberate failure" in line and "--debug" in line
-    with pytest.raises(RuntimeError):
-        main(["--debug"] + args)
+    assert main(["--debug"] + args) == 2
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err and 'raise RuntimeError("deliberate' in err
+    assert err.rstrip().splitlines()[-1].startswith("soc-opt: error: RuntimeError: deliberate failure")
 
 
 def test_a_second_run_on_a_directory_in_use_is_refused_naming_the_first(tmp_path, capsys):
@@ -215,3 +218,104 @@ def test_a_second_run_on_a_directory_in_use_is_refused_naming_the_first(tmp_path
     finally:
         first.send_signal(signal.SIGKILL)
         first.communicate()
+
+
+# --------------------------------------------------------------------------- issue 18: every knob does what it says
+
+
+def _linear_task(tmp_path, name: str, init_var: float | None):
+    """A copy of linear2d under another name (so no default run configuration applies)."""
+    from soc_opt.tasks.loading import BUILTIN_TASKS, problems_dir
+
+    text = (problems_dir() / BUILTIN_TASKS["linear2d"]).read_text().replace('name = "linear2d"', f'name = "{name}"')
+    if init_var is not None:
+        text = text.replace("init_var = 1.0", f"init_var = {init_var!r}")
+    p = tmp_path / f"{name}.toml"
+    p.write_text(text)
+    return p
+
+
+def _metrics_rows(out):
+    import csv
+
+    with open(out / "metrics.csv") as f:
+        return [{k: v for k, v in r.items() if not k.startswith("time_")} for r in csv.DictReader(f)]
+
+
+def _recorded_init_var(out) -> float:
+    import json
+
+    return json.loads((out / "config.json").read_text())["config"]["baseline"]["init_var"]
+
+
+def test_task_file_init_var_sets_the_initial_policy_and_is_recorded(tmp_path, capsys):
+    args = ["run", "--method", "lqr-flm", "--iterations", "1", "--samples", "4", "--progress", "lines"]
+    small = _linear_task(tmp_path, "small", 0.01)
+    big = _linear_task(tmp_path, "big", 100.0)
+    assert main(args[:1] + [str(small)] + args[1:] + ["--out", str(tmp_path / "small")]) == 0
+    assert main(args[:1] + [str(big)] + args[1:] + ["--out", str(tmp_path / "big")]) == 0
+    assert (_recorded_init_var(tmp_path / "small"), _recorded_init_var(tmp_path / "big")) == (0.01, 100.0)
+    cost = {k: float(_metrics_rows(tmp_path / k)[0]["cost_mean"]) for k in ("small", "big")}
+    assert cost["small"] != cost["big"]
+    # oracle: the task file's value acts exactly as the same value in [baseline] of --config
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text("[baseline]\ninit_var = 0.01\n")
+    plain = _linear_task(tmp_path, "plain", None)
+    assert main(args[:1] + [str(plain)] + args[1:] + ["--config", str(cfg), "--out", str(tmp_path / "cfg")]) == 0
+    assert _metrics_rows(tmp_path / "cfg") == _metrics_rows(tmp_path / "small")
+
+
+def test_baseline_init_var_of_the_run_configuration_overrides_the_task_file(tmp_path, capsys):
+    big = _linear_task(tmp_path, "big", 100.0)
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text("[baseline]\ninit_var = 0.01\n")
+    assert main(["run", str(big), "--method", "lqr-flm", "--iterations", "1", "--samples", "4",
+                 "--config", str(cfg), "--out", str(tmp_path / "o")]) == 0
+    assert _recorded_init_var(tmp_path / "o") == 0.01
+
+
+def test_run_takes_i_switch_and_a_bad_switch_point_gets_a_hint_naming_the_flag_and_file(tmp_path, capsys):
+    assert main(["run", "linear2d", "--iterations", "2", "--samples", "4", "--out", str(tmp_path / "o")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "i_switch must be in [0, iterations=2), got 4" in line
+    assert "--i-switch" in line and "experiments/linear2d.toml" in line
+    assert not (tmp_path / "o").exists()
+    assert main(["run", "linear2d", "--iterations", "2", "--samples", "4", "--i-switch", "0",
+                 "--out", str(tmp_path / "o")]) == 0
+    import json
+
+    assert json.loads((tmp_path / "o" / "config.json").read_text())["config"]["i_switch"] == 0
+
+
+def test_help_shows_the_defaults_including_the_method():
+    from soc_opt.cli import build_parser
+
+    sub = build_parser()._subparsers._group_actions[0].choices
+    text = " ".join(sub["run"].format_help().split())
+    assert "(default: dpsoc-em)" in text and "--i-switch" in text and "(default: auto)" in text
+    assert "(default: 0)" in text  # --seed
+    assert "(default: 3)" in " ".join(sub["sweep"].format_help().split())  # --max-retries
+    assert "(default: None)" not in text and "(default: False)" not in text
+
+
+@pytest.mark.parametrize("text, named", [("init_var = -1.0", "baseline.init_var: must be positive, got -1.0"),
+                                         ("kl_budget = 0.0", "baseline.kl_budget: must be positive, got 0.0")])
+def test_non_positive_baseline_values_are_named_with_file_key_and_value(tmp_path, capsys, text, named):
+    p = tmp_path / "bad.toml"
+    p.write_text(f"[baseline]\n{text}\n")
+    assert main(["run", "linear2d", "--config", str(p), "--out", str(tmp_path / "o")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(p) in line and named in line
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("key, value", [("mass", "-1.0"), ("tau", "0.0")])
+def test_non_positive_linear_mass_or_tau_is_named_with_file_key_and_value(tmp_path, capsys, key, value):
+    p = _linear_task(tmp_path, "lin", None)
+    p.write_text(p.read_text().replace("[linear]\n", f"[linear]\n{key} = {value}\n").replace(
+        "mass = 1.0\n", "" if key == "mass" else "mass = 1.0\n").replace(
+        "tau = 0.2 ", "" if key == "tau" else "tau = 0.2 ", 1))
+    assert main(["run", str(p), "--out", str(tmp_path / "o")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(p) in line and f"linear.{key}: must be positive, got {value}" in line
+    assert not (tmp_path / "o").exists()

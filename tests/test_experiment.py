@@ -51,7 +51,7 @@ def test_run_directory_holds_the_promised_files(task, tmp_path):
     cfg = _cfg(iterations=2)
     run_experiment(task, "dpsoc-em", cfg, seed=0, out=tmp_path / "r")
     d = tmp_path / "r"
-    for name in ("config.json", "metrics.csv", "metrics.json", "checkpoint.pkl", "best_policy.npz",
+    for name in ("config.json", "metrics.csv", "metrics.json", "checkpoint.npz", "best_policy.npz",
                  "policies/iter_002.npz", "samples/iter_001.npz"):
         assert (d / name).exists(), name
     rows = json.loads((d / "metrics.json").read_text())
@@ -177,7 +177,7 @@ def test_a_damaged_checkpoint_offers_the_previous_one_and_restart(task, tmp_path
     out = tmp_path / "r"
     with pytest.raises(_Kill):
         run_experiment(task, "lqr-flm", cfg, seed=2, out=out, on_iteration=_kill_at(2))
-    ckpt = out / "checkpoint.pkl"
+    ckpt = out / "checkpoint.npz"
     for damage in (b"", ckpt.read_bytes()[:-100]):
         ckpt.write_bytes(damage)
         with pytest.raises(ValueError, match=r"--previous-checkpoint.*1 iterations done.*--restart"):
@@ -221,8 +221,8 @@ def test_a_run_that_never_finished_an_iteration_does_not_block_a_corrected_rerun
     with pytest.raises(_Kill):
         run_experiment(task, "lqr-flm", _cfg(iterations=2, i_switch=0), seed=0, out=tmp_path / "r",
                        on_iteration=fail_first)
-    (tmp_path / "r" / "checkpoint.pkl").unlink()  # as if it had failed inside its first iteration
-    (tmp_path / "r" / "checkpoint.prev.pkl").unlink(missing_ok=True)
+    (tmp_path / "r" / "checkpoint.npz").unlink()  # as if it had failed inside its first iteration
+    (tmp_path / "r" / "checkpoint.prev.npz").unlink(missing_ok=True)
     st = run_experiment(task, "lqr-flm", _cfg(iterations=1, i_switch=0), seed=0, out=tmp_path / "r")
     assert st.iteration == 1
 

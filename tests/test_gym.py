@@ -193,6 +193,41 @@ def test_task_toml_with_a_non_mujoco_env_or_bad_keys_is_rejected(tmp_path):
         load_task(path)
 
 
+@pytest.mark.parametrize("table, named", [
+    ('[gym]\nkwargs = { reward_dist_weight = "x" }', "gym.kwargs.reward_dist_weight = 'x' is rejected"),
+    ('[gym]\nkwargs = { reward_control_weight = 0.1, reward_dist_weight = "x" }',
+     "gym.kwargs.reward_dist_weight = 'x' is rejected"),
+    ("[gym]\nkwargs = { no_such_option = 1 }", "gym.kwargs = {'no_such_option': 1}"),
+    ("[gym]\nreset_seed = -1", "gym.reset_seed: must be >= 0 (a Gymnasium seed), got -1"),
+])
+def test_bad_gym_kwargs_or_seed_are_named_before_the_run_directory_is_written(tmp_path, capsys, table, named):
+    from soc_opt.cli import main
+
+    path = tmp_path / "reacher.toml"
+    path.write_text(f'model = "gym:Reacher-v5"\nT = 5\n{table}\n')
+    with pytest.raises(ConfigError) as info:
+        load_task(path)
+    assert str(path) in str(info.value) and named in str(info.value)
+    assert main(["run", str(path), "--method", "lqr-flm", "--iterations", "1", "--samples", "2",
+                 "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("soc-opt: error: ") and named in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_valid_gym_kwargs_reach_the_environment(tmp_path):
+    path = tmp_path / "reacher.toml"
+    path.write_text('model = "gym:Reacher-v5"\nT = 5\n[gym]\nkwargs = { reward_control_weight = 0.0 }\n')
+    task = load_task(path)
+    base = load_task("gym:Reacher-v5", overrides={"T": 5})
+    np.testing.assert_array_equal(task.x0, base.x0)
+    a = np.array([0.3, -0.2])
+    # oracle: Reacher's reward is -w_dist |d| - w_ctrl |a|^2; only w_ctrl differs (0 vs the default)
+    w_ctrl = base.env.unwrapped._reward_control_weight
+    assert w_ctrl > 0
+    np.testing.assert_allclose(task.reward(task.x0, a) - base.reward(base.x0, a), w_ctrl * a @ a, rtol=1e-12)
+
+
 def test_rk4_linearisation_predicts_the_step_to_second_order():
     """Most Gymnasium models integrate with RK4, which ``mjd_transitionFD`` rejects: the task
     differentiates whole control steps instead.  The oracle is the simulator's own step."""

@@ -23,7 +23,7 @@ from soc_opt.cli import main
 from soc_opt.experiments.run import run_experiment
 from soc_opt.linalg import single_thread_blas
 from soc_opt.sweeps.runner import ProgressBoard, run_sweep
-from soc_opt.sweeps.spec import TrialDiverged, check_finite, load_sweep, sweep_from_dict
+from soc_opt.sweeps.spec import SweepError, TrialDiverged, check_finite, load_sweep, sweep_from_dict
 from soc_opt.tasks import BUILTIN_TASKS, load_task
 from soc_opt.tasks.loading import problems_dir
 
@@ -193,6 +193,59 @@ def test_non_finite_sampled_cost_is_a_diverging_trial():
         check_finite(state([1.0, np.inf]))
     with pytest.raises(TrialDiverged):
         check_finite(state([np.nan, 1.0]))
+
+
+def _first_cost(trial_dir):
+    with open(trial_dir / "metrics.csv") as f:
+        return float(next(csv.DictReader(f))["cost_mean"])
+
+
+def test_a_grid_over_task_init_var_gives_trials_with_that_initial_covariance(tmp_path):
+    from soc_opt.sweep import run_trial
+
+    data = {"tasks": ["linear2d"], "methods": ["lqr-flm"], "seeds": [0],
+            "common": {"baseline": {"iterations": 1, "samples": 4}, "task": {"T": 10}},
+            "grid": {"task": {"init_var": [0.01, 100.0]}}}
+    spec = sweep_from_dict(data)
+    # the sweep's task.init_var wins over linear2d's default run configuration ([baseline] init_var = 10)
+    assert [t.config.baseline.init_var for t in spec.trials] == [0.01, 100.0]
+    costs = []
+    for t in spec.trials:
+        res = run_trial(t, tmp_path / t.relpath)
+        assert res["status"] == "done", res
+        recorded = json.loads((tmp_path / t.relpath / "config.json").read_text())["config"]["baseline"]["init_var"]
+        assert recorded == t.task_overrides["init_var"]
+        costs.append(_first_cost(tmp_path / t.relpath))
+    assert costs[0] != costs[1]
+    # oracle: the trial equals a run of the task with that init_var in its task configuration
+    task = load_task("linear2d", overrides={"T": 10, "init_var": 0.01})
+    cfg = spec.trials[0].config.replace(baseline=spec.trials[0].config.baseline.replace(init_var=None))
+    run_experiment(task, "lqr-flm", cfg, 0, tmp_path / "plain")
+    assert _first_cost(tmp_path / "plain") == costs[0]
+
+
+def test_sweep_rejects_setting_both_task_and_baseline_init_var(tmp_path):
+    data = {"tasks": ["linear2d"], "methods": ["lqr-flm"], "seeds": [0],
+            "common": {"baseline": {"init_var": 2.0}}, "grid": {"task": {"init_var": [0.01, 100.0]}}}
+    with pytest.raises(SweepError, match="task.init_var and baseline.init_var"):
+        sweep_from_dict(data)
+
+
+def test_sweep_accepts_gym_tasks(tmp_path):
+    from soc_opt.sweep import run_trial
+
+    data = {"tasks": ["gym:Reacher-v5"], "methods": ["lqr-flm"], "seeds": [0],
+            "common": {"baseline": {"iterations": 1, "samples": 3}, "task": {"T": 5, "gym": {"reset_seed": 3}}}}
+    (trial,) = sweep_from_dict(data).trials
+    assert trial.task == "gym:Reacher-v5" and trial.id == "gym-Reacher-v5/default/lqr-flm/seed_0"
+    res = run_trial(trial, tmp_path / trial.relpath)
+    assert res["status"] == "done", res
+    assert np.isfinite(res["final_cost"]) and "return" in res["metrics"]
+    task_json = json.loads((tmp_path / trial.relpath / "task.json").read_text())
+    assert task_json["config"]["gym"]["reset_seed"] == 3
+    bad = {**data, "common": {**data["common"], "task": {"gym": {"kwargs": {"reward_dist_weight": "x"}}}}}
+    with pytest.raises(SweepError, match="gym.kwargs.reward_dist_weight = 'x'"):
+        sweep_from_dict(bad)
 
 
 # --------------------------------------------------------------------------- on a local Ray

@@ -8,6 +8,9 @@ import numpy as np
 
 from ..testing import random_closed_loop
 
+#: ``soc-opt bench --quick``: tiny sizes that run every code path in seconds.
+QUICK = {"cases": ((5, 3, 2, 1), (5, 3, 2, 3)), "repeats": 1}
+
 
 def run(cases=((100, 26, 7, 1), (100, 26, 7, 20), (1000, 26, 7, 1)), seed: int = 0, repeats: int = 3) -> list[dict]:
     from ..estep import smooth

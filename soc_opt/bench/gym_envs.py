@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-__all__ = ["ENVS", "run"]
+__all__ = ["ENVS", "QUICK", "run"]
 
 #: The environments of the docs/gym.md table.
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", "Swimmer-v5", "HalfCheetah-v5", "Hopper-v5")
@@ -55,3 +55,7 @@ def run(envs=ENVS, iterations: int = 10, samples: int = 20, seed: int = 0, task_
             row.update(error=f"{type(e).__name__}: {e}")
         rows.append(row)
     return rows
+
+
+#: ``soc-opt bench --quick``: one environment, 5 steps, 2 iterations of 3 samples (checks the code path).
+QUICK = {"envs": ("Reacher-v5",), "iterations": 2, "samples": 3, "task_overrides": {"T": 5}}

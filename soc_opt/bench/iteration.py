@@ -69,6 +69,10 @@ def run(task: str = "peg", seed: int = 0, iterations: int | None = None, samples
     return rows
 
 
+#: ``soc-opt bench --quick``: tiny sizes that run every code path in seconds.
+QUICK = {"task": "linear2d", "iterations": 2, "samples": 4}
+
+
 if __name__ == "__main__":
     for r in run():
         print(r)

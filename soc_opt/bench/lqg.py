@@ -51,7 +51,7 @@ import numpy as np
 from ..lqg import KLStepConfig, kl_step
 from ..testing import make_kl_instance as make_instance
 
-__all__ = ["run", "make_instance", "FATROP_MAX_VARS"]
+__all__ = ["QUICK", "run", "make_instance", "FATROP_MAX_VARS"]
 
 FATROP_MAX_VARS = 5000
 """Default ``fatrop_max_vars`` of :func:`run` (NLP variables in the closed-form count): fatrop's
@@ -181,6 +181,10 @@ def _fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:.3g}"
     return str(v)
+
+
+#: ``soc-opt bench --quick``: tiny sizes that run every code path in seconds.
+QUICK = {"sizes": ((3, 1, 5),), "repeats": 1}
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ import numpy as np
 from ..mstep import MStepConstraints, maximize_moments
 from ..testing import random_mstep_instance as random_instance
 
-__all__ = ["random_instance", "run"]
+__all__ = ["QUICK", "random_instance", "run"]
 
 
 def _constraint_sets(m: int) -> dict[str, MStepConstraints]:
@@ -50,7 +50,7 @@ def run(sizes=((6, 2), (26, 7)), T: int = 20, seed: int = 0, repeats: int = 5) -
                 t_cf.append((time.perf_counter() - t0) / T)
             base = dict(n=n, m=m, T=T, constraints=cname)
             rows.append(dict(base, method="closed_form", time_per_step_s=statistics.median(t_cf),
-                             first_call_s=float("nan"), objective_gap=0.0, max_gain_diff=0.0, max_cov_diff=0.0))
+                             first_call_s=None, objective_gap=0.0, max_gain_diff=0.0, max_cov_diff=0.0))
             Fref = np.concatenate([ref.policy.K, ref.policy.k[..., None]], axis=-1)
             for solver in ("CLARABEL", "SCS"):
                 t0 = time.perf_counter()
@@ -68,6 +68,10 @@ def run(sizes=((6, 2), (26, 7)), T: int = 20, seed: int = 0, repeats: int = 5) -
                     max_cov_diff=float(np.abs(res.policy.cov - ref.policy.cov).max()),
                 ))
     return rows
+
+
+#: ``soc-opt bench --quick``: tiny sizes that run every code path in seconds.
+QUICK = {"sizes": ((3, 1),), "T": 3, "repeats": 1}
 
 
 if __name__ == "__main__":

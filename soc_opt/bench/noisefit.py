@@ -23,7 +23,7 @@ from ..noise.estimator import FilteredPolicy, kalman_filter, measurement_noise
 from ..noise.lqg_reference import simulate as simulate_filtered
 from ..noise.noisefit import NoiseFitConfig, corrected_fit, naive_fit, noise_action_cov, ssm_em
 
-__all__ = ["problem", "simulate", "relative_errors", "population_naive", "bias_table", "format_table", "run"]
+__all__ = ["QUICK", "problem", "simulate", "relative_errors", "population_naive", "bias_table", "format_table", "run"]
 
 
 def problem(seed: int = 0, n: int = 2, m: int = 1, T: int = 8, rho2: float = 0.1, filtered: bool = False) -> dict:
@@ -163,9 +163,14 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def run(Ms=(100, 1000, 10000), reps: int = 10, seed: int = 0) -> list[dict]:
+def run(Ms=(100, 1000, 10000), reps: int = 10, seed: int = 0, config: NoiseFitConfig = NoiseFitConfig()) -> list[dict]:
     """The bias table for a sampler acting on ``s`` and for one acting on the Kalman estimate."""
-    return bias_table(Ms, reps, seed, filtered=False) + bias_table(Ms, reps, seed, filtered=True)
+    return (bias_table(Ms, reps, seed, filtered=False, config=config)
+            + bias_table(Ms, reps, seed, filtered=True, config=config))
+
+
+#: ``soc-opt bench --quick``: tiny sizes that run every code path in seconds.
+QUICK = {"Ms": (20,), "reps": 2, "config": NoiseFitConfig(em_max_iter=20)}
 
 
 if __name__ == "__main__":  # pragma: no cover

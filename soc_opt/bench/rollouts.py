@@ -13,7 +13,10 @@ import time
 
 import numpy as np
 
-__all__ = ["run"]
+__all__ = ["run", "QUICK"]
+
+#: ``soc-opt bench --quick``: tiny sizes that run every code path in seconds.
+QUICK = {"M": 2, "T": 5, "repeats": 1}
 
 
 def _best_of(fn, repeats: int) -> float:

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from ..methods.config import DPSOCConfig, EvalConfig
+from ..methods.config import DPSOCConfig, EvalConfig, with_task_init_var
 from ..methods.dpsoc_em import DPSOC_EM
 from ..methods.lqr_flm import LQR_FLM
 from ..methods.state import RunState
@@ -26,7 +26,7 @@ from ..models import LinearGaussianPolicy, Rollouts
 from . import report
 from .progress import Progress, as_progress
 from .run import fork_state, run_experiment
-from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory
+from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory, refuse_legacy
 
 if TYPE_CHECKING:
     from ..tasks import Task
@@ -110,6 +110,7 @@ def compare(
     bar over its iterations, or plain lines), a callable printing lines, or ``None``.
     """
     FORKED.check_config(cfg)
+    cfg = with_task_init_var(cfg, task)  # the task's init_var unless the configuration sets one
     progress = as_progress(progress)
     out = Path(out)
     with lock_directory(out):
@@ -144,9 +145,11 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
     level = 1 if progress is not None and progress.mode == "bar" else 0
     sdir = out / f"seed_{seed}"
     sdir.mkdir(exist_ok=True)
-    fork_path = sdir / "fork_state.pkl"
-    if restart and fork_path.exists():
-        fork_path.unlink()
+    fork_path = sdir / "fork_state.npz"  # a checkpoint (soc_opt.experiments.statefile): data only
+    if restart:
+        for p in (fork_path, sdir / "fork_state.pkl"):
+            p.unlink(missing_ok=True)
+    refuse_legacy(sdir, ("fork_state.pkl",))
 
     def keep_fork(st: RunState, _p=fork_path):
         if st.iteration == cfg.i_switch and not _p.exists():

@@ -2,8 +2,10 @@
 
 :func:`run_experiment` runs one method (``lqr-flm``, ``dpsoc-em`` or ``ilqg``) on one task and
 seed in a run directory (:mod:`soc_opt.experiments.rundir`: files, contract, lock, verified checkpoints).
-Starting again with the same directory resumes from its checkpoint; because the RNG state is
-part of the checkpoint, the resumed run ends with the same results as an uninterrupted one.
+Starting again with the same directory resumes from its checkpoint; because the RNG state and
+the memory layout of every array are part of the checkpoint (:mod:`soc_opt.experiments.statefile`), the
+resumed run ends with the same results as an uninterrupted one, also in a new process.
+Reopening a finished run only reads the directory (no lock, nothing written).
 With ``tensorboardX`` installed the directory also gets ``events.out.tfevents.*`` files with the
 per-iteration scalars (:mod:`soc_opt.experiments.tblog`).
 
@@ -14,7 +16,6 @@ anything is simulated or written.
 
 from __future__ import annotations
 
-import pickle
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
@@ -23,19 +24,20 @@ import numpy as np
 
 from ..config import ConfigError, read_toml
 from ..methods.base import run_method
-from ..methods.config import DPSOCConfig
+from ..methods.config import DPSOCConfig, with_task_init_var
 from ..methods.registry import METHODS, get_method
 from ..methods.state import RunState
 from ..tasks.loading import problems_dir
 from .progress import Progress, as_progress
 from .rundir import CHECKPOINT, CheckpointError, RunDirectory, RunDirectoryError, differences, lock_directory
+from .statefile import decode_state, encode_state
 from .tblog import MISSING_MESSAGE, RunLog
 
 if TYPE_CHECKING:
     from ..tasks import Task
 
 __all__ = ["EXPERIMENTS", "load_run_config", "RunDirectory", "RunDirectoryError", "CheckpointError",
-           "run_experiment", "fork_state", "lock_directory", "headline_metric", "CHECKPOINT"]
+           "run_experiment", "finished_run", "fork_state", "lock_directory", "headline_metric", "CHECKPOINT"]
 
 #: Default run configurations of the built-in tasks: ``EXPERIMENTS / "<task>.toml"``.
 EXPERIMENTS = problems_dir() / "experiments"
@@ -85,8 +87,9 @@ def same_settings(old, new) -> bool:
 
 
 def fork_state(state: RunState) -> RunState:
-    """A copy of a baseline state to continue with another method (same RNG state)."""
-    return pickle.loads(pickle.dumps(state))
+    """A copy of a baseline state to continue with another method (same RNG state), made through
+    the checkpoint format (:mod:`soc_opt.experiments.statefile`: same values and array layouts)."""
+    return decode_state(encode_state(state))
 
 
 
@@ -161,20 +164,29 @@ def run_experiment(
     one line per iteration, or ``None`` (silent).  ``bar_level``: nesting of the bar (compare).
     """
     _check_inputs(task, method, cfg, seed)
+    cfg = with_task_init_var(cfg, task)  # recorded in config.json: the value the run uses
     prog = as_progress(progress)
     if out is None:
         return _run(task, method, cfg, seed, None, start_state, on_iteration, prog, bar_level, None)
-    rd = RunDirectory(out)
+    if not restart and not previous_checkpoint:
+        finished = finished_run(task, method, cfg, seed, out, task_name=task_name)
+        if finished is not None:  # read only: no lock, no file written
+            if prog:
+                prog.message(f"{method} run in {out} already finished ({finished.iteration} iterations)")
+            return finished
+    rd, meta, done = RunDirectory(out), _meta(task, method, cfg, seed, task_name), _done(method, cfg)
     with rd.lock():
         if restart:
             rd.clear()
-        meta = {"task": str(task_name or task.name), "method": method, "seed": seed, "config": cfg.to_dict()}
         rd.prepare(meta, _task_record(task, task_name), contract=_contract)
         saved = rd.load_checkpoint(previous=previous_checkpoint)
         state = start_state
-        if saved is not None:
+        if saved is None:
+            state = _initial_state(task, method, cfg, seed) if state is None else state
+            rd.save_policy(state.iteration, state.policy)  # the policy sampled first (policies/iter_000.npz)
+        else:
             state = saved
-            if prog and get_method(method).finished(cfg, state):
+            if prog and done(state):
                 prog.message(f"{method} run in {rd.path} already finished ({state.iteration} iterations)")
             elif prog:
                 prog.message(f"resuming {method} in {rd.path}: {state.iteration} iterations done "
@@ -199,6 +211,34 @@ def run_experiment(
         finally:
             if tb is not None:
                 tb.close()
+
+
+def _meta(task, method: str, cfg: DPSOCConfig, seed: int, task_name) -> dict:
+    """The content of ``config.json``."""
+    return {"task": str(task_name or task.name), "method": method, "seed": seed, "config": cfg.to_dict()}
+
+
+def _done(method: str, cfg: DPSOCConfig) -> Callable[[object], bool]:
+    meth = get_method(method)
+    return lambda st: meth.finished(cfg, st)
+
+
+def finished_run(task: Task, method: str, cfg: DPSOCConfig, seed: int, out: str | Path, *,
+                 task_name: str | None = None):
+    """The final state of the finished run of this method, task, seed and configuration in ``out``,
+    or None (no such directory, not finished, or a damaged last checkpoint).  Reads only: no lock,
+    nothing written (works on a read-only file system); a different run in ``out`` raises
+    :class:`RunDirectoryError` as :func:`run_experiment` would."""
+    if not Path(out).is_dir():
+        return None
+    cfg = with_task_init_var(cfg, task)  # compared as run_experiment records it
+    return RunDirectory(out).finished(_meta(task, method, cfg, seed, task_name), _task_record(task, task_name),
+                                      _contract, _done(method, cfg))
+
+
+def _initial_state(task: Task, method: str, cfg: DPSOCConfig, seed: int):
+    """The state a fresh run starts from (the method's own ``initial_state``)."""
+    return get_method(method).initial_state(task, cfg, seed)
 
 
 def _run(task, method, cfg, seed, rd: RunDirectory | None, state, user_callback, prog, bar_level, tb):

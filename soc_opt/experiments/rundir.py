@@ -11,8 +11,9 @@ A run directory (``soc-opt run|compare --out DIR``) holds
   :meth:`soc_opt.models.LinearGaussianPolicy.load`);
 - ``samples/iter_XXX.npz``: the rollouts of iteration ``XXX`` (``x, s, a, cost, y``);
 - ``best_policy.npz``: the best policy sampled so far (plus ``mean_cost`` and ``iteration``);
-- ``checkpoint.pkl`` and ``checkpoint.prev.pkl``: the full run state after the last and the
-  one-before-last finished iteration, each with a SHA-256 checksum verified on load;
+- ``checkpoint.npz`` and ``checkpoint.prev.npz``: the full run state after the last and the
+  one-before-last finished iteration (:mod:`soc_opt.experiments.statefile`: arrays and JSON, no code; each
+  with a SHA-256 checksum verified on load, which detects damage but is no security measure);
 - ``lock``: the lock file, naming the process that runs in the directory.
 
 **Contract.**  ``config.json`` and ``task.json`` are the contract of the run: a run started
@@ -28,19 +29,23 @@ holder makes a second writer fail at once with a message naming it.
 
 **Writes.**  Every file is written to a temporary name and renamed into place (atomic); the
 checkpoint is written last, after the iteration's other files, and the previous one is kept as
-``checkpoint.prev.pkl``.  A corrupt checkpoint is reported with the choice of resuming from the
-previous one or starting again (:class:`CheckpointError`).
+``checkpoint.prev.npz``.  A corrupt checkpoint is reported with the choice of resuming from the
+previous one or starting again (:class:`CheckpointError`).  Files are readable as the umask
+allows (like files created by ``open``), not only by their owner.
+
+**Reading is data only.**  Checkpoints are read with :func:`soc_opt.experiments.statefile.decode_state`,
+which executes nothing from the file.  Checkpoints of the old pickle format (``*.pkl``, which
+runs code when read) are refused with :class:`LegacyCheckpointError`; a run you trust is
+converted with ``soc-opt convert-checkpoint --trust DIR``.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
-import hashlib
 import io
 import json
 import os
-import pickle
 import shutil
 import socket
 import tempfile
@@ -51,23 +56,26 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from ..config import ConfigError
+from .statefile import StateFileError, decode_state, encode_state, peek_state
 
 try:  # POSIX advisory locks; elsewhere a pid check stands in (see _PidLock)
     import fcntl
 except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
-__all__ = ["RunDirectoryError", "CheckpointError", "RunDirectory", "lock_directory", "differences",
-           "atomic_write_bytes", "encode_checkpoint", "decode_checkpoint", "CHECKPOINT", "PREVIOUS_CHECKPOINT", "LOCK"]
+__all__ = ["RunDirectoryError", "CheckpointError", "LegacyCheckpointError", "RunDirectory", "lock_directory",
+           "differences", "atomic_write_bytes", "encode_checkpoint", "decode_checkpoint", "refuse_legacy",
+           "CHECKPOINT", "PREVIOUS_CHECKPOINT", "LEGACY_FILES", "LOCK"]
 
-CHECKPOINT = "checkpoint.pkl"
-PREVIOUS_CHECKPOINT = "checkpoint.prev.pkl"
+CHECKPOINT = "checkpoint.npz"
+PREVIOUS_CHECKPOINT = "checkpoint.prev.npz"
+#: Pickle files of soc_opt before issue 18 (refused; ``soc-opt convert-checkpoint --trust``).
+LEGACY_FILES = ("checkpoint.pkl", "checkpoint.prev.pkl", "fork_state.pkl")
 LOCK = "lock"
-_MAGIC = b"soc_opt checkpoint v1\n"
 _TMP = ".tmp-"
 #: Files a run writes at the top of its directory (removed by ``RunDirectory.clear``).
 RUN_FILES = ("config.json", "task.json", "metrics.csv", "metrics.json", "costs.npz", "best_policy.npz",
-             CHECKPOINT, PREVIOUS_CHECKPOINT, "policy.npz", "final_eval.npz", "cost_per_iteration.png",
+             CHECKPOINT, PREVIOUS_CHECKPOINT, *LEGACY_FILES[:2], "policy.npz", "final_eval.npz", "cost_per_iteration.png",
              "ee_trajectories.png", "filmstrip.png")
 
 
@@ -77,7 +85,36 @@ class RunDirectoryError(ConfigError):
 
 
 class CheckpointError(RunDirectoryError):
-    """A checkpoint file is empty, truncated, fails its checksum or cannot be unpickled."""
+    """A checkpoint file is empty, truncated, fails its checksum or holds something else than a run state."""
+
+
+class LegacyCheckpointError(CheckpointError):
+    """A checkpoint in the old pickle format, which soc_opt no longer reads (it can run code)."""
+
+
+def refuse_legacy(directory: Path, names=LEGACY_FILES[:2]) -> None:
+    """Raise :class:`LegacyCheckpointError` if ``directory`` holds one of the pickle files ``names``
+    (nothing is read from them)."""
+    found = [n for n in names if (Path(directory) / n).exists()]
+    if found:
+        raise LegacyCheckpointError(
+            f"{str(Path(directory) / found[0])!r} is a checkpoint in the old pickle format, which soc_opt no "
+            "longer reads: unpickling a file runs whatever code it holds. If you trust where this directory "
+            f"came from, convert it with `soc-opt convert-checkpoint --trust {str(directory)!r}`; otherwise "
+            "delete the .pkl files or rerun with --restart")
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it where ``/proc`` tells it."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)  # elsewhere: read by setting (restored at once)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -88,6 +125,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
+            os.fchmod(f.fileno(), 0o666 & ~_umask())  # mkstemp creates 0600
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
@@ -227,26 +265,29 @@ def _pid_lock(lp: Path):  # pragma: no cover - only where fcntl is missing
 
 
 def encode_checkpoint(state) -> bytes:
-    """The bytes of a checkpoint file: header, SHA-256 of the pickled ``state``, the pickle."""
-    payload = pickle.dumps(state)
-    return _MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n" + payload
+    """The bytes of a checkpoint file (:func:`soc_opt.experiments.statefile.encode_state`)."""
+    return encode_state(state)
 
 
 def decode_checkpoint(path: Path):
-    """The state in checkpoint file ``path``; :class:`CheckpointError` saying what is wrong."""
-    data = path.read_bytes()
-    if not data:
-        raise CheckpointError(f"{path.name} is empty")
-    if data.startswith(_MAGIC):
-        head, sep, payload = data[len(_MAGIC):].partition(b"\n")
-        if not sep or hashlib.sha256(payload).hexdigest().encode() != head:
-            raise CheckpointError(f"{path.name} is truncated or damaged (checksum mismatch)")
-    else:  # written before checksums were added: a bare pickle
-        payload = data
+    """The state in checkpoint file ``path``; :class:`CheckpointError` saying what is wrong.
+
+    Nothing in the file is executed (:mod:`soc_opt.experiments.statefile`); a pickle file is refused."""
+    path = Path(path)
+    if path.suffix == ".pkl":
+        refuse_legacy(path.parent, (path.name,))
     try:
-        return pickle.loads(payload)
-    except Exception as e:
-        raise CheckpointError(f"{path.name} cannot be read ({type(e).__name__}: {e})") from e
+        return decode_state(path.read_bytes(), path.name)
+    except StateFileError as e:
+        raise CheckpointError(str(e)) from None
+
+
+def peek_checkpoint(path: Path) -> dict:
+    """The top-level scalars (``iteration``, ...) of a verified checkpoint, rebuilding nothing."""
+    try:
+        return peek_state(Path(path).read_bytes(), Path(path).name)
+    except StateFileError as e:
+        raise CheckpointError(str(e)) from None
 
 
 @dataclass(frozen=True)
@@ -271,32 +312,72 @@ class RunDirectory:
 
         ``meta``: the content of ``config.json`` (method, seed, config); ``task``: of ``task.json``;
         ``contract(meta)``: the part of a ``config.json`` that must match (default: all of it).
-        Call with the lock held.
+        Call with the lock held.  A directory holding an old pickle checkpoint is refused
+        (:func:`refuse_legacy`) before anything is written.
         """
+        refuse_legacy(self.path)
         for sub in ("policies", "samples"):
             (self.path / sub).mkdir(parents=True, exist_ok=True)
         self._remove_temporaries()
         meta = json.loads(json.dumps(meta))
-        contract = contract or (lambda m: m)
         meta_path, task_path = self.path / "config.json", self.path / "task.json"
         if self.has_checkpoint() and meta_path.exists():
-            diffs = differences(contract(json.loads(meta_path.read_text())), contract(meta))
-            if task is not None and task_path.exists():
-                old = json.loads(task_path.read_text())
-                diffs += differences(_task_settings(old), _task_settings(task), "task")
-                diffs += _file_differences(old.get("model_files", {}), task.get("model_files", {}))
-            if diffs:
-                more = f" (and {len(diffs) - 8} more)" if len(diffs) > 8 else ""
-                raise RunDirectoryError(
-                    f"run directory {str(self.path)!r} holds a run with a different configuration: "
-                    f"{'; '.join(diffs[:8])}{more}; use another --out, or --restart to discard that run"
-                )
+            self.check_contract(meta, task, contract)
             if task is not None and not task_path.exists():  # a directory from before task.json
                 atomic_write_bytes(task_path, json.dumps(task, indent=2, sort_keys=True).encode())
             return
         atomic_write_bytes(meta_path, json.dumps(meta, indent=2, sort_keys=True).encode())
         if task is not None:
             atomic_write_bytes(task_path, json.dumps(task, indent=2, sort_keys=True).encode())
+
+    def check_contract(self, meta: dict, task: dict | None = None,
+                       contract: Callable[[dict], dict] | None = None) -> None:
+        """:class:`RunDirectoryError` listing what differs between the recorded contract and
+        ``meta`` / ``task`` (see :meth:`prepare`); reads only, writes nothing."""
+        meta = json.loads(json.dumps(meta))
+        contract = contract or (lambda m: m)
+        task_path = self.path / "task.json"
+        try:
+            old_meta = json.loads((self.path / "config.json").read_text())
+            old_task = json.loads(task_path.read_text()) if task is not None and task_path.exists() else None
+        except (OSError, ValueError) as e:
+            raise RunDirectoryError(f"run directory {str(self.path)!r}: config.json or task.json cannot be read "
+                                    f"({e}); use another --out, or --restart to discard that run") from None
+        if not isinstance(old_meta, dict) or not (old_task is None or isinstance(old_task, dict)):
+            raise RunDirectoryError(f"run directory {str(self.path)!r}: config.json or task.json is not a JSON "
+                                    "table; use another --out, or --restart to discard that run")
+        try:
+            diffs = differences(contract(old_meta), contract(meta))
+            if old_task is not None:
+                diffs += differences(_task_settings(old_task), _task_settings(task), "task")
+                diffs += _file_differences(dict(old_task.get("model_files", {})), task.get("model_files", {}))
+        except (TypeError, ValueError, AttributeError, KeyError) as e:
+            raise RunDirectoryError(f"run directory {str(self.path)!r}: config.json or task.json holds unexpected "
+                                    f"content ({type(e).__name__}: {e}); use another --out, or --restart to "
+                                    "discard that run") from None
+        if diffs:
+            more = f" (and {len(diffs) - 8} more)" if len(diffs) > 8 else ""
+            raise RunDirectoryError(
+                f"run directory {str(self.path)!r} holds a run with a different configuration (config.json, "
+                f"task.json): "
+                f"{'; '.join(diffs[:8])}{more}; use another --out, or --restart to discard that run"
+            )
+
+    def finished(self, meta: dict, task: dict | None, contract, is_done: Callable[[Any], bool]):
+        """The state of a finished run in the directory (its contract matching ``meta`` / ``task``),
+        or None.  Reads only: no lock, no file written, so a finished run opens on a read-only
+        file system.  None when there is no intact last checkpoint or the run is not done
+        (``is_done(state)``): the caller then takes the lock and resumes or reports."""
+        main = self.path / CHECKPOINT
+        refuse_legacy(self.path)
+        if not main.exists() or not (self.path / "config.json").exists():
+            return None
+        self.check_contract(meta, task, contract)
+        try:
+            state = decode_checkpoint(main)
+        except CheckpointError:
+            return None
+        return state if is_done(state) else None
 
     def _remove_temporaries(self) -> None:
         """Temporary files of writes interrupted by a kill (never renamed into place)."""
@@ -318,9 +399,10 @@ class RunDirectory:
     def load_checkpoint(self, previous: bool = False):
         """The saved run state, or None if the run has not finished an iteration yet.
 
-        ``previous``: load ``checkpoint.prev.pkl`` (the iteration before the last) instead.  A
+        ``previous``: load ``checkpoint.prev.npz`` (the iteration before the last) instead.  A
         damaged checkpoint raises :class:`CheckpointError` saying how to go on.
         """
+        refuse_legacy(self.path)
         main, prev = self.path / CHECKPOINT, self.path / PREVIOUS_CHECKPOINT
         if previous:
             if not prev.exists():
@@ -340,15 +422,19 @@ class RunDirectory:
 
     def _previous_hint(self) -> str:
         prev = self.path / PREVIOUS_CHECKPOINT
-        try:
-            st = decode_checkpoint(prev) if prev.exists() else None
+        try:  # verifies the checksum and reads the iteration count; rebuilds no state
+            done = peek_checkpoint(prev).get("iteration") if prev.exists() else None
         except CheckpointError:
-            st = None
-        if st is None:
+            done = None
+        if done is None:
             return "there is no intact previous checkpoint: rerun with --restart to start from scratch"
-        return (f"rerun with --previous-checkpoint to resume from the previous checkpoint ({st.iteration} "
+        return (f"rerun with --previous-checkpoint to resume from the previous checkpoint ({done} "
                 "iterations done; later iterations are recomputed identically), or with --restart to "
                 "start from scratch")
+
+    def save_policy(self, iteration: int, policy) -> None:
+        """``policies/iter_XXX.npz``: the policy sampled in iteration ``XXX`` (after ``XXX`` iterations)."""
+        atomic_write_bytes(self.path / "policies" / f"iter_{iteration:03d}.npz", _npz_bytes(**policy.to_dict()))
 
     def save(self, state) -> None:
         """Write the iteration's files, then the checkpoint (atomically, last; the previous one kept).
@@ -357,7 +443,7 @@ class RunDirectory:
         (``iteration``, ``policy``, ``history``, ``best``, ``last_rollouts``).
         """
         it = state.iteration
-        atomic_write_bytes(self.path / "policies" / f"iter_{it:03d}.npz", _npz_bytes(**state.policy.to_dict()))
+        self.save_policy(it, state.policy)
         if state.last_rollouts is not None:
             atomic_write_bytes(self.path / "samples" / f"iter_{it - 1:03d}.npz",
                                _npz_bytes(**state.last_rollouts.to_dict()))

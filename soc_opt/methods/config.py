@@ -22,7 +22,7 @@ from ..noise.aware import NoiseConfig
 from .ilqg import ILQGConfig
 
 __all__ = ["PaperScale", "PAPER", "LoopKLStepConfig", "LQRFLMConfig", "EMConfig", "EvalConfig", "DPSOCConfig",
-           "with_paper_scale"]
+           "with_paper_scale", "with_task_init_var"]
 
 
 class PaperScale(NamedTuple):
@@ -57,7 +57,9 @@ class LQRFLMConfig(Config):
 
     iterations:  number of sample -> fit -> LQG rounds (default: the paper's, ``PAPER.iterations``).
     samples:     rollouts per iteration ``M`` (default: the paper's, ``PAPER.samples``).
-    init_var:    initial policy covariance ``Sigma = init_var * I``.
+    init_var:    initial policy covariance ``Sigma = init_var * I``; unset (``None``): the task's
+                 ``init_var`` (its TOML, default 1.0).  Set here it overrides the task's
+                 (:func:`with_task_init_var`; docs/configuration.md).
     kl_budget:   base KL budget per time step; the total budget is ``kl_budget * T * mult``.
     kl_mode:     "total" (one budget ``nu = sum nu_k``, one multiplier: the GPS form) or
                  "per_step" (``nu_k = kl_budget * mult`` with one multiplier per step).
@@ -74,7 +76,7 @@ class LQRFLMConfig(Config):
 
     iterations: int = PAPER.iterations
     samples: int = PAPER.samples
-    init_var: float = 1.0
+    init_var: float | None = None
     kl_budget: float = 0.5
     kl_mode: Literal["total", "per_step"] = "total"
     kl_method: str = "closed_form"
@@ -87,7 +89,7 @@ class LQRFLMConfig(Config):
     _constraints = {
         "iterations": [Interval(1)],
         "samples": [Interval(2)],  # dynamics fitting needs 2 rollouts
-        "init_var": [Interval(0, None, "neither")],
+        "init_var": [Interval(0, None, "neither"), None],
         "kl_budget": [Interval(0, None, "neither")],
         "kl_mode": [Options(("total", "per_step"))],
         "kl_method": [Options(lambda: KL_METHODS)],
@@ -167,3 +169,16 @@ def with_paper_scale(cfg: DPSOCConfig) -> DPSOCConfig:
     base = cfg.baseline.replace(iterations=PAPER.iterations, samples=PAPER.samples)
     return cfg.replace(baseline=base, i_switch=PAPER.i_switch)
 
+
+
+def with_task_init_var(cfg: DPSOCConfig, task) -> DPSOCConfig:
+    """``cfg`` with ``baseline.init_var`` set to the task's ``init_var`` when it is unset.
+
+    Precedence of the initial policy covariance: ``[baseline] init_var`` of the run configuration,
+    else the task's ``init_var`` (task TOML; default 1.0).  Run directories record the result.
+    """
+    if cfg.baseline.init_var is not None:
+        return cfg
+    task_cfg = getattr(task, "config", None)
+    var = float(getattr(task_cfg, "init_var", 1.0))
+    return cfg.replace(baseline=cfg.baseline.replace(init_var=var))

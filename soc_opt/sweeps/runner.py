@@ -6,7 +6,8 @@ Why Ray core tasks and not Ray Tune: docs/choices.md ("Sweeps").
 
 - Local by default: a private Ray instance on this machine's cores (no dashboard, quiet logs),
   shut down at the end; ``address`` joins an existing cluster instead (soc_opt installed on every
-  node, ``OUT`` on a shared file system).  ``workers`` caps the trials in flight.
+  node, ``OUT`` on a shared file system), with Ray's token authentication when a token is
+  available and ``RAY_AUTH_MODE`` is unset, as ``ray start --head`` decides (:func:`_use_ray_token`).  ``workers`` caps the trials in flight.
 - A finished trial (``result.json`` present, same spec) is skipped; an unfinished or failed one
   is started again and resumes from its checkpoint.  A trial whose worker process dies is
   re-executed by Ray (``max_retries``) and resumes from its last checkpoint; when the retries are
@@ -75,6 +76,39 @@ def _remote_trial(spec: TrialSpec, trial_dir: str, on_iteration):
     return run_trial(spec, trial_dir, on_iteration)
 
 
+#: Where Ray looks for the token of a cluster with token authentication (Ray >= 2.52), in its order.
+RAY_TOKEN_ENV = ("RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")
+
+
+def _ray_token_available() -> bool:
+    """A token in ``RAY_AUTH_TOKEN``, the file ``RAY_AUTH_TOKEN_PATH`` or ``~/.ray/auth_token``."""
+    if os.environ.get("RAY_AUTH_TOKEN"):
+        return True
+    path = os.environ.get("RAY_AUTH_TOKEN_PATH")
+    return Path(path).is_file() if path else (Path.home() / ".ray" / "auth_token").is_file()
+
+
+def _use_ray_token(ray) -> bool:
+    """Turn on Ray's token authentication for joining a cluster when a token is available.
+
+    ``ray start --head`` enables token authentication when ``RAY_AUTH_MODE`` is unset and a token
+    exists, but ``ray.init(address=...)`` does not do the same for the client, so it is refused
+    (``InvalidAuthToken``).  Same rule here: ``RAY_AUTH_MODE`` set by the user is respected; unset
+    and a token available: ``RAY_AUTH_MODE=token`` for this process (a cluster without
+    authentication accepts such a client too).  Returns whether token mode is on.
+    """
+    mode = os.environ.get("RAY_AUTH_MODE")
+    if mode is not None:
+        return mode.lower() == "token"
+    if not _ray_token_available():
+        return False
+    os.environ["RAY_AUTH_MODE"] = "token"
+    config = getattr(getattr(ray, "_raylet", None), "Config", None)
+    if config is not None and hasattr(config, "initialize"):  # Ray caches its config at import
+        config.initialize("")
+    return True
+
+
 def _start_ray(address: str | None, num_cpus: int | None) -> bool:
     """Connect to Ray; returns whether this call started it (and so must shut it down)."""
     try:
@@ -85,7 +119,16 @@ def _start_ray(address: str | None, num_cpus: int | None) -> bool:
         return False
     quiet = dict(logging_level=logging.ERROR, log_to_driver=False)
     if address:
-        ray.init(address=address, **quiet)
+        token = _use_ray_token(ray)
+        try:
+            ray.init(address=address, **quiet)
+        except ConnectionError as e:
+            how = ("with token authentication (RAY_AUTH_MODE=token)" if token else
+                   "without token authentication (RAY_AUTH_MODE is 'disabled' or no token was found)")
+            raise SweepError(
+                f"--address {address}: cannot connect to the Ray cluster {how}: {e}. A cluster started with "
+                "`ray start --head` while a token exists (~/.ray/auth_token, RAY_AUTH_TOKEN or RAY_AUTH_TOKEN_PATH) "
+                "requires the same token here; see docs/sweeps.md (Ray clusters)") from e
     else:
         ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, **quiet)
     return True

@@ -8,7 +8,7 @@ but an ordinary function).  Nothing here imports Ray.
 A sweep file (every key optional except ``tasks``, ``methods`` and ``seeds``)::
 
     name = "linear2d_small"          # label of the report (default: the file's stem)
-    tasks = ["linear2d"]             # built-in names or task TOML paths (relative to this file)
+    tasks = ["linear2d"]             # built-in names, task TOML paths (relative to this file), gym:<EnvId>
     methods = ["lqr-flm", "dpsoc-em"]
     seeds = [0, 1]                   # a list, or N for 0..N-1
     config = "algo.toml"             # algorithm TOML replacing each task's default file
@@ -292,18 +292,21 @@ def _seeds(v) -> tuple[int, ...]:
     return tuple(v)
 
 
-def _resolve_task(ref: str, base_dir: Path, i: int) -> tuple[str, str, Path]:
-    """``(task reference passed to workers, label, task TOML path)``."""
+def _resolve_task(ref: str, base_dir: Path, i: int) -> tuple[str, str, Path | None]:
+    """``(task reference passed to workers, label, task TOML path or None for gym:<EnvId>)``."""
+    from ..tasks.config import GYM_PREFIX
     from ..tasks.loading import BUILTIN_TASKS, problems_dir
 
+    if ref.startswith(GYM_PREFIX):  # a Gymnasium environment (docs/gym.md); checked by load_task below
+        return ref, _safe_name(ref.replace(":", "-")), None
     if ref in BUILTIN_TASKS:
         return ref, ref, problems_dir() / BUILTIN_TASKS[ref]
     p = Path(ref)
     for cand in ([p] if p.is_absolute() else [base_dir / p, p]):
         if cand.is_file():
             return str(cand.resolve()), cand.stem, cand.resolve()
-    raise ConfigError(f"tasks[{i}]: unknown task {ref!r}: not a built-in task ({', '.join(BUILTIN_TASKS)}) "
-                      f"and no task file {str(base_dir / p)!r}")
+    raise ConfigError(f"tasks[{i}]: unknown task {ref!r}: not a built-in task ({', '.join(BUILTIN_TASKS)}), "
+                      f"no task file {str(base_dir / p)!r} and not {GYM_PREFIX}<EnvId>")
 
 
 def _check_overrides(table, what: str) -> dict:
@@ -377,11 +380,26 @@ def _lookup(table: dict, path: tuple[str, ...]):
     return table
 
 
-def _config(task_ref, cfg_file, paper, common, setting, method) -> DPSOCConfig:
+def _config(task_ref, cfg_file, paper, common, setting, method, task_init_var: float,
+            sweep_sets_task_init_var: bool) -> DPSOCConfig:
+    """The trial's configuration; ``baseline.init_var`` resolved (the task's unless set, see below).
+
+    ``init_var`` precedence: the sweep's ``baseline.init_var``, else its ``task.init_var``, else the
+    run configuration file's ``[baseline] init_var``, else the task file's ``init_var``.  The sweep
+    may not set both.
+    """
     from ..experiments.run import load_run_config as load_config
 
     base = load_config(task_ref, cfg_file, paper=paper, method="dpsoc-em").to_dict()
-    d = _merge(_merge(base, common), setting)
+    ours = _merge(common, setting)
+    if sweep_sets_task_init_var:
+        if _lookup(ours, ("baseline", "init_var")) is not _MISSING:
+            raise ConfigError("task.init_var and baseline.init_var both set the initial policy covariance; "
+                              "set one of them")
+        base.get("baseline", {}).pop("init_var", None)
+    d = _merge(base, ours)
+    if _lookup(d, ("baseline", "init_var")) is _MISSING:
+        d = _merge(d, {"baseline": {"init_var": task_init_var}})
     if "i_switch" not in sections_of(method):  # the switch point is unused (as in `soc-opt run`)
         it = _lookup(d, ("baseline", "iterations"))
         if isinstance(d.get("i_switch"), int) and isinstance(it, int) and it >= 1:
@@ -429,7 +447,7 @@ def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
     settings = _settings(data)
     trials = []
     for ref, label, task_file in tasks:
-        file_table = read_toml(task_file)
+        file_table = read_toml(task_file) if task_file is not None else {}
         for s in settings:
             over = dict(s.overrides)
             task_over = _merge(common_task, over.pop("task", {}))
@@ -437,11 +455,12 @@ def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
                    for k, v in task_over.items()}
             ctx = f"task {label!r}, setting {s.name!r}"
             try:
-                load_task(ref, overrides=top)  # validates the task keys (and its model) now
+                task = load_task(ref, overrides=top)  # validates the task keys (and its model) now
             except ConfigError as e:
                 raise ConfigError(f"{ctx}, task keys: {e}") from e
             try:
-                cfgs = {m: _config(ref, cfg_file, paper, common, over, m) for m in methods}
+                cfgs = {m: _config(ref, cfg_file, paper, common, over, m, task.config.init_var, "init_var" in top)
+                        for m in methods}
             except ConfigError as e:
                 raise ConfigError(f"{ctx}, algorithm keys: {e}") from e
             for m in methods:

@@ -157,6 +157,14 @@ class LinearConfig(Config):
     labels: tuple[str, ...] = ()
     point: tuple[int, ...] = (0, 1)
 
+    def __post_init__(self):
+        for key in ("mass", "tau", "process_var"):
+            value = getattr(self, key)
+            if not (value > 0 if key != "process_var" else value >= 0):
+                err = ConfigError(f"{key}: must be {'positive' if key != 'process_var' else '>= 0'}, got {value!r}")
+                err.key = key  # TaskConfig.from_dict prefixes the table: "linear.mass: ..."
+                raise err
+
 
 @dataclass(frozen=True)
 class GymConfig(Config):
@@ -177,6 +185,8 @@ class GymConfig(Config):
     def __post_init__(self):
         if not self.fd_step > 0:
             raise ConfigError(f"gym.fd_step: must be positive, got {self.fd_step!r}")
+        if self.reset_seed < 0:
+            raise ConfigError(f"gym.reset_seed: must be >= 0 (a Gymnasium seed), got {self.reset_seed!r}")
         if "render_mode" in self.kwargs:
             raise ConfigError("gym.kwargs: 'render_mode' is not allowed (soc_opt renders with render_filmstrip)")
 

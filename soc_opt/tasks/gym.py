@@ -55,14 +55,17 @@ def make_gym_env(env_id: str, kwargs: dict | None = None):
         raise ConfigError(f"{name}: gymnasium is not installed (pip install 'gymnasium[mujoco]')") from e
     if not env_id:
         raise ConfigError(f"{name!r}: no environment id after {GYM_PREFIX!r} (e.g. gym:InvertedPendulum-v5)")
+    kwargs = dict(kwargs or {})
+    if "render_mode" in kwargs:  # checked before the environment exists: a window must never open
+        raise ConfigError("gym.kwargs: 'render_mode' is not allowed (soc_opt renders with render_filmstrip)")
     try:
-        env = gymnasium.make(env_id, **(kwargs or {}))
+        env = gymnasium.make(env_id, **kwargs)
     except gymnasium.error.DependencyNotInstalled as e:
         raise ConfigError(f"{name}: {e} (install the extra: pip install 'gymnasium[mujoco]')") from e
     except gymnasium.error.Error as e:
         raise ConfigError(f"{name}: unknown Gymnasium environment id {env_id!r} ({e})") from e
     except (TypeError, ValueError, ModuleNotFoundError) as e:
-        raise ConfigError(f"{name}: gymnasium.make failed: {type(e).__name__}: {e}") from e
+        raise ConfigError(f"{name}: gymnasium.make with gym.kwargs = {kwargs!r} failed: {type(e).__name__}: {e}") from e
     mj = import_mujoco()
     u = env.unwrapped
     if not (isinstance(getattr(u, "model", None), mj.MjModel) and isinstance(getattr(u, "data", None), mj.MjData)
@@ -72,7 +75,38 @@ def make_gym_env(env_id: str, kwargs: dict | None = None):
             f"{name}: {type(u).__name__} is not a Gymnasium MuJoCo environment (no MjModel/MjData at "
             f"env.unwrapped.model/data); gym: tasks need one, e.g. gym:InvertedDoublePendulum-v5"
         )
+    if kwargs:
+        try:
+            _probe(env)
+        except Exception as e:  # noqa: BLE001 - any failure of a step is the kwargs' fault here
+            env.close()
+            raise ConfigError(f"{name}: {_bad_kwarg(env_id, kwargs)} is rejected by the environment "
+                              f"(reset and one step): {type(e).__name__}: {e}") from e
     return env
+
+
+def _probe(env) -> None:
+    """Reset ``env`` and take one zero-action step (a run reseeds it; nothing carries over)."""
+    env.reset(seed=0)
+    env.step(np.zeros(env.action_space.shape, dtype=env.action_space.dtype))
+
+
+def _bad_kwarg(env_id: str, kwargs: dict) -> str:
+    """``gym.kwargs.<key> = <value>`` of the first keyword argument that fails alone, else all of them."""
+    import gymnasium
+
+    for key, value in kwargs.items():
+        try:
+            env = gymnasium.make(env_id, **{key: value})
+        except Exception:  # noqa: BLE001
+            return f"gym.kwargs.{key} = {value!r}"
+        try:
+            _probe(env)
+        except Exception:  # noqa: BLE001
+            return f"gym.kwargs.{key} = {value!r}"
+        finally:
+            env.close()
+    return f"gym.kwargs = {kwargs!r}"
 
 
 class EnvReward:

@@ -25,8 +25,6 @@ class LinearTask(TaskBase):
         lc = config.linear
         self.dt = (config.timestep or 0.1) * config.substeps
         if lc.system == "point_mass_2d":
-            if lc.mass <= 0 or lc.tau <= 0:
-                raise ConfigError("linear: mass and tau must be positive")
             Ac = np.zeros((6, 6))
             Bc = np.zeros((6, 2))
             for ax in range(2):

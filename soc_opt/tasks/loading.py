@@ -165,7 +165,10 @@ def load_task(name_or_path: str | Path, *, condition: int = 0, overrides: dict |
         config = TaskConfig.from_dict(data)
     except ConfigError as e:
         raise ConfigError(f"{path}: {e}") from e
-    task = build_task(config, path.parent, condition=condition)
+    try:
+        task = build_task(config, path.parent, condition=condition)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from e
     text = path.read_bytes()
     task.provenance = {**task.provenance, "toml_file": str(path.resolve()), "toml_sha256": _sha256(text),
                        "toml_text": text.decode(errors="replace"), "condition": condition}

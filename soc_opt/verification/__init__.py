@@ -11,6 +11,11 @@ surrogate M-step's monotonicity in log p(Y), the ill-posed uniqueness
 instances, the sign convention of the free-energy lemma) say so in their
 description.  ``docs/verification.md`` gives the exact definitions.
 
+The claims table (``registry``: each claim's statement as written, hypotheses, corrected
+statement, expected verdict; ``checks``: the checks through the library's code path;
+``certificates``: minimal counterexamples; ``replay``: their re-check in plain numpy) is what
+``soc-opt verify`` runs; ``run_all`` gives the older per-row table (``soc-opt verify --rows``).
+
 Modules: ``claims_uniqueness`` (claim 1), ``claims_em`` (claims 2 and 3),
 ``free_energy`` (claim 4 and its Gaussian closed forms), ``table`` (rendering),
 ``common`` (the row type and shared helpers).  The instance generators live in
@@ -34,9 +39,17 @@ from .free_energy import (
     log_partition,
     tilted_gaussian,
 )
+from .registry import CLAIMS, ClaimVerdict, format_verdicts, run_claims, verdicts_json
 from .table import format_table, to_json
 
 __all__ = [
+    # the claims table (docs/verification.md): claims as data, verdicts, certificates
+    "CLAIMS",
+    "ClaimVerdict",
+    "run_claims",
+    "verdicts_json",
+    "format_verdicts",
+    # the older per-row table
     "ClaimResult",
     "run_all",
     "claim1_uniqueness",

@@ -1,0 +1,246 @@
+"""Tables and figures of docs/results/peers/ from the parts' outputs.
+
+    python -m soc_opt.bench.peers.report --out docs/results/peers \
+        [--rl runs/peers-rl] [--soc runs/peers-soc] [--skip-kernels]
+
+* runs the smoother and LQR parts (unless ``--skip-kernels``) and writes ``smoothers.json``,
+  ``lqr.json``;
+* reads the RL runs (``--rl``: one JSON per run, :mod:`.rl`) and the soc_opt runs (``--soc``:
+  ``soc-opt compare`` directories named ``<task>-<paper|noiseaware>-rho<rho2>``, per-iteration
+  ``metrics.csv`` of each seed and method);
+* writes ``rl.json`` (per method, task and rho2: the metric at each budget, mean and std over
+  seeds, steps to 90% peg success), ``tables.md`` and ``<task>_vs_steps.png``.
+
+Environment steps of soc_opt's iteration ``i`` (0-based): ``(i + 1) x samples x T``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ...peers.rl import steps_to
+
+__all__ = ["soc_curves", "rl_curves", "rl_table", "main"]
+
+METRIC = {"peg": "success_rate", "door": "min_hinge"}
+SOC_LABEL = {"paper": "{m}", "noiseaware": "{m} noise-aware"}
+METHODS = {"lqr-flm": "LQR-FLM", "dpsoc-em": "DPSOC-EM"}
+
+
+def soc_curves(root: Path, samples: int = 20, T: int = 100) -> dict:
+    """``{(label, task, rho2): {"steps": (I,), "seeds": {metric: (S, I)}}}`` from compare runs."""
+    out = {}
+    for d in sorted(Path(root).glob("*-*-rho*")):
+        task, variant, rho = d.name.split("-")
+        rho2 = float(rho[3:])
+        for method, name in METHODS.items():
+            per_seed = []
+            for f in sorted(d.glob(f"seed_*/{method}/metrics.csv")):
+                with open(f) as fh:
+                    rows = list(csv.DictReader(fh))
+                per_seed.append(rows)
+            if not per_seed:
+                continue
+            n_it = min(len(r) for r in per_seed)
+            key = (SOC_LABEL[variant].format(m=name), task, rho2)
+            summary = d / "summary.json"
+            eval_cost = (json.loads(summary.read_text())["per_seed"].get(method, {}).get("cost")
+                         if summary.exists() else None)
+            out[key] = {
+                "eval_cost": eval_cost,
+                "steps": (np.arange(n_it) + 1) * samples * T,
+                "seeds": {m: np.array([[float(r[i][f"metric_{m}"]) for i in range(n_it)] for r in per_seed])
+                          for m in (METRIC[task], "cost")},
+            }
+    return out
+
+
+def _rl_runs(root: Path) -> list[dict]:
+    """Finished runs (``*.json``) and, for runs cut short, their partial logs (``*.json.partial``:
+    no ``final`` evaluation)."""
+    runs = []
+    for f in sorted(Path(root).glob("*.json")):
+        runs.append(json.loads(f.read_text()))
+    for f in sorted(Path(root).glob("*.json.partial")):
+        if not f.with_suffix("").exists():
+            runs.append(json.loads(f.read_text()))
+    return runs
+
+
+def rl_curves(root: Path, bin_steps: int = 2000) -> dict:
+    """``{(label, task, rho2, budget): {"steps", "seeds": {metric: (S, B)}, "final", "last20", "wall_s",
+    "steps_to_90", "reached"}}``; bins a run did not reach are NaN."""
+    groups: dict = {}
+    for r in _rl_runs(root):
+        key = (f"{r['algo'].upper()} {r['setting']}", r["task"], r["rho2"], r["budget"])
+        groups.setdefault(key, []).append(r)
+    out = {}
+    nan = float("nan")
+    for key, runs in groups.items():
+        task, budget = key[1], key[3]
+        edges = np.arange(bin_steps, budget + 1, bin_steps)
+        seeds = {}
+        for m in (METRIC[task], "cost"):
+            arr = []
+            for r in runs:
+                st = np.array([e["steps"] for e in r["episodes"]])
+                v = np.array([e[m] for e in r["episodes"]])
+                arr.append([v[(st > b - bin_steps) & (st <= b)].mean() if (st >= b).any() else nan for b in edges])
+            seeds[m] = np.array(arr)
+        s90 = None
+        if task == "peg":
+            s90 = [steps_to([e["steps"] for e in r["episodes"]], [e["success_rate"] for e in r["episodes"]])
+                   for r in runs]
+        out[key] = {"steps": edges, "seeds": seeds, "n_seeds": len(runs),
+                    "final": {m: [r["final"][m] if "final" in r else nan for r in runs] for m in (METRIC[task], "cost")},
+                    "last20": {m: [np.mean([e[m] for e in r["episodes"][-20:]]) for r in runs]
+                               for m in (METRIC[task], "cost")},
+                    "wall_s": [r.get("wall_s", nan) for r in runs], "steps_to_90": s90,
+                    "reached": [r["episodes"][-1]["steps"] if r["episodes"] else 0 for r in runs]}
+    return out
+
+
+def _ms(v) -> str:
+    v = np.asarray(v, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return "n/a"
+    f = ".2e" if 0 < abs(v.mean()) < 0.01 else ".2f"
+    return f"{v.mean():{f}} ± {v.std():{f}}" if v.size > 1 else f"{v.mean():{f}}"
+
+
+def _s90_soc(c) -> list:
+    v = c["seeds"]["success_rate"]
+    return [int(c["steps"][np.argmax(row >= 0.9)]) if (row >= 0.9).any() else None for row in v]
+
+
+def _fmt_s90(v) -> str:
+    hit = [x for x in v if x is not None]
+    return (f"{int(np.median(hit)):,} ({len(hit)}/{len(v)} seeds)" if hit else f"not within budget (0/{len(v)})")
+
+
+def rl_table(soc: dict, rl: dict) -> list[dict]:
+    """Rows: method, task, rho2, env steps, seeds; the task metric (success rate / min hinge) and
+    the true-state cost of the last 20 sampled episodes (mean ± std over seeds); for RL also of
+    the deterministic policy on 20 fresh episodes; steps to 90% peg success; wall time per run."""
+    rows = []
+    for (label, task, rho2), c in sorted(soc.items(), key=lambda kv: (kv[0][1], kv[0][2], kv[0][0])):
+        m = METRIC[task]
+        rows.append({"method": label, "task": task, "rho2": rho2, "env_steps": int(c["steps"][-1]),
+                     "seeds": c["seeds"][m].shape[0], "metric_last20": _ms(c["seeds"][m][:, -1]),
+                     "cost_last20": _ms(c["seeds"]["cost"][:, -1]), "metric_eval": "",
+                     "cost_eval": _ms(c["eval_cost"]) if c.get("eval_cost") else "",
+                     "steps_to_90": _fmt_s90(_s90_soc(c)) if task == "peg" else "", "wall_s": ""})
+    for (label, task, rho2, budget), c in sorted(rl.items(), key=lambda kv: (kv[0][1], kv[0][2], kv[0][3], kv[0][0])):
+        m = METRIC[task]
+        steps = f"{budget:,}" if min(c["reached"]) >= budget else \
+            f"{budget:,} planned; reached {', '.join(f'{x:,}' for x in c['reached'])}"
+        rows.append({"method": label, "task": task, "rho2": rho2, "env_steps": steps, "seeds": c["n_seeds"],
+                     "metric_last20": _ms(c["last20"][m]), "cost_last20": _ms(c["last20"]["cost"]),
+                     "metric_eval": _ms(c["final"][m]), "cost_eval": _ms(c["final"]["cost"]),
+                     "steps_to_90": _fmt_s90(c["steps_to_90"]) if task == "peg" else "",
+                     "wall_s": _ms(c["wall_s"]).split(".")[0] if np.isfinite(c["wall_s"]).any() else "cut"})
+    return rows
+
+
+def _md(rows: list[dict]) -> str:
+    if not rows:
+        return "(no rows)\n"
+    keys = list(rows[0])
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    for r in rows:
+        lines.append("| " + " | ".join(_cell(r.get(k, "")) for k in keys) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _cell(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.3g}" if abs(v) < 1e4 else f"{v:,.0f}"
+    return str(v)
+
+
+_COLORS = {"LQR-FLM": "tab:blue", "DPSOC-EM": "tab:orange", "PPO default": "tab:green",
+           "PPO tuned": "tab:olive", "SAC default": "tab:red", "SAC tuned": "tab:purple"}
+
+
+def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    m = METRIC[task]
+    rhos = sorted({k[2] for k in soc if k[1] == task} | {k[2] for k in rl if k[1] == task})
+    if not rhos:
+        return
+    fig, axes = plt.subplots(2, len(rhos), figsize=(5.5 * len(rhos), 7), squeeze=False)
+    for j, rho2 in enumerate(rhos):
+        series = [(k[0], c) for k, c in soc.items() if k[1] == task and k[2] == rho2]
+        series += [(f"{k[0]} ({k[3] // 1000}k)", c) for k, c in rl.items() if k[1] == task and k[2] == rho2]
+        for label, c in series:
+            base = label.split(" (")[0]
+            color = _COLORS.get(base.replace(" noise-aware", ""), "gray")
+            ls = ":" if "noise-aware" in base else ("-" if base.startswith(("LQR", "DPSOC")) else "--")
+            for i, key in enumerate((m, "cost")):
+                v = c["seeds"][key]
+                with np.errstate(all="ignore"):
+                    import warnings
+
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore", RuntimeWarning)
+                        mu, sd = np.nanmean(v, axis=0), np.nanstd(v, axis=0)
+                axes[i, j].plot(c["steps"], mu, ls, color=color, marker=".", label=label)
+                axes[i, j].fill_between(c["steps"], mu - sd, mu + sd, color=color, alpha=0.12)
+        axes[0, j].set_title(f"{task}, rho^2 = {rho2:g}")
+        axes[0, j].set_ylabel({"success_rate": "success rate", "min_hinge": "min hinge angle (rad)"}[m])
+        axes[1, j].set_ylabel("task cost (true states)")
+        axes[1, j].set_yscale("log")
+        for i in range(2):
+            axes[i, j].set_xlabel("environment steps")
+            axes[i, j].grid(alpha=0.3)
+        axes[0, j].legend(fontsize=7, loc="best")
+    fig.suptitle(f"{task}: soc_opt (solid) vs stable-baselines3 (dashed), mean ± std over seeds; "
+                 "RL: training episodes in bins of 2,000 steps")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="docs/results/peers")
+    ap.add_argument("--rl", default="runs/peers-rl")
+    ap.add_argument("--soc", default="runs/peers-soc")
+    ap.add_argument("--skip-kernels", action="store_true")
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    parts = []
+    if not a.skip_kernels:
+        from . import lqr, smoothers
+
+        (out / "smoothers.json").write_text(json.dumps(smoothers.run(), indent=1))
+        (out / "lqr.json").write_text(json.dumps(lqr.run(), indent=1))
+    for name in ("smoothers", "lqr"):
+        f = out / f"{name}.json"
+        if f.exists():
+            parts.append(f"## {name}\n\n" + _md(json.loads(f.read_text())))
+    soc = soc_curves(Path(a.soc)) if Path(a.soc).exists() else {}
+    rl = rl_curves(Path(a.rl)) if Path(a.rl).exists() else {}
+    table = rl_table(soc, rl)
+    (out / "rl.json").write_text(json.dumps(table, indent=1))
+    parts.append("## sample efficiency\n\n" + _md(table))
+    for task in METRIC:
+        _figure(task, soc, rl, out / f"{task}_vs_steps.png")
+    (out / "tables.md").write_text("\n".join(parts))
+    print((out / "tables.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,209 @@
+"""The E-step's filter/smoother against dynamax and pykalman on one model (docs/math.md §4).
+
+soc_opt smooths the closed loop ``(s_{k+1}, y_k) | s_k ~ N(M_k s_k + m_k, S_k)``, whose state and
+observation noises are correlated in general.  dynamax's ``lgssm_smoother`` and pykalman's
+``KalmanFilter`` take the usual linear-Gaussian state-space model
+
+    z_{t+1} = F_t z_t + b_t + N(0, Q_t),     y_t = H_t z_t + d_t + N(0, R_t),     z_0 ~ N(mu0, P0),
+
+with independent noises.  The two meet when the augmented model has no action in the cost row
+(``By_k = 0``) and a block-diagonal ``So_k``: then ``S_k`` is block diagonal and
+``F_k = A_k + B_k K_k``, ``b_k = B_k k_k + c_k``, ``Q_k = W_k + B_k Sigma_k B_k^T``,
+``H_k = Ay_k``, ``d_k = cy_k``, ``R_k = Syy_k``.  :func:`random_uncorrelated` builds such an
+instance, with a constant observation noise variance ``R`` (pykalman's ``loglikelihood`` takes one
+observation covariance, although its filter and smoother accept a time-varying one; everything
+else varies with time); :func:`to_lgssm` gives the peers' arrays.  soc_opt also returns ``s_T`` (predicted,
+unobserved): the peers' ``T`` states are compared with soc_opt's first ``T``.
+
+Public functions:
+    random_uncorrelated(rng, n, m, T)              -> (model, policy, mu0, P0)
+    to_lgssm(model, policy)                        -> LGSSM
+    run_soc_opt(model, policy, Y, mu0, P0)         -> SmootherOutput
+    run_dynamax(lg, Y, mu0, P0)                    -> (SmootherOutput, compile_s)
+    run_pykalman(lg, Y, mu0, P0)                   -> SmootherOutput
+    compare(rng, n, T, M, repeats)                 -> dict (one row of the table)
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..estep import closed_loop, smooth
+from ..models import AugmentedModel, LinearGaussianPolicy, symmetrize
+from . import require
+
+__all__ = ["LGSSM", "SmootherOutput", "random_uncorrelated", "to_lgssm", "run_soc_opt", "run_dynamax",
+           "run_pykalman", "compare"]
+
+
+@dataclass(frozen=True)
+class LGSSM:
+    """Time-varying linear-Gaussian state-space model with independent noises.
+
+    F: (T, n, n), b: (T, n), Q: (T, n, n) transition of step ``t -> t+1`` (the last unused by the
+    peers, which stop at ``z_{T-1}``); H: (T, 1, n), d: (T, 1), R: (T, 1, 1) emission of ``y_t``.
+    """
+
+    F: np.ndarray
+    b: np.ndarray
+    Q: np.ndarray
+    H: np.ndarray
+    d: np.ndarray
+    R: np.ndarray
+
+
+@dataclass(frozen=True)
+class SmootherOutput:
+    """Smoothed means ``(M, T, n)``, covariances ``(T, n, n)`` (they do not depend on ``y``),
+    log-likelihoods ``(M,)`` and the wall time of the call that made them (seconds)."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+    loglik: np.ndarray
+    seconds: float
+
+
+def random_uncorrelated(rng: np.random.Generator, n: int, m: int, T: int):
+    """A stable augmented model with ``By = 0`` and block-diagonal ``So``, and a policy.
+
+    ``A_k = 0.95 Q_k`` (orthogonal), ``B_k ~ 0.1 N``, cost row ``Ay_k ~ 0.1 N``, ``So`` blocks
+    ``L L^T + 0.01 I`` (``L ~ 0.1 N``) and ``Syy = 0.05`` (constant, see the module docstring); policy ``K ~ 0.1 N``,
+    ``k ~ N``, ``Sigma = 0.1 I``; ``mu0 ~ N``, ``P0 = I``.  Returns ``(model, policy, mu0, P0)``.
+    """
+    A = 0.95 * np.linalg.qr(rng.standard_normal((T, n, n)))[0]
+    B = 0.1 * rng.standard_normal((T, n, m))
+    Ay = np.concatenate([0.1 * rng.standard_normal((T, 1, n)), np.zeros((T, 1, m))], axis=2)
+    Ao = np.concatenate([np.concatenate([A, B], axis=2), Ay], axis=1)
+    L = 0.1 * rng.standard_normal((T, n, n))
+    So = np.zeros((T, n + 1, n + 1))
+    So[:, :n, :n] = symmetrize(L @ np.swapaxes(L, 1, 2)) + 0.01 * np.eye(n)
+    So[:, n, n] = 0.05
+    model = AugmentedModel(Ao, 0.1 * rng.standard_normal((T, n + 1)), So, n)
+    policy = LinearGaussianPolicy(0.1 * rng.standard_normal((T, m, n)), rng.standard_normal((T, m)),
+                                  np.broadcast_to(0.1 * np.eye(m), (T, m, m)).copy())
+    return model, policy, rng.standard_normal(n), np.eye(n)
+
+
+def to_lgssm(model: AugmentedModel, policy: LinearGaussianPolicy, atol: float = 0.0) -> LGSSM:
+    """The closed loop as an :class:`LGSSM`; ValueError if its noises are correlated.
+
+    ``atol``: the largest ``|S_sy|`` accepted (0: exactly uncorrelated, as built by
+    :func:`random_uncorrelated`).
+    """
+    n = model.n
+    Mk, mk, Sk = closed_loop(model, policy)
+    cross = float(np.abs(Sk[:, :n, n]).max())
+    if cross > atol:
+        raise ValueError(f"the closed loop's state and observation noises are correlated (max |S_sy| = "
+                         f"{cross:.3e} > atol={atol}): the peers cannot express this model")
+    return LGSSM(F=Mk[:, :n, :], b=mk[:, :n], Q=Sk[:, :n, :n], H=Mk[:, n:, :], d=mk[:, n:],
+                 R=Sk[:, n:, n:])
+
+
+def run_soc_opt(model, policy, Y, mu0, P0) -> SmootherOutput:
+    """soc_opt's :func:`~soc_opt.estep.smooth` on ``Y (M, T)``, all sequences in one call."""
+    t0 = time.perf_counter()
+    sm = smooth(model, policy, Y, mu0, P0)
+    dt = time.perf_counter() - t0
+    T = Y.shape[1]
+    return SmootherOutput(np.asarray(sm.mean)[:, :T], np.asarray(sm.cov)[0, :T], np.asarray(sm.loglik), dt)
+
+
+def _dynamax_params(lg: LGSSM, mu0, P0):
+    """dynamax's time-varying dynamics: entry ``t + 1`` moves ``z_t`` to ``z_{t+1}`` (entry 0 unused),
+    so the transitions are shifted by one step."""
+    from dynamax.linear_gaussian_ssm.inference import (ParamsLGSSM, ParamsLGSSMDynamics,
+                                                       ParamsLGSSMEmissions, ParamsLGSSMInitial)
+    jnp = require("jax.numpy")
+    T, n = lg.b.shape
+    return ParamsLGSSM(
+        initial=ParamsLGSSMInitial(mean=jnp.asarray(mu0), cov=jnp.asarray(P0)),
+        dynamics=ParamsLGSSMDynamics(weights=jnp.asarray(np.roll(lg.F, 1, axis=0)),
+                                     bias=jnp.asarray(np.roll(lg.b, 1, axis=0)),
+                                     input_weights=jnp.zeros((T, n, 0)), cov=jnp.asarray(np.roll(lg.Q, 1, axis=0))),
+        emissions=ParamsLGSSMEmissions(weights=jnp.asarray(lg.H), bias=jnp.asarray(lg.d),
+                                       input_weights=jnp.zeros((T, 1, 0)), cov=jnp.asarray(lg.R)),
+    )
+
+
+def run_dynamax(lg: LGSSM, Y, mu0, P0, repeats: int = 3) -> tuple[SmootherOutput, float]:
+    """dynamax ``lgssm_smoother`` (float64, CPU), vmapped over the ``M`` sequences and jitted.
+
+    Returns the output with the median run time of ``repeats`` calls after the first, and the
+    first call's time (trace + XLA compile + one run) apart.
+    """
+    jax = require("jax")
+    jax.config.update("jax_enable_x64", True)
+    inference = require("dynamax.linear_gaussian_ssm.inference")
+    params = _dynamax_params(lg, mu0, P0)
+    fn = jax.jit(jax.vmap(lambda y: inference.lgssm_smoother(params, y[:, None]), in_axes=0))
+    Yj = jax.numpy.asarray(Y)
+    t0 = time.perf_counter()
+    post = jax.block_until_ready(fn(Yj))
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        post = jax.block_until_ready(fn(Yj))
+        times.append(time.perf_counter() - t0)
+    out = SmootherOutput(np.asarray(post.smoothed_means), np.asarray(post.smoothed_covariances)[0],
+                         np.asarray(post.marginal_loglik), float(np.median(times)))
+    return out, first
+
+
+def run_pykalman(lg: LGSSM, Y, mu0, P0) -> SmootherOutput:
+    """pykalman ``KalmanFilter.smooth`` and ``loglikelihood`` per sequence (it has no batch axis).
+
+    The time is that of the ``M`` smoother calls; ``loglikelihood`` (a second filter pass) is
+    not timed.  Covariances are those of the first sequence (identical for all).  ValueError if
+    ``R`` varies with time (pykalman's ``loglikelihood`` would silently mis-shape it).
+    """
+    pk = require("pykalman")
+    if not np.all(lg.R == lg.R[0]):
+        raise ValueError("pykalman's loglikelihood takes one observation covariance: R must be constant over time")
+    kf = pk.KalmanFilter(transition_matrices=lg.F[:-1], transition_offsets=lg.b[:-1],
+                         transition_covariance=lg.Q[:-1], observation_matrices=lg.H,
+                         observation_offsets=lg.d, observation_covariance=lg.R[0],
+                         initial_state_mean=mu0, initial_state_covariance=P0)
+    means, covs = [], None
+    t0 = time.perf_counter()
+    for y in Y:
+        mu, P = kf.smooth(y[:, None])
+        means.append(mu)
+        covs = P if covs is None else covs
+    dt = time.perf_counter() - t0
+    ll = np.array([kf.loglikelihood(y[:, None]) for y in Y])
+    return SmootherOutput(np.stack(means), covs, ll, dt)
+
+
+def _diff(a: SmootherOutput, b: SmootherOutput) -> dict:
+    return {"mean": float(np.abs(a.mean - b.mean).max()), "cov": float(np.abs(a.cov - b.cov).max()),
+            "loglik": float(np.abs(a.loglik - b.loglik).max())}
+
+
+def compare(rng: np.random.Generator, n: int, T: int = 100, M: int = 20, m: int = 7, repeats: int = 3,
+            peers=("dynamax", "pykalman")) -> dict:
+    """One row: max differences to soc_opt and wall times (soc_opt: median of ``repeats``)."""
+    model, policy, mu0, P0 = random_uncorrelated(rng, n, m, T)
+    lg = to_lgssm(model, policy)
+    Y = rng.standard_normal((M, T))
+    runs = [run_soc_opt(model, policy, Y, mu0, P0) for _ in range(repeats)]
+    ref = runs[-1]
+    so_s = float(np.median([r.seconds for r in runs]))
+    row = {"n": n, "m": m, "T": T, "sequences": M, "soc_opt_ms": 1e3 * so_s}
+    if "dynamax" in peers:
+        dx, first = run_dynamax(lg, Y, mu0, P0, repeats)
+        d = _diff(ref, dx)
+        row.update(dynamax_ms=1e3 * dx.seconds, dynamax_first_call_s=first,
+                   dynamax_ratio=dx.seconds / so_s, dynamax_max_dmean=d["mean"], dynamax_max_dcov=d["cov"],
+                   dynamax_max_dloglik=d["loglik"])
+    if "pykalman" in peers:
+        pk = run_pykalman(lg, Y, mu0, P0)
+        d = _diff(ref, pk)
+        row.update(pykalman_ms=1e3 * pk.seconds, pykalman_ratio=pk.seconds / so_s, pykalman_max_dmean=d["mean"],
+                   pykalman_max_dcov=d["cov"], pykalman_max_dloglik=d["loglik"])
+    row["loglik_scale"] = float(np.abs(ref.loglik).max())
+    return row

@@ -1,0 +1,153 @@
+"""Adapters to the peers (soc_opt.peers, issue 21).
+
+The conversions are checked against brute-force oracles without any peer installed; the tests
+that run a peer skip, saying which extra provides it, when it is not installed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from soc_opt.estep import smooth
+from soc_opt.lqg import kl_step, lqr
+from soc_opt.bench.lqg import make_instance
+from soc_opt.peers import PEERS, require, versions
+from soc_opt.peers import lqr as plqr
+from soc_opt.peers import smoothers as psm
+from soc_opt.peers.rl import steps_to
+from soc_opt.testing import random_closed_loop
+
+EXTRA = "peer not installed: pip install -e '.[peers]'"
+
+
+def _peer(name):
+    return pytest.importorskip(name, reason=f"{name}: {EXTRA}")
+
+
+def test_versions_lists_every_peer():
+    v = versions()
+    assert set(v) == set(PEERS.values())
+    assert all(x is None or isinstance(x, str) for x in v.values())
+
+
+def test_require_names_the_extra_when_missing():
+    with pytest.raises(ImportError, match=r"\[peers\]"):
+        require("soc_opt_no_such_peer_module")
+
+
+def test_to_lgssm_rejects_correlated_noise():
+    model, policy = random_closed_loop(np.random.default_rng(0), 3, 2, 5)
+    with pytest.raises(ValueError, match="correlated"):
+        psm.to_lgssm(model, policy)
+
+
+def _dense_smoother(lg: psm.LGSSM, y: np.ndarray, mu0, P0):
+    """Oracle: the joint Gaussian of (z_0..z_{T-1}, y_0..y_{T-1}) built state by state, conditioned on y."""
+    T, n = lg.b.shape
+    # z = L w + mean, w the stacked independent noises (z_0's, then the transitions')
+    N = T * n
+    mean = np.zeros(N)
+    Lz = np.zeros((N, N))
+    Lz[:n, :n] = np.linalg.cholesky(P0)
+    mean[:n] = mu0
+    for t in range(1, T):
+        r, p = slice(t * n, (t + 1) * n), slice((t - 1) * n, t * n)
+        mean[r] = lg.F[t - 1] @ mean[p] + lg.b[t - 1]
+        Lz[r] = lg.F[t - 1] @ Lz[p]
+        Lz[r, r] += np.linalg.cholesky(lg.Q[t - 1])
+    Szz = Lz @ Lz.T
+    Hb = np.zeros((T, N))
+    for t in range(T):
+        Hb[t, t * n:(t + 1) * n] = lg.H[t, 0]
+    my = Hb @ mean + lg.d[:, 0]
+    Syy = Hb @ Szz @ Hb.T + np.diag(lg.R[:, 0, 0])
+    Szy = Szz @ Hb.T
+    G = np.linalg.solve(Syy, Szy.T).T
+    m_post = mean + G @ (y - my)
+    S_post = Szz - G @ Szy.T
+    v = y - my
+    ll = -0.5 * (T * np.log(2 * np.pi) + np.linalg.slogdet(Syy)[1] + v @ np.linalg.solve(Syy, v))
+    covs = np.stack([S_post[t * n:(t + 1) * n, t * n:(t + 1) * n] for t in range(T)])
+    return m_post.reshape(T, n), covs, ll
+
+
+def test_to_lgssm_gives_the_same_posterior_as_the_estep():
+    rng = np.random.default_rng(1)
+    model, policy, mu0, P0 = psm.random_uncorrelated(rng, 3, 2, 6)
+    lg = psm.to_lgssm(model, policy)
+    y = rng.standard_normal(6)
+    mean, covs, ll = _dense_smoother(lg, y, mu0, P0)
+    sm = smooth(model, policy, y, mu0, P0)
+    np.testing.assert_allclose(sm.mean[:6], mean, atol=1e-10)
+    np.testing.assert_allclose(sm.cov[:6], covs, atol=1e-10)
+    assert sm.loglik == pytest.approx(ll, abs=1e-10)
+
+
+def test_kl_cost_lqr_reproduces_the_kl_step_gains():
+    """At the KL step's multiplier, LQR on l - eta log phat gives the new policy's K and k."""
+    dyn, cost, ref, mu0, P0 = make_instance(4, 2, 12, np.random.default_rng(2))
+    res = kl_step(dyn, cost, ref, 1.0, mu0, P0)
+    assert res.eta[0] > 0
+    pol = lqr(dyn, plqr.kl_cost(cost, ref, res.eta[0]), mu0, P0)
+    np.testing.assert_allclose(pol.K, res.policy.K, atol=1e-8)
+    np.testing.assert_allclose(pol.k, res.policy.k, atol=1e-8)
+
+
+def test_mean_trajectory_follows_the_policy_and_the_dynamics():
+    dyn, cost, ref, mu0, P0 = make_instance(3, 2, 5, np.random.default_rng(3))
+    x, u = plqr.mean_trajectory(dyn, ref, mu0)
+    np.testing.assert_allclose(x[0], mu0)
+    for t in range(4):
+        np.testing.assert_allclose(u[t], ref.K[t] @ x[t] + ref.k[t])
+        np.testing.assert_allclose(x[t + 1], dyn.A[t] @ x[t] + dyn.B[t] @ u[t] + dyn.c[t])
+
+
+def test_steps_to_finds_the_first_window_at_the_threshold():
+    steps = np.arange(1, 8) * 100
+    assert steps_to(steps, [0, 1, 1, 0, 1, 1, 1], threshold=0.9, window=3) == 700
+    assert steps_to(steps, [0, 1, 1, 0, 1, 1, 1], threshold=0.6, window=3) == 300
+    assert steps_to(steps, [0, 0, 0, 0, 0, 0, 0], threshold=0.9, window=3) is None
+
+
+# ------------------------------------------------------------------ with the peers installed
+
+
+def test_pykalman_agrees_with_the_estep():
+    _peer("pykalman")
+    row = psm.compare(np.random.default_rng(4), 3, T=10, M=2, m=2, repeats=1, peers=("pykalman",))
+    assert row["pykalman_max_dmean"] < 1e-10
+    assert row["pykalman_max_dcov"] < 1e-10
+    assert row["pykalman_max_dloglik"] < 1e-10
+
+
+def test_dynamax_agrees_with_the_estep_without_its_diagonal_boost(monkeypatch):
+    """dynamax adds 1e-9 I to every matrix it Cholesky-solves with (``psd_solve``); with the boost
+    set to 0 it is the same smoother to rounding."""
+    _peer("dynamax")
+    from dynamax.utils import utils as dxu
+
+    monkeypatch.setattr(dxu.psd_solve, "__defaults__", (0.0,))
+    row = psm.compare(np.random.default_rng(4), 3, T=10, M=2, m=2, repeats=1, peers=("dynamax",))
+    assert row["dynamax_max_dmean"] < 1e-10
+    assert row["dynamax_max_dcov"] < 1e-10
+    assert row["dynamax_max_dloglik"] < 1e-10
+
+
+def test_mpc_lqr_step_agrees_with_lqr_and_the_kl_step():
+    _peer("torch")
+    _peer("mpc")
+    row = plqr.compare(np.random.default_rng(5), 3, 2, 10, nu=1.0, repeats=1)
+    assert row["lqr_max_du"] < 1e-8 and row["lqr_max_dx"] < 1e-8
+    assert row["kl_max_du"] < 1e-8 and row["kl_max_dx"] < 1e-8
+
+
+@pytest.mark.slow  # two SAC episodes and one evaluation: about 2 min on a loaded 2-core machine
+def test_sb3_run_logs_every_episode_and_evaluates():
+    _peer("stable_baselines3")
+    from soc_opt.peers.rl import train
+
+    res = train("sac", "default", "peg", 0.1, seed=0, budget=200, eval_episodes=1)
+    assert [r["steps"] for r in res["episodes"]] == [100, 200]
+    assert {"cost", "cost_measured", "success_rate", "min_distance"} <= set(res["episodes"][0])
+    assert res["final"]["cost"] > 0

@@ -1,0 +1,120 @@
+"""Run directory files (issue 18 item 7): permissions follow the umask, reopening a finished run
+writes nothing (also on a read-only file system), and the initial policy is saved."""
+
+from __future__ import annotations
+
+import builtins
+import os
+import stat
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from soc_opt.cli import main
+from soc_opt.experiment import load_run_config
+from soc_opt.models import LinearGaussianPolicy
+from soc_opt.tasks import load_task
+
+ARGS = ["run", "linear2d", "--method", "lqr-flm", "--iterations", "2", "--samples", "4", "--progress", "lines"]
+
+
+def _files(d: Path) -> dict:
+    """Every file under ``d``: (size, mtime_ns, mode)."""
+    return {str(p.relative_to(d)): (p.stat().st_size, p.stat().st_mtime_ns, stat.S_IMODE(p.stat().st_mode))
+            for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fin") / "run"
+    old = os.umask(0o022)
+    try:
+        assert main([*ARGS, "--out", str(d)]) == 0
+    finally:
+        os.umask(old)
+    return d
+
+
+def test_run_files_are_readable_as_the_umask_allows(finished, tmp_path):
+    modes = {name: mode for name, (_, _, mode) in _files(finished).items() if name != "lock"}
+    assert modes and set(modes.values()) == {0o644}, modes
+    old = os.umask(0o077)
+    try:
+        assert main([*ARGS, "--out", str(tmp_path / "private")]) == 0
+    finally:
+        os.umask(old)
+    assert {m for n, (_, _, m) in _files(tmp_path / "private").items() if n != "lock"} == {0o600}
+
+
+def test_the_initial_policy_is_saved_as_iteration_zero(finished):
+    task = load_task("linear2d")
+    cfg = load_run_config("linear2d", method="lqr-flm")
+    initial = task.initial_policy(cfg.baseline.init_var)
+    saved = LinearGaussianPolicy.load(finished / "policies" / "iter_000.npz")
+    for name in ("K", "k", "cov"):
+        np.testing.assert_array_equal(getattr(saved, name), getattr(initial, name))
+    assert sorted(p.name for p in (finished / "policies").iterdir()) == ["iter_000.npz", "iter_001.npz",
+                                                                         "iter_002.npz"]
+
+
+def test_reopening_a_finished_run_writes_nothing(finished, capsys):
+    before = _files(finished)
+    assert main([*ARGS, "--out", str(finished)]) == 0
+    assert "already finished (2 iterations)" in capsys.readouterr().out
+    assert _files(finished) == before  # no figure re-rendered, no event file, no lock written
+
+
+def _read_only(monkeypatch):
+    """Every way soc_opt writes (open for writing, os.open with write flags, mkstemp, mkdir,
+    rename, unlink, chmod) raises as on a read-only file system."""
+    def refuse(*a, **k):
+        raise OSError(30, "Read-only file system (test)")
+
+    real_open, real_os_open = builtins.open, os.open
+
+    def ro_open(file, mode="r", *a, **k):
+        if any(c in mode for c in "wax+"):
+            refuse()
+        return real_open(file, mode, *a, **k)
+
+    def ro_os_open(path, flags, *a, **k):
+        if flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT):
+            refuse()
+        return real_os_open(path, flags, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", ro_open)
+    monkeypatch.setattr(os, "open", ro_os_open)
+    for mod, name in ((tempfile, "mkstemp"), (os, "mkdir"), (os, "replace"), (os, "rename"), (os, "unlink"),
+                      (os, "chmod"), (os, "link")):
+        monkeypatch.setattr(mod, name, refuse)
+
+
+def test_a_finished_run_opens_on_a_read_only_file_system(finished, monkeypatch, capsys):
+    from soc_opt.experiment import finished_run, run_experiment
+
+    before = _files(finished)
+    task = load_task("linear2d")
+    cfg = load_run_config("linear2d", method="lqr-flm", overrides={"iterations": 2, "samples": 4})
+    _read_only(monkeypatch)
+    assert main([*ARGS, "--out", str(finished)]) == 0, capsys.readouterr().err
+    st = run_experiment(task, "lqr-flm", cfg, 0, finished, task_name="linear2d")
+    assert st.iteration == 2 and finished_run(task, "lqr-flm", cfg, 0, finished, task_name="linear2d") is not None
+    monkeypatch.undo()
+    assert _files(finished) == before
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="chmod does not stop root; the read-only path is tested above")
+def test_a_finished_run_opens_in_a_directory_without_write_permission(finished, tmp_path):
+    import shutil
+
+    d = tmp_path / "ro"
+    shutil.copytree(finished, d)
+    for p in [d, *d.rglob("*")]:
+        p.chmod(p.stat().st_mode & ~0o222)
+    try:
+        assert main([*ARGS, "--out", str(d)]) == 0
+    finally:
+        for p in [d, *d.rglob("*")]:
+            p.chmod(p.stat().st_mode | 0o200)

@@ -1,0 +1,219 @@
+"""Tests for the claims table, the certificates and their replay (soc_opt.verification.registry,
+.checks, .certificates, .replay; docs/math.md §5, §9).
+
+Every claim row is shown to be able to fail: a mutant (a library function replaced by a broken
+one: wrong sign, dropped term) makes the row's verdict differ from the expected verdict, and
+``soc-opt verify`` then exits non-zero.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from soc_opt import estep, mstep
+from soc_opt.cli import main
+from soc_opt.models import LinearGaussianPolicy
+from soc_opt.testing import random_augmented_model, random_initial_state, random_policy, sample_model_trajectory
+from soc_opt.verification import certificates, registry
+from soc_opt.verification import free_energy as fe
+from soc_opt.verification.replay import dense_smoother, replay, replay_file
+
+ROOT = Path(__file__).resolve().parents[1]
+CERTS = sorted((ROOT / registry.CERT_DIR).glob("*.json"))
+KEYS = [c.key for c in registry.CLAIMS]
+
+
+# --------------------------------------------------------------------------- the table
+
+
+def test_every_claim_reaches_its_expected_verdict_on_the_quick_run():
+    res = registry.run_claims(0, instances=12)
+    assert [r.claim.key for r in res] == KEYS
+    for r in res:
+        assert r.as_expected, (r.claim.key, r.verdict, r.as_written.held, r.as_written.instances)
+    doc = registry.verdicts_json(res)
+    json.dumps(doc)
+    assert doc["ok"] is True
+    for row in doc["claims"]:
+        assert {"expected", "verdict", "certificate", "statement", "hypotheses"} <= set(row)
+        if row["verdict"] != registry.HOLDS:
+            assert (ROOT / row["certificate"]).is_file()
+
+
+def test_claims_that_fail_as_written_all_have_a_committed_certificate():
+    failing = [c for c in registry.CLAIMS if c.expected != registry.HOLDS]
+    assert {c.certificate for c in failing} == {str(p.relative_to(ROOT)) for p in CERTS}
+
+
+# --------------------------------------------------------------------------- certificates and replay
+
+
+@pytest.mark.parametrize("path", CERTS, ids=[p.name for p in CERTS])
+def test_committed_certificate_replays_with_plain_numpy(path):
+    ok, lines = replay_file(path)
+    assert ok, "\n".join(lines)
+
+
+def test_searches_find_the_minimal_sizes_and_their_certificates_replay():
+    got = {}
+    for name, search in certificates.SEARCHES.items():
+        cert = search()
+        ok, lines = replay(json.loads(json.dumps(cert)))
+        assert ok, "\n".join(lines)
+        got[name] = (cert["n"], cert["m"], cert["T"])
+    assert got["uniqueness_n1_m2_T1.json"] == (1, 2, 1)  # m = 1 with a nonzero B is always unique
+    assert got["ltv_n1_m1_T1.json"] == (1, 1, 1)
+    assert got["cost_decrease_n1_m1_T1.json"] == (1, 1, 1)
+    assert got["uniqueness_sigma_n1_m1_T1.json"] == (1, 1, 1)
+    assert got["free_energy_rho_neg_d1.json"][0] == 1
+
+
+def test_replay_rejects_a_tampered_uniqueness_certificate():
+    cert = json.loads((ROOT / registry.CERT_DIR / "uniqueness_n1_m2_T1.json").read_text())
+    bad = copy.deepcopy(cert)
+    bad["data"]["F2"] = (np.asarray(bad["data"]["F2"]) + 0.5).tolist()  # no longer a maximiser
+    assert replay(cert)[0] and not replay(bad)[0]
+
+
+def test_replay_rejects_a_cost_certificate_whose_new_policy_is_the_old_one():
+    cert = json.loads((ROOT / registry.CERT_DIR / "cost_decrease_n1_m1_T1.json").read_text())
+    cert["data"]["new"] = cert["data"]["old"]
+    assert not replay(cert)[0]
+
+
+def test_replay_of_a_missing_or_malformed_file_names_it(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.json"):
+        replay_file(tmp_path / "nope.json")
+    p = tmp_path / "x.json"
+    p.write_text("{\"kind\": 1}")
+    with pytest.raises(ValueError, match="x.json"):
+        replay_file(p)
+
+
+@pytest.mark.parametrize("n,m,T", [(1, 1, 1), (2, 1, 3), (3, 2, 4)])
+def test_replay_dense_smoother_matches_the_library_smoother(n, m, T):
+    rng = np.random.default_rng(n * 100 + m * 10 + T)
+    model = random_augmented_model(rng, n, m, T)
+    pol = random_policy(rng, T, n, m)
+    mu0, P0 = random_initial_state(rng, n)
+    _, y = sample_model_trajectory(rng, model, pol, mu0, P0)
+    sm = estep.smooth(model, pol, y, mu0, P0)
+    md = {"Ao": model.Ao, "co": model.co, "So": model.So, "n": n}
+    mean, C, logp = dense_smoother(md, {"K": pol.K, "k": pol.k, "cov": pol.cov}, y, mu0, P0)
+    np.testing.assert_allclose(mean, sm.mean, atol=1e-9)
+    np.testing.assert_allclose(np.stack([C[k, :, k, :] for k in range(T + 1)]), sm.cov, atol=1e-9)
+    np.testing.assert_allclose(np.stack([C[k + 1, :, k, :] for k in range(T)]), sm.cross, atol=1e-9)
+    assert logp == pytest.approx(sm.loglik, abs=1e-9)
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def test_verify_replay_command_exit_status(tmp_path, capsys):
+    assert main(["verify", "--replay", *map(str, CERTS)]) == 0
+    assert "FAILS (reproduced)" in capsys.readouterr().out
+    cert = json.loads(CERTS[0].read_text())
+    cert["data"]["new" if "new" in cert["data"] else "F2"] = cert["data"].get("old", cert["data"].get("F1"))
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(cert))
+    assert main(["verify", "--replay", str(bad)]) == 1
+
+
+def test_verify_unknown_only_key_is_a_clear_error(capsys):
+    assert main(["verify", "--only", "dpsoc,nonsense"]) == 2
+    assert "nonsense" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- mutants
+
+
+def _drop_offset(monkeypatch):
+    """Mutant: the surrogate ignores the offset k (a dropped term)."""
+    orig = mstep.objectives.surrogate_from_moments
+
+    def broken(model, mom, policy, include_constant=False):
+        p = LinearGaussianPolicy(policy.K, np.zeros_like(policy.k), policy.cov, allow_singular=True)
+        return orig(model, mom, p, include_constant)
+
+    monkeypatch.setattr(mstep.objectives, "surrogate_from_moments", broken)
+
+
+def _sigma_wrong_sign(monkeypatch):
+    """Mutant: +1/2 tr(H Sigma) instead of -1/2 tr(H Sigma) in the surrogate."""
+    orig = mstep.objectives.surrogate_from_moments
+
+    def broken(model, mom, policy, include_constant=False):
+        p0 = LinearGaussianPolicy(policy.K, policy.k, np.zeros_like(policy.cov), allow_singular=True)
+        v0 = orig(model, mom, p0, include_constant)
+        return 2 * v0 - orig(model, mom, policy, include_constant)
+
+    monkeypatch.setattr(mstep.objectives, "surrogate_from_moments", broken)
+
+
+def _exact_without_action_noise(monkeypatch):
+    """Mutant: the exact objective drops B Sigma B^T from its covariance (it becomes the surrogate)."""
+    monkeypatch.setattr(mstep, "exact_objective",
+                        lambda model, sm, y, p: mstep.surrogate(model, sm, y, p, include_constant=True))
+
+
+def _maximize_wrong_offset_sign(monkeypatch):
+    """Mutant: the M-step returns -k (wrong sign of the offset)."""
+    orig = mstep.maximize
+
+    def broken(*a, **kw):
+        p = orig(*a, **kw)
+        return LinearGaussianPolicy(p.K, -p.k - 0.5, p.cov)
+
+    monkeypatch.setattr(mstep, "maximize", broken)
+
+
+def _log_partition_drops_logdet(monkeypatch):
+    """Mutant: log E_P[exp(rho J)] without its -1/2 log|N| term."""
+    orig = fe.log_partition
+
+    def broken(mu, S, A, b, c, rho):
+        _, N, _, _ = fe._tilt_parts(*fe._quad_checked(mu, S, A, b, c)[:4], rho)
+        return orig(mu, S, A, b, c, rho) + 0.5 * np.linalg.slogdet(N)[1]
+
+    monkeypatch.setattr(fe, "log_partition", broken)
+
+
+MUTANTS = {
+    "uniqueness": _drop_offset,
+    "uniqueness_sigma": _sigma_wrong_sign,
+    "ltv": _exact_without_action_noise,
+    "dpsoc": _maximize_wrong_offset_sign,
+    "em_lemma": _maximize_wrong_offset_sign,
+    "cost_decrease": _exact_without_action_noise,
+    "free_energy": _log_partition_drops_logdet,
+    "hessian_impl": _drop_offset,
+}
+
+
+def test_every_claim_has_a_mutant():
+    assert set(MUTANTS) == set(KEYS)
+
+
+@pytest.mark.parametrize("key", KEYS)
+def test_mutant_makes_the_claim_row_fail(key, monkeypatch):
+    (ok,) = registry.run_claims(0, instances=6, only=(key,))
+    assert ok.as_expected
+    MUTANTS[key](monkeypatch)
+    (bad,) = registry.run_claims(0, instances=6, only=(key,))
+    assert not bad.as_expected, (key, bad.verdict)
+    assert bad.verdict == registry.FAILS
+
+
+def test_verify_exits_nonzero_when_a_claim_expected_to_hold_breaks(monkeypatch, capsys):
+    assert main(["verify", "--only", "dpsoc,ltv", "--instances", "4"]) == 0
+    capsys.readouterr()
+    _maximize_wrong_offset_sign(monkeypatch)
+    assert main(["verify", "--only", "dpsoc,ltv", "--instances", "4", "--json"]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    row = {r["key"]: r for r in doc["claims"]}["dpsoc"]
+    assert row["expected"] == "holds" and row["verdict"] == "fails" and doc["ok"] is False
