@@ -23,7 +23,7 @@ def main(argv=None):
             for k, v in rec.items():
                 if k.startswith("time_") and v is not None and np.isfinite(v):
                     rows.setdefault((method, rec.get("phase", "?"), k[5:]), []).append(float(v))
-    print(f"| method | phase of run | step | median (s) | mean (s) | n |\n|---|---|---|---|---|---|")
+    print("| method | phase of run | step | median (s) | mean (s) | n |\n|---|---|---|---|---|---|")
     for (method, phase, step), v in sorted(rows.items()):
         print(f"| {method} | {phase} | {step} | {np.median(v):.2f} | {np.mean(v):.2f} | {len(v)} |")
 

@@ -408,7 +408,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-kl", dest="no_kl", action="store_true", help="skip the KL-step comparison")
     s.set_defaults(func=_cmd_solvers)
 
-    from .bench import DEFAULT_PARTS as bench_default, PARTS as bench_parts
+    from .bench import DEFAULT_PARTS as bench_default
+    from .bench import PARTS as bench_parts
 
     b = add("bench", help="benchmarks: rollouts, fitting, E-step, M-step, LQG, full iterations")
     b.add_argument("--json", action="store_true")

@@ -7,7 +7,7 @@ import pytest
 from soc_opt.algorithms import DPSOCConfig, LQRFLMConfig, run_algorithm
 from soc_opt.config import ConfigError
 from soc_opt.kinematic.filter import KinematicFilteredPolicy
-from soc_opt.noise_aware import NoiseConfig
+from soc_opt.noise.aware import NoiseConfig
 from soc_opt.tasks import load_task
 
 

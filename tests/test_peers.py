@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from soc_opt.bench.lqg import make_instance
 from soc_opt.estep import smooth
 from soc_opt.lqg import kl_step, lqr
-from soc_opt.bench.lqg import make_instance
 from soc_opt.peers import PEERS, require, versions
 from soc_opt.peers import lqr as plqr
 from soc_opt.peers import smoothers as psm

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from soc_opt.cli import main
-from soc_opt.experiment import load_run_config
+from soc_opt.experiments.run import load_run_config
 from soc_opt.models import LinearGaussianPolicy
 from soc_opt.tasks import load_task
 
@@ -92,7 +92,7 @@ def _read_only(monkeypatch):
 
 
 def test_a_finished_run_opens_on_a_read_only_file_system(finished, monkeypatch, capsys):
-    from soc_opt.experiment import finished_run, run_experiment
+    from soc_opt.experiments.run import finished_run, run_experiment
 
     before = _files(finished)
     task = load_task("linear2d")

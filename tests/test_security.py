@@ -8,7 +8,7 @@ project reads: ``checkpoint.npz``, ``checkpoint.prev.npz``, the old ``checkpoint
 and policy files (``LinearGaussianPolicy.load``).  The real entry points (``soc-opt run``,
 ``soc-opt compare``, ``soc-opt convert-checkpoint`` without ``--trust``, the library loaders)
 must refuse them with a one-line error naming the file, and the marker must never appear.
-The library holds no unpickling call outside ``soc_opt.convert_checkpoint`` (checked by
+The library holds no unpickling call outside ``soc_opt.experiments.convert_checkpoint`` (checked by
 reading the sources).
 """
 
@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_statefile import Payload, bad_files
 
 from soc_opt.cli import main
-from test_statefile import Payload, bad_files
 
 ARGS = ["--method", "lqr-flm", "--iterations", "2", "--samples", "4", "--progress", "lines"]
 ROOT = Path(__file__).resolve().parents[1]
@@ -153,7 +153,7 @@ def test_convert_checkpoint_with_trust_turns_a_genuine_old_run_into_one_that_res
     """An old-format run (pickle of a real state, with the old header) converts and reads back."""
     import hashlib
 
-    from soc_opt.rundir import decode_checkpoint
+    from soc_opt.experiments.rundir import decode_checkpoint
 
     d = tmp_path / "old"
     shutil.copytree(finished, d)

@@ -1,4 +1,4 @@
-"""State files (soc_opt.statefile): exact round trips of every run state, layouts included, and
+"""State files (soc_opt.experiments.statefile): exact round trips of every run state, layouts included, and
 refusal of anything outside the schema (issue 18 items 1 and 2)."""
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig
-from soc_opt.experiment import run_experiment
-from soc_opt.lqg.moments import expected_cost
-from soc_opt.noise_aware import NoiseConfig
+from soc_opt.experiments.run import run_experiment
 from soc_opt.experiments.statefile import StateFileError, decode_state, encode_state, peek_state
+from soc_opt.lqg.moments import expected_cost
+from soc_opt.noise.aware import NoiseConfig
 from soc_opt.tasks import load_task
 
 BASE = LQRFLMConfig(iterations=3, samples=6, kl_budget=1.0)

@@ -201,7 +201,7 @@ def _first_cost(trial_dir):
 
 
 def test_a_grid_over_task_init_var_gives_trials_with_that_initial_covariance(tmp_path):
-    from soc_opt.sweep import run_trial
+    from soc_opt.sweeps.spec import run_trial
 
     data = {"tasks": ["linear2d"], "methods": ["lqr-flm"], "seeds": [0],
             "common": {"baseline": {"iterations": 1, "samples": 4}, "task": {"T": 10}},
@@ -232,7 +232,7 @@ def test_sweep_rejects_setting_both_task_and_baseline_init_var(tmp_path):
 
 
 def test_sweep_accepts_gym_tasks(tmp_path):
-    from soc_opt.sweep import run_trial
+    from soc_opt.sweeps.spec import run_trial
 
     data = {"tasks": ["gym:Reacher-v5"], "methods": ["lqr-flm"], "seeds": [0],
             "common": {"baseline": {"iterations": 1, "samples": 3}, "task": {"T": 5, "gym": {"reset_seed": 3}}}}

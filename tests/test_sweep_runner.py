@@ -22,8 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from soc_opt.experiment import run_experiment
-from soc_opt.sweep import load_sweep
+from soc_opt.experiments.run import run_experiment
+from soc_opt.sweeps.spec import load_sweep
 from soc_opt.tasks import load_task
 
 ROOT = Path(__file__).resolve().parents[1]

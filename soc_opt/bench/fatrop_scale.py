@@ -55,7 +55,7 @@ def _stage_function_mx(ca, n: int, m: int, kind: str, r: int = 0, _orig=None):
 
     if kind != "moment":
         return _orig(ca, n, m, kind, r)
-    nvp, nva = n * (n + 1) // 2, m * (m + 1) // 2
+    nvp = n * (n + 1) // 2
     mu, pv = ca.MX.sym("mu", n), ca.MX.sym("p", nvp)
     u = ca.MX.sym("u", F._n_controls(kind, n, m, r))
     sizes = [("A", n, n), ("B", n, m), ("c", n, 1), ("W", n, n), ("C", n + m, n + m), ("cl", n + m, 1),

@@ -34,8 +34,7 @@ def legacy_files(directory: str | Path) -> list[Path]:
 #: Modules of the pickles written before the package was grouped by concept, and where their
 #: classes live now.
 _MOVED = {"soc_opt.estimator": "soc_opt.noise.estimator", "soc_opt.mixture": "soc_opt.learning.mixture",
-          "soc_opt.fit": "soc_opt.learning.fit",
-          "soc_opt.noise_aware": "soc_opt.noise.aware"}
+          "soc_opt.fit": "soc_opt.learning.fit", "soc_opt.noise_aware": "soc_opt.noise.aware"}
 
 
 class _RenamingUnpickler(pickle.Unpickler):

@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-from ..bench.lqg import make_instance
+from ..testing import make_kl_instance as make_instance
 from ..lqg import kl_step, lqr
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, symmetrize
 from . import require

@@ -115,8 +115,7 @@ def run_soc_opt(model, policy, Y, mu0, P0) -> SmootherOutput:
 def _dynamax_params(lg: LGSSM, mu0, P0):
     """dynamax's time-varying dynamics: entry ``t + 1`` moves ``z_t`` to ``z_{t+1}`` (entry 0 unused),
     so the transitions are shifted by one step."""
-    from dynamax.linear_gaussian_ssm.inference import (ParamsLGSSM, ParamsLGSSMDynamics,
-                                                       ParamsLGSSMEmissions, ParamsLGSSMInitial)
+    from dynamax.linear_gaussian_ssm.inference import ParamsLGSSM, ParamsLGSSMDynamics, ParamsLGSSMEmissions, ParamsLGSSMInitial
     jnp = require("jax.numpy")
     T, n = lg.b.shape
     return ParamsLGSSM(

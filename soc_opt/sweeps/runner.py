@@ -7,7 +7,8 @@ Why Ray core tasks and not Ray Tune: docs/choices.md ("Sweeps").
 - Local by default: a private Ray instance on this machine's cores (no dashboard, quiet logs),
   shut down at the end; ``address`` joins an existing cluster instead (soc_opt installed on every
   node, ``OUT`` on a shared file system), with Ray's token authentication when a token is
-  available and ``RAY_AUTH_MODE`` is unset, as ``ray start --head`` decides (:func:`_use_ray_token`).  ``workers`` caps the trials in flight.
+  available and ``RAY_AUTH_MODE`` is unset, as ``ray start --head`` decides (:func:`_use_ray_token`).
+  ``workers`` caps the trials in flight.
 - A finished trial (``result.json`` present, same spec) is skipped; an unfinished or failed one
   is started again and resumes from its checkpoint.  A trial whose worker process dies is
   re-executed by Ray (``max_retries``) and resumes from its last checkpoint; when the retries are
