@@ -218,7 +218,7 @@ def peg_sequence(
     from ..tasks import load_task
 
     t = load_task(task)
-    base = load_run_config(task, None, paper=True, overrides={"iterations": iterations, "samples": samples},
+    base = load_run_config(task, paper=True, overrides={"iterations": iterations, "samples": samples},
                            method="lqr-flm").baseline
     cfg = base.replace(fit=base.fit.replace(**_GENERATOR_FIT))
     state = initial_state(t, cfg, seed)
@@ -330,6 +330,7 @@ def run(
     tables: bool = True,
     repeats: int = 3,
     settings: bool = True,
+    quick: bool = False,
 ) -> list[dict]:
     """Fit times with/without the mixture prior on a synthetic system of size ``(n, m, T)``, plus the tables.
 
@@ -341,7 +342,8 @@ def run(
     convergence, few-sample and pendulum tables follow as rows, and with
     ``settings`` the peg settings table (:func:`settings_table`; ~15 minutes on the
     shared 2-core machine at load ~6, almost all of it the reference setting, which
-    refits from scratch every iteration).
+    refits from scratch every iteration).  ``quick``: the tables and the settings table on tiny
+    sizes (one seed; the settings on 2 LQR-FLM iterations of ``linear2d``), to check the code path.
     """
     rng = np.random.default_rng(seed)
     system = random_ltv_system(rng, n, m, T)
@@ -363,15 +365,24 @@ def run(
     rows.append({**base, "method": "mixture", "prior_s": t_prior, "augmented_s": t_mix, "dynamics_s": t_mix_d,
                  "total_s": t_prior + t_mix, "components": prior.n_components, "vb_iter": prior.n_iter,
                  "heldout_mse": float(prediction_error(mix, test).mean())})
+    small = {"seeds": (0,), "T": 10} if quick else {}
     if tables:
         errs = ("err_A", "err_B", "err_c", "err_W")
-        rows += summarize(convergence_table(), errs, ("table", "prior", "M"))
+        rows += summarize(convergence_table(**({"Ms": (5, 10)} if quick else {}), **small), errs,
+                          ("table", "prior", "M"))
         mse = ("mse_ls", "mse_prior", "mse_ref", "mse_y_ls", "mse_y_prior")
-        rows += summarize(few_sample_table(), mse, ("table", "M"))
-        rows += summarize(pendulum_table(), mse, ("table", "M"))
+        rows += summarize(few_sample_table(**({"Ms": (3,), "M_test": 5} if quick else {}), **small), mse,
+                          ("table", "M"))
+        rows += summarize(pendulum_table(**({"Ms": (2,), "M_test": 5} if quick else {}), **small), mse,
+                          ("table", "M"))
     if settings:
-        rows += settings_table(seed=seed)
+        data = peg_sequence(iterations=2, samples=4, n_test=4, seed=seed, task="linear2d") if quick else None
+        rows += settings_table(settings=SETTINGS[:2] if quick else SETTINGS, data=data, seed=seed)
     return rows
+
+
+#: ``soc-opt bench --quick``: tiny sizes that run every code path in seconds.
+QUICK = {"M": 5, "T": 10, "n": 3, "m": 2, "repeats": 1, "quick": True}
 
 
 if __name__ == "__main__":
