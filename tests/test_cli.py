@@ -298,8 +298,8 @@ def test_help_shows_the_defaults_including_the_method():
     assert "(default: None)" not in text and "(default: False)" not in text
 
 
-@pytest.mark.parametrize("text, named", [("init_var = -1.0", "baseline.init_var: must be positive, got -1.0"),
-                                         ("kl_budget = 0.0", "baseline.kl_budget: must be positive, got 0.0")])
+@pytest.mark.parametrize("text, named", [("init_var = -1.0", "baseline.init_var: must be > 0 or None, got -1.0"),
+                                         ("kl_budget = 0.0", "baseline.kl_budget: must be > 0, got 0.0")])
 def test_non_positive_baseline_values_are_named_with_file_key_and_value(tmp_path, capsys, text, named):
     p = tmp_path / "bad.toml"
     p.write_text(f"[baseline]\n{text}\n")
