@@ -1,0 +1,59 @@
+"""Parameters of the kinematic estimator (``[baseline.noise.kinematic]``, ``docs/math.md §11``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from ...config import Config, Interval, Options
+
+__all__ = ["KinematicConfig"]
+
+
+@dataclass(frozen=True)
+class KinematicConfig(Config):
+    """The structured estimator of ``estimator = "kinematic"`` (``docs/math.md §11``; ``docs/noise.md`` §11).
+
+    It uses the robot's kinematics (MuJoCo forward kinematics and site Jacobians), not its
+    masses, inertia or damping; the acceleration map ``u = B a + D z + c + w`` is learned.
+
+    relin:          Gauss-Newton passes of the iterated smoother (relinearising ``h`` at the
+                    smoothed mean) after the first extended-Kalman pass.
+    em_iters:       EM iterations per learner iteration (E-step with the linearisation fixed,
+                    so the likelihood of the linearised model never decreases).
+    segments:       the acceleration map is constant over this many equal time segments
+                    (``T``: one map per step).
+    prior_strength: pseudo-count of the prior on each segment's map: the time-pooled moments of
+                    the same E-step (``0``: none, plain maximum likelihood per segment).
+    q_noise:        standard deviation (rad, or m for slide joints) per control step of the
+                    process noise on the joint-angle rows (residual of the kinematic rows).
+    s_floor:        eigenvalue floor of the acceleration noise ``S`` ((rad/s^2)^2).
+    p0:             variance of the known start state ``z_0`` (times ``I``).
+    warm_start:     start EM from the acceleration map of the sampling policy's filter (the
+                    previous iteration's) instead of ``B = D = c = 0``.
+    kl_model:       the LQR-FLM KL step's model: ``"plain"`` (the fit on the smoothed states as if
+                    the state were known) or ``"innovation"`` (its innovation form with the
+                    Kalman filter of that fit and ``R``, as in ``docs/noise.md`` §5: filter-error
+                    cost term and innovation noise; the policy still acts on the kinematic filter).
+    """
+
+    relin: int = 1
+    em_iters: int = 2
+    segments: int = 50
+    prior_strength: float = 20.0
+    q_noise: float = 0.007
+    s_floor: float = 1e-4
+    p0: float = 1e-6
+    warm_start: bool = True
+    kl_model: Literal["plain", "innovation"] = "plain"
+
+    _constraints = {
+        "relin": [Interval(0)],
+        "em_iters": [Interval(0)],
+        "segments": [Interval(1)],
+        "prior_strength": [Interval(0.0)],
+        "q_noise": [Interval(0.0)],
+        "s_floor": [Interval(0.0, None, "neither")],
+        "p0": [Interval(0.0, None, "neither")],
+        "kl_model": [Options(("plain", "innovation"))],
+    }

@@ -1,0 +1,125 @@
+"""EM for the acceleration map of the structured model (``docs/math.md §11.2``).
+
+E-step: the iterated extended RTS smoother (:mod:`soc_opt.noise.kinematic.smoother`).  M-step: the
+acceleration ``u_k = (qd_{k+1} - qd_k) / dt`` is a linear function of ``(z_k, z_{k+1})``, so its
+expected sufficient statistics against ``zeta_k = (a_k, z_k, 1)`` follow from the smoothed means
+*and* covariances (``Cov(z_k)``, ``Cov(z_{k+1}, z_k)``)::
+
+    E[zeta zeta^T] = zbar zbar^T + blockdiag(0, Cov(z_k), 0)
+    E[u zeta^T]    = ubar zbar^T + [0, Cov(u_k, z_k), 0],   Cov(u_k, z_k) = (Cov(qd_{k+1}, z_k) - Cov(qd_k, z_k)) / dt
+    E[u u^T]       = ubar ubar^T + Cov(u_k)
+
+summed over rollouts and the steps of a time segment, plus ``prior_strength`` times the
+time-pooled statistics per sample (a conjugate prior centred on the time-invariant map);
+``[B D c] = E[u zeta^T] E[zeta zeta^T]^{-1}``, ``S`` the expected residual covariance.
+With ``prior_strength = 0`` this is the exact M-step (the joint-angle rows' noise is fixed), so
+with the linearisation of ``h`` held fixed the likelihood never decreases.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .config import KinematicConfig
+from .model import AccelMap, KinematicModel, transition
+from .smoother import LinearGaussianZ, Smoothed, smooth
+
+__all__ = ["initial_map", "mstep", "EMResult", "fit", "z_model"]
+
+
+def initial_map(km: KinematicModel, s, rho2: float, floor: float) -> AccelMap:
+    """``B = D = c = 0`` and per-joint ``S = Var(d qd) / dt^2 - 2 rho2 / dt^2`` (floored) from the
+    second differences of the measured velocities (``docs/math.md §11.2``)."""
+    qd = km.z_of(s)[..., km.nq:]
+    dqd = np.diff(qd, axis=-2).reshape(-1, km.nq)
+    var = np.maximum(dqd.var(axis=0) / km.dt ** 2 - 2.0 * rho2 / km.dt ** 2, floor)
+    return AccelMap.zero(km.T, km.nq, km.m, np.broadcast_to(np.diag(var), (km.T, km.nq, km.nq)))
+
+
+def z_model(km: KinematicModel, accel: AccelMap, cfg: KinematicConfig) -> LinearGaussianZ:
+    """The transition in ``z`` of ``accel`` with the task's known start ``z_0 ~ N(z(x_0), p0 I)``."""
+    A, Bz, cz, Q = transition(accel, km.dt, km.c2, cfg.q_noise ** 2)
+    return LinearGaussianZ(A, Bz, cz, Q, km.z_of(km.task.x0), cfg.p0 * np.eye(km.nz))
+
+
+def _stats(sm: Smoothed, a: np.ndarray, nq: int, dt: float):
+    """Per-step sums over rollouts: ``Szz (T, p, p)``, ``Suz (T, nq, p)``, ``Suu (T, nq, nq)``."""
+    ms, Ps, X = sm.mean, sm.cov, sm.cross
+    M, T1, nz = ms.shape
+    T, m = T1 - 1, a.shape[-1]
+    v = slice(nq, nz)
+    ub = (ms[:, 1:, v] - ms[:, :-1, v]) / dt
+    Xv = X[:, :, v, v]
+    Cu = (Ps[:, 1:, v, v] + Ps[:, :-1, v, v] - Xv - np.swapaxes(Xv, -1, -2)) / dt ** 2
+    Cuz = (X[:, :, v, :] - Ps[:, :-1, v, :]) / dt
+    zeta = np.concatenate([a, ms[:, :-1], np.ones((M, T, 1))], axis=-1)
+    p = zeta.shape[-1]
+    zs = slice(m, m + nz)
+    Szz = np.einsum("mti,mtj->tij", zeta, zeta)
+    Szz[:, zs, zs] += Ps[:, :-1].sum(0)
+    Suz = np.einsum("mti,mtj->tij", ub, zeta)
+    Suz[:, :, zs] += Cuz.sum(0)
+    Suu = np.einsum("mti,mtj->tij", ub, ub) + Cu.sum(0)
+    return Szz, Suz, Suu, p
+
+
+def mstep(sm: Smoothed, a, dt: float, nq: int, segments: int, prior_strength: float, s_floor: float) -> AccelMap:
+    """The acceleration map maximising the expected log-likelihood (module docstring)."""
+    a = np.asarray(a, dtype=float)
+    M, T, m = a.shape
+    Szz, Suz, Suu, p = _stats(sm, a, nq, dt)
+    seg = np.minimum((np.arange(T) * segments) // T, segments - 1)
+    nseg = int(seg.max()) + 1
+    Gzz = np.stack([Szz[seg == g].sum(0) for g in range(nseg)])
+    Guz = np.stack([Suz[seg == g].sum(0) for g in range(nseg)])
+    Guu = np.stack([Suu[seg == g].sum(0) for g in range(nseg)])
+    cnt = np.array([M * np.sum(seg == g) for g in range(nseg)], dtype=float)
+    if prior_strength > 0:
+        w = prior_strength / (M * T)
+        Gzz = Gzz + w * Szz.sum(0)
+        Guz = Guz + w * Suz.sum(0)
+        Guu = Guu + w * Suu.sum(0)
+        cnt = cnt + prior_strength
+    scale = np.einsum("gii->g", Gzz) / p
+    Wt = np.linalg.solve(Gzz + 1e-10 * scale[:, None, None] * np.eye(p), np.swapaxes(Guz, 1, 2))
+    W = np.swapaxes(Wt, 1, 2)                                     # (G, nq, p)
+    S = (Guu - W @ np.swapaxes(Guz, 1, 2)) / cnt[:, None, None]
+    S = 0.5 * (S + np.swapaxes(S, 1, 2))
+    ev, V = np.linalg.eigh(S)
+    S = np.einsum("gij,gj,gkj->gik", V, np.maximum(ev, s_floor), V)
+    W, S = W[seg], S[seg]
+    return AccelMap(W[:, :, :m], W[:, :, m:m + 2 * nq], W[:, :, -1], S)
+
+
+class EMResult(NamedTuple):
+    """``accel``: the fitted map; ``smoothed``: the final E-step; ``loglik``: ``log p(s | a)`` summed
+    over rollouts before each M-step and after the last one (linearisation fixed), ``(em_iters + 1,)``."""
+
+    accel: AccelMap
+    smoothed: Smoothed
+    loglik: np.ndarray
+
+
+def fit(km: KinematicModel, s, a, rho2: float, cfg: KinematicConfig, init: AccelMap | None = None) -> EMResult:
+    """EM for the acceleration map from ``init`` (default :func:`initial_map`); ``docs/math.md §11.2``.
+
+    EKF pass, ``cfg.relin`` Gauss-Newton passes, then ``cfg.em_iters`` EM iterations with the
+    linearisation held fixed (at the mean of the last Gauss-Newton pass); the returned smoothed
+    moments are those of the last E-step.
+    """
+    s, a = np.asarray(s, dtype=float), np.asarray(a, dtype=float)
+    R = rho2 * np.eye(km.n)
+    accel = initial_map(km, s, rho2, cfg.s_floor) if init is None else init
+    lg = z_model(km, accel, cfg)
+    sm = smooth(km, lg, s, a, R)
+    for _ in range(cfg.relin):
+        sm = smooth(km, lg, s, a, R, sm.mean)
+    ll = [float(sm.loglik.sum())]
+    for _ in range(cfg.em_iters):
+        accel = mstep(sm, a, km.dt, km.nq, cfg.segments, cfg.prior_strength, cfg.s_floor)
+        lg = z_model(km, accel, cfg)
+        sm = smooth(km, lg, s, a, R, sm.z_lin, sm.lin)
+        ll.append(float(sm.loglik.sum()))
+    return EMResult(accel, sm, np.array(ll))

@@ -1,0 +1,48 @@
+"""The kinematic estimator in the learning loop (``docs/math.md §11.3``).
+
+One call per batch of rollouts: EM for the acceleration map (warm-started from the sampling
+policy's filter), the rollouts with ``s`` replaced by the smoothed states ``h(E[z_k | s, a])`` and
+their costs recomputed on them (what the paper's fit, prior and cost expansion then learn from),
+and the online filter the next policy acts on (exact ``h`` through MuJoCo, gains linearised along
+the mean smoothed trajectory).  Uses the robot's kinematics, not its masses, inertia or damping.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from ...models import Rollouts
+from . import em
+from .config import KinematicConfig
+from .filter import KinematicFilter, KinematicFilteredPolicy, build_filter
+from .model import KinematicModel
+
+__all__ = ["learn"]
+
+
+def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig) -> tuple[Rollouts, KinematicFilter, dict]:
+    """``(smoothed rollouts, filter, diagnostics)`` of ``rollouts`` sampled by ``sampler`` (module docstring).
+
+    Diagnostics: ``kin_loglik_first``/``kin_loglik_last`` (EM, summed over rollouts) and
+    ``kin_time`` (s).
+    """
+    t0 = time.perf_counter()
+    km = KinematicModel(task)
+    init = None
+    if cfg.warm_start and isinstance(sampler, KinematicFilteredPolicy):
+        init = sampler.filter.accel()
+    res = em.fit(km, rollouts.s, rollouts.a, float(task.rho2), cfg, init)
+    if float(task.rho2) == 0.0:  # exact: the smoother returns the measured states (h(z(s)) = s to 1e-15)
+        smoothed = rollouts
+    else:
+        xs = km.measure(res.smoothed.mean, False)
+        cost = np.asarray(task.cost(xs, rollouts.a))
+        smoothed = dataclasses.replace(rollouts, s=xs, cost=cost, y=np.exp(-task.y_scale * cost))
+    lg = em.z_model(km, res.accel, cfg)
+    filt = build_filter(km, res.accel, lg, res.smoothed.mean.mean(axis=0), float(task.rho2)).attach(km)
+    diag = {"kin_loglik_first": float(res.loglik[0]), "kin_loglik_last": float(res.loglik[-1]),
+            "kin_time": time.perf_counter() - t0}
+    return smoothed, filt, diag

@@ -1,0 +1,186 @@
+"""The structured model of a MuJoCo task: known kinematics, learned actuation (``docs/math.md §11.1``).
+
+Latent joint state ``z = (q, qd)`` over the task's state joints then extra joints (``nq`` each,
+``nz = 2 nq``).  The measurement map ``h(z)`` rebuilds the task's state vector (joint angles and
+velocities as they are, point positions by forward kinematics of ``q``, point velocities
+``J_p(q) qd``); its Jacobian comes from the same MuJoCo calls (``mj_kinematics``, ``mj_comPos``,
+``mj_comVel``, ``mj_jacSite``/``mj_jacBody``, ``mj_jacDot``).  For a point ``p(q)``,
+``d(J_p(q) qd)/dq = Jdot_p`` (the Hessian of ``p`` is symmetric), which is what ``mj_jacDot``
+returns for hinge and slide joints.
+
+Transition per control step (``dt = timestep * substeps``)::
+
+    q_{k+1}  = q_k + dt qd_k + c2 dt^2 u_k + w^q_k,     qd_{k+1} = qd_k + dt u_k
+    u_k      = B_k a_k + D_k z_k + c_k + w_k,           w_k ~ N(0, S_k),  w^q_k ~ N(0, q_var I)
+
+``c2 = (N + 1) / (2 N)`` for MuJoCo's semi-implicit Euler with ``N`` substeps under a constant
+acceleration (``1/2`` for the other integrators); ``w^q`` absorbs the residual of that
+idealisation.  Only the acceleration map ``(B, D, c, S)`` is learned (:mod:`soc_opt.noise.kinematic.em`).
+The model uses the robot's kinematics (not its masses, inertia or damping).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...models import ShapeError, check_array
+
+__all__ = ["KinematicModel", "AccelMap", "transition"]
+
+
+@dataclass(frozen=True)
+class AccelMap:
+    """The learned acceleration map ``u_k = B_k a_k + D_k z_k + c_k + w_k``, ``w_k ~ N(0, S_k)``.
+
+    Fields: ``B (T, nq, m)``, ``D (T, nq, nz)``, ``c (T, nq)``, ``S (T, nq, nq)`` (positive definite).
+    """
+
+    B: np.ndarray
+    D: np.ndarray
+    c: np.ndarray
+    S: np.ndarray
+
+    def __post_init__(self):
+        T, nq, m = np.shape(self.B)
+        for name, shape in (("B", (T, nq, m)), ("D", (T, nq, 2 * nq)), ("c", (T, nq)), ("S", (T, nq, nq))):
+            a = check_array(f"acceleration map {name}", getattr(self, name), shape).copy()
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+
+    @property
+    def T(self) -> int:
+        return self.B.shape[0]
+
+    @staticmethod
+    def zero(T: int, nq: int, m: int, S) -> "AccelMap":
+        """``B = D = c = 0`` and noise ``S (T, nq, nq)`` (the first EM round, ``docs/math.md §11.2``)."""
+        return AccelMap(np.zeros((T, nq, m)), np.zeros((T, nq, 2 * nq)), np.zeros((T, nq)), S)
+
+
+def transition(accel: AccelMap, dt: float, c2: float, q_var: float):
+    """``(A (T, nz, nz), Bz (T, nz, m), cz (T, nz), Q (T, nz, nz))`` of ``z_{k+1} = A z + Bz a + cz + noise``."""
+    T, nq, _ = accel.B.shape
+    nz = 2 * nq
+    F = np.eye(nz)
+    F[:nq, nq:] = dt * np.eye(nq)
+    Gm = np.concatenate([c2 * dt * dt * np.eye(nq), dt * np.eye(nq)], axis=0)  # (nz, nq)
+    A = F[None] + Gm[None] @ accel.D
+    Bz = Gm[None] @ accel.B
+    cz = accel.c @ Gm.T
+    Q = Gm[None] @ accel.S @ Gm.T[None]
+    Q[:, np.arange(nq), np.arange(nq)] += q_var
+    return A, Bz, cz, 0.5 * (Q + np.swapaxes(Q, 1, 2))
+
+
+class KinematicModel:
+    """``h``, its Jacobian and the kinematic constants of a :class:`~soc_opt.tasks.mujoco.MujocoTask`.
+
+    Attributes: ``n`` (task state), ``nq``, ``nz = 2 nq``, ``m``, ``T``, ``dt``, ``c2``,
+    ``zidx (nz,)`` (positions of ``(q, qd)`` in the task state, so ``z = x[..., zidx]``).
+    """
+
+    def __init__(self, task):
+        import mujoco
+
+        if getattr(task, "kind", None) != "mujoco":
+            raise TypeError(f"the kinematic estimator needs a MuJoCo task, got task {getattr(task, 'name', task)!r} "
+                            f"of kind {getattr(task, 'kind', type(task).__name__)!r}")
+        self.mj = mujoco
+        self.task = task
+        self.model = task.model
+        self.n, self.m, self.T, self.dt = int(task.n), int(task.m), int(task.T), float(task.dt)
+        self.nq = len(task.qpos_adr)
+        self.nz = 2 * self.nq
+        self.zidx = np.r_[task.state_qpos_idx, task.state_qvel_idx].astype(int)
+        self.qpos_adr = np.asarray(task.qpos_adr, dtype=int)
+        self.dof_adr = np.asarray(task.dof_adr, dtype=int)
+        N = int(task.substeps)
+        euler = int(self.model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_EULER)
+        self.c2 = (N + 1) / (2 * N) if euler else 0.5
+        self.points = list(task.point_refs)
+        self.pos_sl, self.vel_sl = task.layout["site_pos"], task.layout["site_vel"]
+        self._qinit = np.array(task._qinit)
+        self._local = threading.local()
+
+    def __getstate__(self):
+        return {"task": self.task}
+
+    def __setstate__(self, state):
+        self.__init__(state["task"])
+
+    @property
+    def _data(self):
+        """One ``MjData`` per thread (rollouts may run the filter in worker threads)."""
+        d = getattr(self._local, "data", None)
+        if d is None:
+            d = self._local.data = self.mj.MjData(self.model)
+        return d
+
+    def z_of(self, x) -> np.ndarray:
+        """``z = (q, qd)`` read off task states ``x (..., n)``."""
+        x = np.asarray(x, dtype=float)
+        if x.shape[-1] != self.n:
+            raise ShapeError(f"task states must have shape (..., {self.n}), got {x.shape}")
+        return x[..., self.zidx]
+
+    def measure(self, z, jacobian: bool = True):
+        """``h(z) (..., n)`` and, with ``jacobian``, ``H = dh/dz (..., n, nz)`` (``docs/math.md §11.1``)."""
+        z = np.asarray(z, dtype=float)
+        if z.shape[-1] != self.nz:
+            raise ShapeError(f"latent states z must have shape (..., {self.nz}), got {z.shape}")
+        lead = z.shape[:-1]
+        zf = z.reshape(-1, self.nz)
+        N, nq, n = zf.shape[0], self.nq, self.n
+        hx = np.zeros((N, n))
+        H = np.zeros((N, n, self.nz)) if jacobian else None
+        qi, vi = self.zidx[:nq], self.zidx[nq:]
+        hx[:, qi] = zf[:, :nq]
+        hx[:, vi] = zf[:, nq:]
+        if jacobian:
+            H[:, qi, np.arange(nq)] = 1.0
+            H[:, vi, nq + np.arange(nq)] = 1.0
+        if self.points:
+            self._points(zf, hx, H, self._data)
+        return (hx.reshape(lead + (n,)), H.reshape(lead + (n, self.nz))) if jacobian else hx.reshape(lead + (n,))
+
+    def _points(self, zf, hx, H, d):
+        mj, m = self.mj, self.model
+        nq, nv = self.nq, m.nv
+        dof, qadr = self.dof_adr, self.qpos_adr
+        jp, jr = np.zeros((3, nv)), np.zeros((3, nv))
+        jdp, jdr = np.zeros((3, nv)), np.zeros((3, nv))
+        o_p, o_v = self.pos_sl.start, self.vel_sl.start
+        # joints outside z keep their initial angle and zero velocity (written once: the
+        # kinematics calls read qpos/qvel and never write them)
+        d.qpos[:] = self._qinit
+        d.qvel[:] = 0.0
+        plan = []
+        for j, (kind, pid) in enumerate(self.points):
+            ps, vs = slice(o_p + 3 * j, o_p + 3 * j + 3), slice(o_v + 3 * j, o_v + 3 * j + 3)
+            if kind == "site":
+                plan.append((d.site_xpos[pid], int(m.site_bodyid[pid]), mj.mj_jacSite, pid, ps, vs))
+            else:
+                plan.append((d.xpos[pid], pid, mj.mj_jacBody, pid, ps, vs))
+        qpos, qvel = d.qpos, d.qvel
+        kin, compos, comvel, jacdot = mj.mj_kinematics, mj.mj_comPos, mj.mj_comVel, mj.mj_jacDot
+        for i in range(zf.shape[0]):
+            qd = zf[i, nq:]
+            qpos[qadr] = zf[i, :nq]
+            qvel[dof] = qd
+            kin(m, d)
+            compos(m, d)
+            if H is not None:
+                comvel(m, d)
+            for pos, body, jac, pid, ps, vs in plan:
+                jac(m, d, jp, jr, pid)
+                Jq = jp[:, dof]
+                hx[i, ps] = pos
+                hx[i, vs] = Jq @ qd
+                if H is not None:
+                    jacdot(m, d, jdp, jdr, pos, body)
+                    H[i, ps, :nq] = Jq
+                    H[i, vs, :nq] = jdp[:, dof]
+                    H[i, vs, nq:] = Jq

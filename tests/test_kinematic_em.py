@@ -1,0 +1,71 @@
+"""Tests for soc_opt/noise/kinematic/em.py (docs/math.md §11.2): the likelihood never decreases, the
+M-step is least squares on exact states, the first round's noise follows the second differences."""
+
+import numpy as np
+import pytest
+
+from soc_opt.noise.kinematic import em
+from soc_opt.noise.kinematic.config import KinematicConfig
+from soc_opt.noise.kinematic.model import KinematicModel
+from soc_opt.noise.kinematic.smoother import smooth
+from soc_opt.tasks import load_task
+
+
+@pytest.fixture(scope="module", params=["peg", "door"])
+def data(request):
+    task = load_task(request.param)
+    km = KinematicModel(task)
+    ro = task.rollouts(task.initial_policy(1.0), 6, np.random.default_rng(5))
+    return task, km, ro
+
+
+@pytest.mark.parametrize("segments,prior", [(1, 0.0), (10, 0.0), (100, 0.0)])
+def test_em_likelihood_never_decreases(data, segments, prior):
+    task, km, ro = data
+    cfg = KinematicConfig(em_iters=5, segments=segments, prior_strength=prior)
+    res = em.fit(km, ro.s, ro.a, 0.1, cfg)
+    ll = res.loglik
+    assert ll.shape == (6,)
+    assert np.all(np.diff(ll) >= -1e-8 * np.abs(ll[:-1])), ll
+
+
+def test_mstep_on_exact_states_is_least_squares():
+    """rho^2 = 0: the smoothed states are the measured ones, the M-step is ordinary least squares.
+    (Peg: every regressor varies; on door the hinge is still under the initial policy, so the
+    normal equations are singular up to the ridge.)"""
+    task = load_task("peg")
+    km = KinematicModel(task)
+    ro = task.rollouts(task.initial_policy(1.0), 6, np.random.default_rng(5))
+    cfg = KinematicConfig()
+    lg = em.z_model(km, em.initial_map(km, ro.x, 0.0, 1e-4), cfg)
+    sm = smooth(km, lg, ro.x, ro.a, np.zeros((km.n, km.n)))
+    acc = em.mstep(sm, ro.a, km.dt, km.nq, 1, 0.0, 1e-12)
+    z = km.z_of(ro.x)
+    u = (z[:, 1:, km.nq:] - z[:, :-1, km.nq:]) / km.dt
+    X = np.concatenate([ro.a, z[:, :-1], np.ones(ro.a.shape[:2] + (1,))], axis=-1).reshape(-1, km.m + km.nz + 1)
+    W = np.linalg.lstsq(X, u.reshape(-1, km.nq), rcond=None)[0].T
+    Wk = np.concatenate([acc.B[0], acc.D[0], acc.c[0][:, None]], axis=1)
+    fit_ls, fit_em = X @ W.T, X @ Wk.T
+    np.testing.assert_allclose(fit_em, fit_ls, rtol=0, atol=1e-6 * np.abs(fit_ls).max())
+    res = u.reshape(-1, km.nq) - fit_ls
+    np.testing.assert_allclose(acc.S[0], res.T @ res / len(res), rtol=1e-6, atol=1e-8 * np.abs(res).max() ** 2)
+
+
+def test_prior_pulls_segments_towards_the_time_invariant_map(data):
+    task, km, ro = data
+    res = em.fit(km, ro.s, ro.a, 0.1, KinematicConfig(em_iters=1))
+    sm = res.smoothed
+    pooled = em.mstep(sm, ro.a, km.dt, km.nq, 1, 0.0, 1e-4)
+    free = em.mstep(sm, ro.a, km.dt, km.nq, 100, 0.0, 1e-4)
+    strong = em.mstep(sm, ro.a, km.dt, km.nq, 100, 1e7, 1e-4)
+    d = lambda x: np.abs(x.B - pooled.B).max()  # noqa: E731
+    assert d(strong) < 1e-3 * d(free)
+
+
+def test_initial_noise_is_second_difference_variance_minus_measurement_noise(data):
+    task, km, ro = data
+    acc = em.initial_map(km, ro.s, 0.1, 1e-4)
+    qd = km.z_of(ro.s)[..., km.nq:]
+    v = np.diff(qd, axis=1).reshape(-1, km.nq).var(axis=0) / km.dt ** 2 - 0.2 / km.dt ** 2
+    np.testing.assert_allclose(np.diagonal(acc.S[0]), np.maximum(v, 1e-4))
+    assert not acc.B.any() and not acc.D.any() and not acc.c.any()

@@ -1,0 +1,88 @@
+"""Tests for soc_opt/noise/kinematic/filter.py and loop.py (docs/math.md §11.3): the online filter in
+rollouts equals the offline one, it is exact at rho^2 = 0, it is saved as plain arrays."""
+
+import pickle
+
+import numpy as np
+import pytest
+
+from soc_opt.models import LinearGaussianPolicy, ShapeError
+from soc_opt.noise.kinematic import loop
+from soc_opt.noise.kinematic.config import KinematicConfig
+from soc_opt.noise.kinematic.filter import KinematicFilteredPolicy
+from soc_opt.noise.kinematic.model import KinematicModel
+from soc_opt.tasks import load_task
+
+
+@pytest.fixture(scope="module")
+def peg():
+    task = load_task("peg")
+    ro = task.rollouts(task.initial_policy(0.3), 8, np.random.default_rng(2))
+    smoothed, filt, diag = loop.learn(task, ro, task.initial_policy(0.3), KinematicConfig())
+    return task, ro, smoothed, filt, diag
+
+
+def _policy(task, rng):
+    K = 0.05 * rng.standard_normal((task.T, task.m, task.n))
+    return LinearGaussianPolicy(K, np.zeros((task.T, task.m)), np.broadcast_to(0.3 * np.eye(task.m), (task.T, task.m, task.m)).copy())
+
+
+def test_online_filter_in_rollouts_equals_offline_filter(peg):
+    task, ro, _, filt, _ = peg
+    pol = KinematicFilteredPolicy(_policy(task, np.random.default_rng(0)), filt)
+    r = task.rollouts(pol, 3, np.random.default_rng(1))
+    xhat = filt.states(r.s, r.a)
+    w_free = r.a - np.einsum("tij,mtj->mti", pol.policy.K, xhat[:, :-1])
+    # the actions are K xhat + k + L w: recompute the same draws
+    rng = np.random.default_rng(1)
+    draws = task.draw_noise(3, rng)
+    expect = pol.policy.k[None] + np.einsum("tij,mtj->mti", pol.policy.chol, draws.w)
+    np.testing.assert_allclose(w_free, expect, atol=1e-10)
+
+
+def test_filter_beats_raw_measurement_and_smoother_beats_filter(peg):
+    task, ro, smoothed, filt, _ = peg
+    p = task.layout["site_pos"]
+    err = lambda e: np.sqrt(np.mean(e[..., p] ** 2))  # noqa: E731
+    raw, fil, smo = err(ro.s - ro.x), err(filt.states(ro.s, ro.a) - ro.x), err(smoothed.s - ro.x)
+    assert smo < fil < 0.5 * raw
+
+
+def test_smoothed_rollouts_carry_costs_of_the_smoothed_states(peg):
+    task, ro, smoothed, _, diag = peg
+    np.testing.assert_allclose(smoothed.cost, task.cost(smoothed.s, ro.a))
+    np.testing.assert_array_equal(smoothed.x, ro.x)
+    assert diag["kin_loglik_last"] >= diag["kin_loglik_first"]
+
+
+def test_rho2_zero_filter_returns_the_measurement():
+    task = load_task("peg", overrides={"rho2": 0.0})
+    ro = task.rollouts(task.initial_policy(0.3), 3, np.random.default_rng(0))
+    smoothed, filt, _ = loop.learn(task, ro, task.initial_policy(0.3), KinematicConfig())
+    np.testing.assert_allclose(smoothed.s, ro.s, atol=1e-12)
+    np.testing.assert_array_equal(filt.states(ro.s, ro.a), ro.s)
+
+
+def test_saved_as_plain_arrays_and_restored(peg, tmp_path):
+    task, ro, _, filt, _ = peg
+    pol = KinematicFilteredPolicy(_policy(task, np.random.default_rng(3)), filt)
+    path = tmp_path / "policy.npz"
+    np.savez(path, **pol.to_dict())
+    with np.load(path, allow_pickle=False) as d:
+        attached = KinematicFilteredPolicy.from_dict(d, task)
+        linear = KinematicFilteredPolicy.from_dict(d)
+    np.testing.assert_array_equal(attached.filter.states(ro.s, ro.a), filt.states(ro.s, ro.a))
+    np.testing.assert_array_equal(attached.filter.G, filt.G)
+    # without the task, h is the linearisation along the nominal: exact on the nominal itself
+    zbar = filt.zbar
+    np.testing.assert_allclose(linear.filter.h0, KinematicModel(task).measure(zbar, False), atol=1e-12)
+    pk = pickle.loads(pickle.dumps(pol))
+    np.testing.assert_array_equal(pk.filter.states(ro.s, ro.a), filt.states(ro.s, ro.a))
+
+
+def test_policy_shape_mismatch_is_named(peg):
+    task, _, _, filt, _ = peg
+    bad = LinearGaussianPolicy(np.zeros((task.T, task.m, 3)), np.zeros((task.T, task.m)),
+                               np.broadcast_to(np.eye(task.m), (task.T, task.m, task.m)).copy())
+    with pytest.raises(ShapeError, match="kinematic filter"):
+        KinematicFilteredPolicy(bad, filt)
