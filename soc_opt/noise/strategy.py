@@ -108,8 +108,11 @@ class NoiseStrategy:
     Construct through :func:`resolve`.  ``cfg``: the ``[baseline.noise]`` table; ``task``: the
     task (its ``mu0``, ``P0``, ``rho2``).  :attr:`noise` (the known noise model, docs/math.md
     §10) is computed on first use, so the paper's method never builds it.  Subclasses override
-    ``lqg_model``, ``em_model`` and ``gains`` (the estimator in the loop); ``estimate``, ``fit``
-    and ``expansion_point`` implement the options shared by all estimators.
+    ``lqg_model``, ``em_model`` and ``gains`` (the estimator in the loop), and ``estimate`` when
+    the estimator works on each batch (e.g. the kinematic smoother, which returns the rollouts
+    to learn from and its filter in the :class:`Estimates`); ``estimate``, ``fit`` and
+    ``expansion_point`` implement the options shared by all estimators.  Nothing per iteration
+    is kept on the object: it lives in the :class:`Estimates` of the batch.
     """
 
     name = ""
