@@ -14,12 +14,12 @@ import time
 
 import numpy as np
 
-from soc_opt.kinematic import em, loop
-from soc_opt.kinematic.config import KinematicConfig
-from soc_opt.kinematic.filter import build_filter
-from soc_opt.kinematic.model import KinematicModel
-from soc_opt.kinematic.smoother import smooth
 from soc_opt.models import Rollouts
+from soc_opt.noise.kinematic import em, loop
+from soc_opt.noise.kinematic.config import KinematicConfig
+from soc_opt.noise.kinematic.filter import build_filter
+from soc_opt.noise.kinematic.model import KinematicModel
+from soc_opt.noise.kinematic.smoother import smooth
 from soc_opt.tasks import load_task
 
 

@@ -29,13 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from soc_opt import fit, noise_aware
-from soc_opt.kinematic import loop
-from soc_opt.kinematic.config import KinematicConfig
-from soc_opt.kinematic.filter import KinematicFilteredPolicy
-from soc_opt.kinematic.model import KinematicModel
+from soc_opt.learning import fit
+from soc_opt.noise import aware as noise_aware
 from soc_opt.noise.aware import NoiseConfig
 from soc_opt.noise.estimator import filter_states
+from soc_opt.noise.kinematic import loop
+from soc_opt.noise.kinematic.config import KinematicConfig
+from soc_opt.noise.kinematic.filter import KinematicFilteredPolicy
+from soc_opt.noise.kinematic.model import KinematicModel
 from soc_opt.tasks import load_task
 
 SECTION10 = NoiseConfig(estimator="kalman", fit_correction="ssm_em", time_window=5)

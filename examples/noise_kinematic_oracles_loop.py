@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from soc_opt.experiments.run import load_run_config, run_experiment
-from soc_opt.kinematic import loop
 from soc_opt.noise.aware import NoiseConfig, gains
+from soc_opt.noise.kinematic import loop
 from soc_opt.tasks import load_task
 
 _learn = loop.learn

@@ -17,8 +17,8 @@ import time
 import numpy as np
 
 from soc_opt.experiments.run import load_run_config, run_experiment
-from soc_opt.kinematic.config import KinematicConfig
 from soc_opt.noise.aware import NoiseConfig
+from soc_opt.noise.kinematic.config import KinematicConfig
 from soc_opt.tasks import load_task
 
 

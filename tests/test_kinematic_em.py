@@ -1,13 +1,13 @@
-"""Tests for soc_opt/kinematic/em.py (docs/math.md §11.2): the likelihood never decreases, the
+"""Tests for soc_opt/noise/kinematic/em.py (docs/math.md §11.2): the likelihood never decreases, the
 M-step is least squares on exact states, the first round's noise follows the second differences."""
 
 import numpy as np
 import pytest
 
-from soc_opt.kinematic import em
-from soc_opt.kinematic.config import KinematicConfig
-from soc_opt.kinematic.model import KinematicModel
-from soc_opt.kinematic.smoother import smooth
+from soc_opt.noise.kinematic import em
+from soc_opt.noise.kinematic.config import KinematicConfig
+from soc_opt.noise.kinematic.model import KinematicModel
+from soc_opt.noise.kinematic.smoother import smooth
 from soc_opt.tasks import load_task
 
 

@@ -1,4 +1,4 @@
-"""Tests for soc_opt/kinematic/filter.py and loop.py (docs/math.md §11.3): the online filter in
+"""Tests for soc_opt/noise/kinematic/filter.py and loop.py (docs/math.md §11.3): the online filter in
 rollouts equals the offline one, it is exact at rho^2 = 0, it is saved as plain arrays."""
 
 import pickle
@@ -6,11 +6,11 @@ import pickle
 import numpy as np
 import pytest
 
-from soc_opt.kinematic import loop
-from soc_opt.kinematic.config import KinematicConfig
-from soc_opt.kinematic.filter import KinematicFilteredPolicy
-from soc_opt.kinematic.model import KinematicModel
 from soc_opt.models import LinearGaussianPolicy, ShapeError
+from soc_opt.noise.kinematic import loop
+from soc_opt.noise.kinematic.config import KinematicConfig
+from soc_opt.noise.kinematic.filter import KinematicFilteredPolicy
+from soc_opt.noise.kinematic.model import KinematicModel
 from soc_opt.tasks import load_task
 
 

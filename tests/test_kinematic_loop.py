@@ -1,4 +1,4 @@
-"""The kinematic estimator in the loop (soc_opt/kinematic/loop.py; its wiring in
+"""The kinematic estimator in the loop (soc_opt/noise/kinematic/loop.py; its wiring in
 soc_opt/algorithms.py and the [baseline.noise] knob, docs/math.md §11.3)."""
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 
 from soc_opt.algorithms import DPSOCConfig, LQRFLMConfig, run_algorithm
 from soc_opt.config import ConfigError
-from soc_opt.kinematic.filter import KinematicFilteredPolicy
 from soc_opt.noise.aware import NoiseConfig
+from soc_opt.noise.kinematic.filter import KinematicFilteredPolicy
 from soc_opt.tasks import load_task
 
 
@@ -59,3 +59,22 @@ def test_innovation_kl_model_runs_the_kl_step_on_the_innovation_form():
     assert not np.allclose(st.prev.model.P0, 1e-6 * np.eye(task.n))
     with pytest.raises(ConfigError, match="kl_model"):
         NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"kl_model": "lqg"}})
+
+
+
+def test_the_kinematic_strategy_keeps_no_per_iteration_state():
+    """The batch's smoothed rollouts and filter travel in the Estimates and the run state, not on the
+    (memoised, run-wide) strategy object: iterating leaves its attributes as resolved."""
+    from soc_opt.noise.kinematic_strategy import KinematicEstimator
+    from soc_opt.noise.strategy import resolve
+
+    task = load_task("peg", overrides={"T": 30})
+    noise = NoiseConfig(estimator="kinematic")
+    strategy = resolve(task, noise)
+    assert isinstance(strategy, KinematicEstimator)
+    base = LQRFLMConfig(iterations=2, samples=6, init_var=1.0, noise=noise)
+    st = run_algorithm(task, "dpsoc-em", DPSOCConfig(baseline=base, i_switch=1), seed=0)
+    assert isinstance(st.policy, KinematicFilteredPolicy)
+    assert resolve(task, noise) is strategy
+    assert set(vars(strategy)) == {"task", "cfg", "_noise"}
+    assert strategy.task is task and strategy.cfg is noise

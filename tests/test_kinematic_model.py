@@ -1,4 +1,4 @@
-"""Tests for soc_opt/kinematic/model.py: h reproduces the task's state, its Jacobian matches
+"""Tests for soc_opt/noise/kinematic/model.py: h reproduces the task's state, its Jacobian matches
 finite differences, and the kinematic rows match MuJoCo's semi-implicit Euler (docs/math.md §11.1)."""
 
 import pickle
@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from soc_opt.kinematic.model import AccelMap, KinematicModel, transition
 from soc_opt.models import ShapeError
+from soc_opt.noise.kinematic.model import AccelMap, KinematicModel, transition
 from soc_opt.tasks import load_task
 
 

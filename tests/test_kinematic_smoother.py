@@ -1,4 +1,4 @@
-"""Tests for soc_opt/kinematic/smoother.py (docs/math.md §11.2): exact at rho^2 = 0, equal to
+"""Tests for soc_opt/noise/kinematic/smoother.py (docs/math.md §11.2): exact at rho^2 = 0, equal to
 the dense Gaussian posterior of the linearised model, and better than the raw measurement."""
 
 import math
@@ -6,11 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from soc_opt.kinematic import em
-from soc_opt.kinematic.config import KinematicConfig
-from soc_opt.kinematic.model import KinematicModel
-from soc_opt.kinematic.smoother import LinearGaussianZ, smooth
 from soc_opt.models import ShapeError
+from soc_opt.noise.kinematic import em
+from soc_opt.noise.kinematic.config import KinematicConfig
+from soc_opt.noise.kinematic.model import KinematicModel
+from soc_opt.noise.kinematic.smoother import LinearGaussianZ, smooth
 from soc_opt.tasks import load_task
 
 

@@ -8,7 +8,7 @@ from soc_opt.learning.fit import FitConfig
 from soc_opt.noise import aware as noise_aware
 from soc_opt.noise.aware import NoiseConfig
 from soc_opt.noise.estimator import FilteredPolicy
-from soc_opt.noise.strategy import KalmanEstimator, MeasuredState, resolve, strategy_class
+from soc_opt.noise.strategy import Estimates, KalmanEstimator, MeasuredState, resolve, strategy_class
 from soc_opt.tasks import load_task
 
 
@@ -43,13 +43,14 @@ def test_paper_strategy_is_the_plain_fit_and_model(sampled):
     task, pol, ro = sampled
     s = resolve(task, NoiseConfig())
     cfg = FitConfig(prior="none")
-    assert s.estimate(None, ro, cfg, pol, np.random.default_rng(0)) == (None, None)
-    dyn = s.fit(ro, cfg, None, pol)
+    est = s.estimate(None, ro, cfg, pol, np.random.default_rng(0))
+    assert est == Estimates() and est.data(ro) is ro
+    dyn = s.fit(ro, cfg, est, pol)
     ref = fit.fit_dynamics(ro, cfg, None)
     np.testing.assert_array_equal(dyn.A, ref.A)
     np.testing.assert_array_equal(s.expansion_point(ro, dyn), ro.s.mean(axis=0))
     cost = task.cost_expansion(ro.s.mean(axis=0), ro.a.mean(axis=0))
-    local, wrap = s.lqg_model(dyn, cost)
+    local, wrap = s.lqg_model(dyn, cost, est)
     np.testing.assert_array_equal(local.mu0, task.mu0)
     np.testing.assert_array_equal(local.P0, task.P0)
     assert wrap(pol) is pol and s.gains(pol) is pol
@@ -58,9 +59,9 @@ def test_paper_strategy_is_the_plain_fit_and_model(sampled):
 def test_kalman_strategy_wraps_the_policy_with_the_filter_of_the_fit(sampled):
     task, pol, ro = sampled
     s = resolve(task, NoiseConfig(estimator="kalman"))
-    dyn = s.fit(ro, FitConfig(prior="none"), None, pol)
+    dyn = s.fit(ro, FitConfig(prior="none"), Estimates(), pol)
     cost = task.cost_expansion(ro.s.mean(axis=0), ro.a.mean(axis=0))
-    local, wrap = s.lqg_model(dyn, cost)
+    local, wrap = s.lqg_model(dyn, cost, Estimates())
     wrapped = wrap(pol)
     assert isinstance(wrapped, FilteredPolicy) and wrapped.policy is pol
     kf = noise_aware.loop_filter(dyn, noise_aware.noise_model(task), s.cfg)

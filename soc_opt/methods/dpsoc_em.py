@@ -21,7 +21,7 @@ from ..config import ConfigError
 from ..learning import fit
 from ..models import LinearGaussianPolicy, Rollouts
 from ..noise.estimator import FilteredPolicy
-from ..noise.strategy import NoiseStrategy, resolve
+from ..noise.strategy import Estimates, NoiseStrategy, resolve
 from .config import DPSOCConfig
 from .lqr_flm import LQRFLM, lqr_flm_iteration
 from .state import EMDiagnostics, RunState, improved, record, state_rng
@@ -34,7 +34,7 @@ __all__ = ["em_update", "dpsoc_iteration", "DPSOCEM", "DPSOC_EM"]
 
 def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | FilteredPolicy, rollouts: Rollouts,
               prior: fit.MixturePrior | None, rng: np.random.Generator,
-              recursion: int = 0, denoised: Rollouts | None = None, noise: NoiseStrategy | None = None
+              recursion: int = 0, estimates: Estimates | None = None, noise: NoiseStrategy | None = None
               ) -> tuple[LinearGaussianPolicy | FilteredPolicy, EMDiagnostics]:
     """One EM recursion (paper Algorithm 1): fit augmented model, generate ``Y``, E-step, DP M-step.
 
@@ -42,17 +42,24 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | Filte
     :class:`EMDiagnostics` (surrogate and ``log p(Y)`` before/after, timings).  With the
     estimator (docs/math.md §10.2) the E-/M-step run on the augmented model in ``xhat``, ``policy``'s gains
     read as acting on the new filter's estimate, and the EM policy is returned with that filter.
-    ``denoised``: the state estimates of ``rollouts`` (``NoiseStrategy.estimate``); ``noise``: the
-    run's noise strategy (default: resolved from ``cfg.baseline.noise``).
+    ``estimates``: what the strategy found in ``rollouts`` (``NoiseStrategy.estimate``, whose
+    ``prior`` must be ``prior``; default: nothing beyond ``prior``); the fit and the cost
+    observations use ``estimates.data(rollouts)``.  ``noise``: the run's noise strategy (default:
+    resolved from ``cfg.baseline.noise``).
     """
     em = cfg.em
     noise = resolve(task, cfg.baseline.noise) if noise is None else noise
+    if estimates is None:
+        estimates = Estimates(prior)
+    elif estimates.prior is not prior:
+        raise ValueError("em_update: estimates.prior is not prior (pass the Estimates of these rollouts)")
+    data = estimates.data(rollouts)
     t0 = time.perf_counter()
-    fitted = noise.fit(rollouts, cfg.baseline.fit, prior, policy, denoised, include_y=True)
-    model, mu0, P0, wrap = noise.em_model(fitted, f" (EM recursion {recursion})")
+    fitted = noise.fit(data, cfg.baseline.fit, estimates, policy, include_y=True)
+    model, mu0, P0, wrap = noise.em_model(fitted, estimates, f" (EM recursion {recursion})")
     t_fit = time.perf_counter() - t0
     policy = noise.gains(policy)
-    Y = fit.cost_observations(em.y_mode, rollouts, model, policy, mu0, P0, rng, n_samples=em.y_samples)
+    Y = fit.cost_observations(em.y_mode, data, model, policy, mu0, P0, rng, n_samples=em.y_samples)
 
     t0 = time.perf_counter()
     sm = estep.smooth(model, policy, Y, mu0, P0)
@@ -86,11 +93,12 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
         for r in range(cfg.em.n_em):
             t0 = time.perf_counter()
             rollouts = task.rollouts(policy, cfg.baseline.samples, rng, workers=cfg.baseline.workers)
-            t_roll = time.perf_counter() - t0
-            prior, denoised = noise.estimate(prior, rollouts, cfg.baseline.fit, policy, rng)
-            new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r, denoised=denoised,
-                                  noise=noise)
-            rec = record(state.iteration, "em", task, rollouts, timings={"rollouts": t_roll}, em=diag)
+            timings = {"rollouts": time.perf_counter() - t0}
+            est = noise.estimate(prior, rollouts, cfg.baseline.fit, policy, rng)
+            timings.update(est.timings)
+            prior = est.prior
+            new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r, estimates=est, noise=noise)
+            rec = record(state.iteration, "em", task, rollouts, timings=timings, em=diag)
             history = history + (rec,)
             best = improved(best, float(np.mean(rec.cost)), policy, state.iteration)
             policy = new

@@ -73,14 +73,16 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     timings["rollouts"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    prior, estimates = noise.estimate(state.prior, rollouts, cfg.fit, state.policy, rng)
-    dyn = noise.fit(rollouts, cfg.fit, prior, state.policy, estimates)
-    timings["fit"] = time.perf_counter() - t0
+    est = noise.estimate(state.prior, rollouts, cfg.fit, state.policy, rng)
+    timings.update(est.timings)
+    data = est.data(rollouts)  # what the learner fits on: the measured rollouts unless the estimator says
+    dyn = noise.fit(data, cfg.fit, est, state.policy)
+    timings["fit"] = time.perf_counter() - t0 - sum(est.timings.values())
 
-    s_bar = noise.expansion_point(rollouts, dyn)
+    s_bar = noise.expansion_point(data, dyn)
     a_bar = rollouts.a.mean(axis=0)
     cost = task.cost_expansion(s_bar, a_bar)
-    local, wrap = noise.lqg_model(dyn, cost, f" (iteration {state.iteration})")
+    local, wrap = noise.lqg_model(dyn, cost, est, f" (iteration {state.iteration})")
     ref = noise.gains(state.policy if reference is None else reference)
 
     mult = state.mult
@@ -104,7 +106,7 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
         iteration=state.iteration + 1,
         policy=wrap(res.policy),
         mult=mult,
-        prior=prior,
+        prior=est.prior,
         rng_state=rng.bit_generator.state,
         history=state.history + (rec,),
         prev=PreviousStep(local, ref),

@@ -5,5 +5,7 @@
 - :mod:`.aware`: the loop's noise-aware pieces and :class:`~soc_opt.noise.aware.NoiseConfig`,
   with the estimator table ``ESTIMATORS``;
 - :mod:`.strategy`: one :class:`~soc_opt.noise.strategy.NoiseStrategy` per run (what the loop calls);
-- :mod:`.lqg_reference`: exact LQG on a known linear system (§10.3).
+- :mod:`.lqg_reference`: exact LQG on a known linear system (§10.3);
+- :mod:`.kinematic` and :mod:`.kinematic_strategy`: the structured estimator that knows the
+  robot's kinematics (§11) and its strategy, ``estimator = "kinematic"``.
 """

@@ -37,7 +37,7 @@ the *measured* ``s_0``, so the true ``x_0`` has covariance ``task.P0 - R = 1e-6 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -65,6 +65,7 @@ from .estimator import (
     kalman_filter,
     measurement_noise,
 )
+from .kinematic.config import KinematicConfig
 from .noisefit import condition_joint, correct_joint, noise_action_cov, smooth_states
 
 __all__ = [
@@ -94,6 +95,7 @@ __all__ = [
 ESTIMATORS: dict[str, str] = {
     "none": "soc_opt.noise.strategy:MeasuredState",
     "kalman": "soc_opt.noise.strategy:KalmanEstimator",
+    "kinematic": "soc_opt.noise.kinematic_strategy:KinematicEstimator",
 }
 
 
@@ -104,9 +106,14 @@ class NoiseConfig(Config):
     Defaults select the paper's methods (no correction, no estimator).
 
     estimator:       a name in :data:`ESTIMATORS`: ``"none"`` (the policy acts on the measured
-                     ``s_k``: the paper) or ``"kalman"`` (it acts on ``xhat_k`` of a time-varying
+                     ``s_k``: the paper), ``"kalman"`` (it acts on ``xhat_k`` of a time-varying
                      Kalman filter built from the iteration's fitted model; KL step on the
-                     innovation form).  Allowed at ``rho2 = 0`` (the filter is then ``xhat = s``).
+                     innovation form) or ``"kinematic"`` (MuJoCo tasks; docs/math.md §11: the
+                     learner fits on the states of a structured smoother that knows the robot's
+                     kinematics, not its masses, inertia or damping, and the policy acts on that
+                     model's online filter; parameters in ``[baseline.noise.kinematic]``; needs
+                     the other options at their defaults).  Allowed at ``rho2 = 0`` (the filter
+                     is then ``xhat = s``).
     fit_correction:  ``"none"`` (the paper's fit), ``"moments"`` (bias-corrected NIW posterior
                      moments) or ``"ssm_em"`` (EM with latent true state and the NIW prior,
                      started from the paper's fit).
@@ -139,6 +146,8 @@ class NoiseConfig(Config):
     time_window:     ``h``: the noise-aware fits pool the tuple moments of the steps ``k-h..k+h``
                      (:func:`pool_moments`); ``0``: per step (docs/math.md §2's time-varying fit), ``h >= T``:
                      one time-invariant model.  Needs a ``fit_correction``.
+    kinematic:       parameters of ``estimator = "kinematic"``
+                     (:class:`soc_opt.noise.kinematic.config.KinematicConfig`).
     """
 
     estimator: str = "none"
@@ -152,6 +161,7 @@ class NoiseConfig(Config):
     expand_at: Literal["measured", "smoothed"] = "measured"
     prior_data: Literal["measured", "smoothed"] = "measured"
     pool: Literal["union", "anchored"] = "union"
+    kinematic: KinematicConfig = field(default_factory=KinematicConfig)
 
     _constraints = {
         "estimator": [Options(lambda: ESTIMATORS)],
@@ -168,6 +178,12 @@ class NoiseConfig(Config):
     }
 
     def __post_init__(self):
+        if self.estimator == "kinematic":
+            other = {"fit_correction": "none", "expand_at": "measured", "prior_data": "measured", "time_window": 0}
+            bad = [f"{k} = {getattr(self, k)!r}" for k, v in other.items() if getattr(self, k) != v]
+            if bad:
+                raise config_error("estimator", f"'kinematic' learns from its own smoothed states; {', '.join(bad)} "
+                                   "cannot be combined with it (leave them at their defaults)")
         if self.prior_data == "smoothed" and self.fit_correction != "ssm_em":
             raise config_error("prior_data", "'smoothed' fits the prior on smoothed states and needs "
                                f"fit_correction = 'ssm_em' (got {self.fit_correction!r})")

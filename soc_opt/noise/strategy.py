@@ -6,8 +6,10 @@ The loop (:mod:`soc_opt.methods.lqr_flm`, :mod:`soc_opt.methods.dpsoc_em`) calls
 strategy's operations and never branches on the configuration:
 
 ============================  ==================================================================
-``estimate``                  the iteration's mixture prior and the state estimates of the
-                              rollouts it was fitted on (``None``: the measured states)
+``estimate``                  what the estimator finds in one batch of rollouts, as an
+                              :class:`Estimates`: the mixture prior, state estimates for the fit
+                              correction, the rollouts the learner fits on and the estimator's
+                              own per-batch result (e.g. a filter)
 ``fit``                       the local model (dynamics, or the augmented model for EM) under the
                               fit correction (docs/math.md §10.1)
 ``expansion_point``           the ``(T+1, n)`` trajectory the cost is expanded around
@@ -16,6 +18,10 @@ strategy's operations and never branches on the configuration:
 ``gains``                     the linear-Gaussian part ``(K, k, Sigma)`` of a policy of this
                               estimator (what the KL step and the M-step read)
 ============================  ==================================================================
+
+The loop hands the :class:`Estimates` of a batch to that batch's ``fit``, ``lqg_model`` and
+``em_model`` and fits on :meth:`Estimates.data`; a strategy keeps no per-iteration state (it is
+shared by the whole run, and a run resumed in a new process must equal the uninterrupted one).
 
 The estimator (``NoiseConfig.estimator``) picks the class from
 :data:`soc_opt.noise.aware.ESTIMATORS`; the fit correction, expansion point and prior data are
@@ -28,8 +34,9 @@ defaults (:class:`MeasuredState`, no correction) are the paper's methods, bit fo
 from __future__ import annotations
 
 import importlib
+import types
 import weakref
-from typing import TYPE_CHECKING, Callable, NamedTuple
+from typing import TYPE_CHECKING, Any, Callable, Mapping, NamedTuple
 
 import numpy as np
 
@@ -43,12 +50,36 @@ from .estimator import FilteredPolicy
 if TYPE_CHECKING:
     from .aware import NoiseConfig
 
-__all__ = ["NoiseStrategy", "MeasuredState", "KalmanEstimator", "LoopModel", "EMModel", "resolve",
+__all__ = ["NoiseStrategy", "MeasuredState", "KalmanEstimator", "Estimates", "LoopModel", "EMModel", "resolve",
            "strategy_class"]
 
 
 def _identity(policy: LinearGaussianPolicy):
     return policy
+
+
+class Estimates(NamedTuple):
+    """What :meth:`NoiseStrategy.estimate` found in one batch of rollouts, for that batch's other operations.
+
+    prior:   the mixture prior after this batch (``None``: no mixture prior)
+    states:  the rollouts with state estimates for the fit correction (``prior_data = "smoothed"``;
+             ``None``: none)
+    learn:   the rollouts the learner fits on instead of the measured ones (``None``: the measured)
+    filter:  the estimator's own result for this batch, e.g. the filter its new policy acts on
+             (``None``: none)
+    timings: seconds the estimator spent, by name (merged into the iteration's timings, not
+             counted in its ``fit`` time)
+    """
+
+    prior: fit.MixturePrior | None = None
+    states: Rollouts | None = None
+    learn: Rollouts | None = None
+    filter: Any = None
+    timings: Mapping[str, float] = types.MappingProxyType({})
+
+    def data(self, rollouts: Rollouts) -> Rollouts:
+        """The rollouts the learner fits on: :attr:`learn`, or the measured ``rollouts``."""
+        return rollouts if self.learn is None else self.learn
 
 
 class LoopModel(NamedTuple):
@@ -77,8 +108,11 @@ class NoiseStrategy:
     Construct through :func:`resolve`.  ``cfg``: the ``[baseline.noise]`` table; ``task``: the
     task (its ``mu0``, ``P0``, ``rho2``).  :attr:`noise` (the known noise model, docs/math.md
     §10) is computed on first use, so the paper's method never builds it.  Subclasses override
-    ``lqg_model``, ``em_model`` and ``gains`` (the estimator in the loop); ``estimate``, ``fit``
-    and ``expansion_point`` implement the options shared by all estimators.
+    ``lqg_model``, ``em_model`` and ``gains`` (the estimator in the loop), and ``estimate`` when
+    the estimator works on each batch (e.g. the kinematic smoother, which returns the rollouts
+    to learn from and its filter in the :class:`Estimates`); ``estimate``, ``fit`` and
+    ``expansion_point`` implement the options shared by all estimators.  Nothing per iteration
+    is kept on the object: it lives in the :class:`Estimates` of the batch.
     """
 
     name = ""
@@ -103,24 +137,25 @@ class NoiseStrategy:
         return noise_aware.gains(policy)
 
     def estimate(self, prior, rollouts: Rollouts, fit_cfg: fit.FitConfig, sampler,
-                 rng: np.random.Generator) -> tuple[fit.MixturePrior | None, Rollouts | None]:
+                 rng: np.random.Generator) -> Estimates:
         """Step 2a: the mixture prior on the measured tuples (the paper), or on state estimates
-        (``prior_data = "smoothed"``: :func:`soc_opt.noise.aware.update_prior`); returns
-        ``(prior or None, rollouts with estimated states or None)``."""
+        (``prior_data = "smoothed"``: :func:`soc_opt.noise.aware.update_prior`), as
+        ``Estimates(prior or None, rollouts with estimated states or None)``."""
         if fit_cfg.prior != "mixture":
-            return None, None
+            return Estimates()
         if self.cfg.prior_data == "measured":
-            return fit.update_prior(prior, rollouts, fit_cfg, rng), None
-        return noise_aware.update_prior(prior, rollouts, fit_cfg, self.cfg, self.noise, sampler, rng)
+            return Estimates(fit.update_prior(prior, rollouts, fit_cfg, rng))
+        return Estimates(*noise_aware.update_prior(prior, rollouts, fit_cfg, self.cfg, self.noise, sampler, rng))
 
-    def fit(self, rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, sampler, estimates: Rollouts | None = None,
+    def fit(self, rollouts: Rollouts, fit_cfg: fit.FitConfig, estimates: Estimates, sampler,
             *, include_y: bool = False) -> LinearGaussianDynamics | AugmentedModel:
-        """Step 2b: the paper's fit (§2) or the corrected one (``fit_correction``, §10.1);
+        """Step 2b: the paper's fit (§2) or the corrected one (``fit_correction``, §10.1) of
+        ``rollouts`` (the loop passes ``estimates.data(measured)``) with ``estimates.prior``;
         ``include_y``: the augmented model of the EM phase."""
         if self.cfg.fit_correction == "none":
-            return (fit.fit_augmented if include_y else fit.fit_dynamics)(rollouts, fit_cfg, prior)
-        return noise_aware.fit_local(rollouts, fit_cfg, prior, self.cfg, self.noise, sampler, include_y=include_y,
-                                     denoised=estimates)
+            return (fit.fit_augmented if include_y else fit.fit_dynamics)(rollouts, fit_cfg, estimates.prior)
+        return noise_aware.fit_local(rollouts, fit_cfg, estimates.prior, self.cfg, self.noise, sampler,
+                                     include_y=include_y, denoised=estimates.states)
 
     def expansion_point(self, rollouts: Rollouts, dynamics: LinearGaussianDynamics) -> np.ndarray:
         """Step 3: where the cost is expanded (``expand_at``; :func:`soc_opt.noise.aware.expansion_point`)."""
@@ -128,12 +163,13 @@ class NoiseStrategy:
             return rollouts.s.mean(axis=0)
         return noise_aware.expansion_point(rollouts, dynamics, self.noise, self.cfg)
 
-    def lqg_model(self, dynamics: LinearGaussianDynamics, cost: QuadraticCost, where: str = "") -> LoopModel:
+    def lqg_model(self, dynamics: LinearGaussianDynamics, cost: QuadraticCost, estimates: Estimates,
+                  where: str = "") -> LoopModel:
         """Steps 4–5: the KL step's model; the policy acts on the measured state (the paper)."""
         mu0, P0 = self.initial_distribution()
         return LoopModel(LocalModel(dynamics, cost, mu0, P0), _identity)
 
-    def em_model(self, model: AugmentedModel, where: str = "") -> EMModel:
+    def em_model(self, model: AugmentedModel, estimates: Estimates, where: str = "") -> EMModel:
         """The EM recursion's model: the fit as is, ``s_0`` from the task (the paper)."""
         mu0, P0 = self.initial_distribution()
         return EMModel(model, mu0, P0, _identity)
@@ -152,11 +188,11 @@ class KalmanEstimator(NoiseStrategy):
 
     name = "kalman"
 
-    def lqg_model(self, dynamics, cost, where: str = "") -> LoopModel:
+    def lqg_model(self, dynamics, cost, estimates: Estimates, where: str = "") -> LoopModel:
         kf = noise_aware.loop_filter(dynamics, self.noise, self.cfg, where)
         return LoopModel(noise_aware.innovation_local_model(kf, cost), lambda policy: FilteredPolicy(policy, kf))
 
-    def em_model(self, model, where: str = "") -> EMModel:
+    def em_model(self, model, estimates: Estimates, where: str = "") -> EMModel:
         model, kf, mu0, P0 = noise_aware.filtered_em_model(model, self.noise, self.cfg, where)
         return EMModel(model, mu0, P0, lambda policy: FilteredPolicy(policy, kf))
 

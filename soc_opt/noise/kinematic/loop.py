@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from ..models import Rollouts
+from ...models import Rollouts
 from . import em
 from .config import KinematicConfig
 from .filter import KinematicFilter, KinematicFilteredPolicy, build_filter

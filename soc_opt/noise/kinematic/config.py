@@ -5,9 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-import numpy as np
-
-from ..config import Config
+from ...config import Config, Interval, Options
 
 __all__ = ["KinematicConfig"]
 
@@ -49,17 +47,13 @@ class KinematicConfig(Config):
     warm_start: bool = True
     kl_model: Literal["plain", "innovation"] = "plain"
 
-    def __post_init__(self):
-        for name in ("relin", "em_iters"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"kinematic.{name} must be >= 0, got {getattr(self, name)!r}")
-        if self.segments < 1:
-            raise ValueError(f"kinematic.segments must be >= 1, got {self.segments!r}")
-        for name in ("prior_strength", "q_noise"):
-            if not (np.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
-                raise ValueError(f"kinematic.{name} must be a finite number >= 0, got {getattr(self, name)!r}")
-        if self.kl_model not in ("plain", "innovation"):
-            raise ValueError(f"kinematic.kl_model must be 'plain' or 'innovation', got {self.kl_model!r}")
-        for name in ("s_floor", "p0"):
-            if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ValueError(f"kinematic.{name} must be a positive number, got {getattr(self, name)!r}")
+    _constraints = {
+        "relin": [Interval(0)],
+        "em_iters": [Interval(0)],
+        "segments": [Interval(1)],
+        "prior_strength": [Interval(0.0)],
+        "q_noise": [Interval(0.0)],
+        "s_floor": [Interval(0.0, None, "neither")],
+        "p0": [Interval(0.0, None, "neither")],
+        "kl_model": [Options(("plain", "innovation"))],
+    }

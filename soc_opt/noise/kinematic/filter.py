@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...models import LinearGaussianPolicy, ShapeError, check_array
 from ..estimator import FilteredPolicy
-from ..models import LinearGaussianPolicy, ShapeError, check_array
 from .model import AccelMap
 
 __all__ = ["KinematicFilter", "KinematicFilteredPolicy", "build_filter"]
@@ -117,7 +117,7 @@ class KinematicFilter:
         return km.measure(pred + (s_k - km.measure(pred, False)) @ self.G[k].T, False)
 
     def attach(self, km) -> "KinematicFilter":
-        """Evaluate ``h`` exactly (MuJoCo, ``km`` a :class:`~soc_opt.kinematic.model.KinematicModel` of
+        """Evaluate ``h`` exactly (MuJoCo, ``km`` a :class:`~soc_opt.noise.kinematic.model.KinematicModel` of
         the task) at the prediction and the estimate instead of its linearisation along ``zbar``;
         returns ``self``.  The gains stay those of the nominal linearisation."""
         if km.zidx.shape != self.zidx.shape or np.any(km.zidx != self.zidx) or km.n != self.n:

@@ -1,6 +1,6 @@
 """EM for the acceleration map of the structured model (``docs/math.md §11.2``).
 
-E-step: the iterated extended RTS smoother (:mod:`soc_opt.kinematic.smoother`).  M-step: the
+E-step: the iterated extended RTS smoother (:mod:`soc_opt.noise.kinematic.smoother`).  M-step: the
 acceleration ``u_k = (qd_{k+1} - qd_k) / dt`` is a linear function of ``(z_k, z_{k+1})``, so its
 expected sufficient statistics against ``zeta_k = (a_k, z_k, 1)`` follow from the smoothed means
 *and* covariances (``Cov(z_k)``, ``Cov(z_{k+1}, z_k)``)::

@@ -2,7 +2,7 @@
 (``docs/math.md §11.2``).
 
 Given measurements ``s (M, T+1, n)`` and actions ``a (M, T, m)``, the transition of
-:func:`soc_opt.kinematic.model.transition` (linear in ``z``) and the measurement
+:func:`soc_opt.noise.kinematic.model.transition` (linear in ``z``) and the measurement
 ``s = h(z) + eps``, ``eps ~ N(0, R)``, linearised per rollout and step around ``z_lin``
 (``s ~ h(z_lin) + H (z - z_lin) + eps``):
 
@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..models import ShapeError
+from ...models import ShapeError
 
 __all__ = ["Smoothed", "smooth", "LinearGaussianZ"]
 
@@ -72,7 +72,7 @@ def _exact(km, s) -> Smoothed:
 
 def smooth(km, lg: LinearGaussianZ, s, a, R, z_lin=None, lin=None) -> Smoothed:
     """One pass of the (iterated) extended RTS smoother (module docstring); ``km`` a
-    :class:`~soc_opt.kinematic.model.KinematicModel`, ``R (n, n)`` the measurement noise.
+    :class:`~soc_opt.noise.kinematic.model.KinematicModel`, ``R (n, n)`` the measurement noise.
     ``lin = (h(z_lin), H(z_lin))`` may be passed to reuse a linearisation (EM with it fixed)."""
     s, a = np.asarray(s, dtype=float), np.asarray(a, dtype=float)
     M, T1, n = s.shape

@@ -15,7 +15,7 @@ Transition per control step (``dt = timestep * substeps``)::
 
 ``c2 = (N + 1) / (2 N)`` for MuJoCo's semi-implicit Euler with ``N`` substeps under a constant
 acceleration (``1/2`` for the other integrators); ``w^q`` absorbs the residual of that
-idealisation.  Only the acceleration map ``(B, D, c, S)`` is learned (:mod:`soc_opt.kinematic.em`).
+idealisation.  Only the acceleration map ``(B, D, c, S)`` is learned (:mod:`soc_opt.noise.kinematic.em`).
 The model uses the robot's kinematics (not its masses, inertia or damping).
 """
 
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..models import ShapeError, check_array
+from ...models import ShapeError, check_array
 
 __all__ = ["KinematicModel", "AccelMap", "transition"]
 

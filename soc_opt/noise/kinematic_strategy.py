@@ -1,0 +1,59 @@
+"""``estimator = "kinematic"`` as the loop's noise strategy (docs/math.md §11.3).
+
+Per batch of rollouts, :meth:`KinematicEstimator.estimate` runs the structured smoother and EM of
+:mod:`soc_opt.noise.kinematic` (:func:`soc_opt.noise.kinematic.loop.learn`): the learner (mixture
+prior, fit, cost expansion, the EM phase's cost observations) then works on the smoothed rollouts
+(:attr:`Estimates.learn`), and the new policy acts on the batch's online filter
+(:attr:`Estimates.filter`, a :class:`~soc_opt.noise.kinematic.filter.KinematicFilteredPolicy`).
+Everything per batch travels in the :class:`~soc_opt.noise.strategy.Estimates`; the strategy
+holds none of it.  Registered in :data:`soc_opt.noise.aware.ESTIMATORS`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..lqg import LocalModel
+from ..models import symmetrize
+from . import aware as noise_aware
+from .kinematic import loop as kinematic_loop
+from .kinematic.filter import KinematicFilteredPolicy
+from .strategy import EMModel, Estimates, LoopModel, NoiseStrategy
+
+__all__ = ["KinematicEstimator"]
+
+
+class KinematicEstimator(NoiseStrategy):
+    """Learn from the kinematic smoother's states, act on its online filter (module docstring).
+
+    ``NoiseConfig`` requires the fit correction, expansion point, prior data and time window at
+    their defaults with this estimator, so the inherited ``fit`` and ``expansion_point`` are the
+    paper's, applied to the smoothed rollouts.  The known start ``x_0 ~ N(mu0, task.P0 - R)``
+    (docs/math.md §10) is the initial distribution of the KL step and the E-step.
+    """
+
+    name = "kinematic"
+
+    def estimate(self, prior, rollouts, fit_cfg, sampler, rng: np.random.Generator) -> Estimates:
+        """Smooth ``rollouts`` (sampled by ``sampler``), then the mixture prior on the smoothed tuples."""
+        learn, filt, diag = kinematic_loop.learn(self.task, rollouts, sampler, self.cfg.kinematic)
+        base = super().estimate(prior, learn, fit_cfg, sampler, rng)
+        return base._replace(learn=learn, filter=filt, timings={"estimator": diag["kin_time"]})
+
+    def _wrap(self, estimates: Estimates):
+        return lambda policy: KinematicFilteredPolicy(policy, estimates.filter)
+
+    def lqg_model(self, dynamics, cost, estimates: Estimates, where: str = "") -> LoopModel:
+        """The fit on the smoothed states from the known start (``kl_model = "plain"``), or its
+        innovation form with the Kalman filter of that fit (``"innovation"``, docs/math.md §10.2)."""
+        if self.cfg.kinematic.kl_model == "innovation":
+            kf = noise_aware.loop_filter(dynamics, self.noise, self.cfg, where)
+            local = noise_aware.innovation_local_model(kf, cost)
+        else:
+            local = LocalModel(dynamics, cost, self.noise.mu0, self.noise.P0)
+        return LoopModel(local, self._wrap(estimates))
+
+    def em_model(self, model, estimates: Estimates, where: str = "") -> EMModel:
+        """The fit on the smoothed states as is, from the known start (``P0`` plus ``estep_p0_jitter``)."""
+        P0 = symmetrize(self.noise.P0 + self.cfg.estep_p0_jitter * np.eye(model.n))
+        return EMModel(model, self.noise.mu0, P0, self._wrap(estimates))
