@@ -32,9 +32,9 @@ import time
 
 import numpy as np
 
-from ..testing import make_kl_instance as make_instance
 from ..lqg import kl_step, lqr
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, symmetrize
+from ..testing import make_kl_instance as make_instance
 from . import require
 
 __all__ = ["kl_cost", "mean_trajectory", "run_mpc", "compare"]
