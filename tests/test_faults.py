@@ -280,7 +280,7 @@ import soc_opt.experiments.rundir as rundir
 from soc_opt.algorithms import DPSOCConfig
 from soc_opt.experiments.run import RunDirectoryError, run_experiment
 from soc_opt.tasks import load_task
-task = load_task("linear2d", overrides=args["task_overrides"])
+task = load_task(args.get("task", "linear2d"), overrides=args["task_overrides"])
 cfg = DPSOCConfig.from_dict(args["cfg"])
 class Stop(Exception):
     pass
@@ -312,9 +312,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _child(method: str, out: Path, kill_at_write: int | None = None, wait: bool = False, *, cfg=CFG,
-           previous: bool = False, stop_after: int | None = None, task_overrides=None, seed=SEED) -> subprocess.Popen:
+           previous: bool = False, stop_after: int | None = None, task_overrides=None, seed=SEED,
+           task: str = "linear2d") -> subprocess.Popen:
     args = {"cfg": cfg.to_dict(), "method": method, "seed": seed, "out": str(out), "kill_at_write": kill_at_write,
-            "wait": wait, "previous": previous, "stop_after": stop_after,
+            "wait": wait, "previous": previous, "stop_after": stop_after, "task": task,
             "task_overrides": {"T": 15} if task_overrides is None else task_overrides}
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
     p = subprocess.Popen([sys.executable, "-c", CHILD, json.dumps(args)], stdin=subprocess.PIPE,
@@ -346,6 +347,21 @@ def test_every_iteration_in_its_own_process_equals_the_uninterrupted_run(tmp_pat
     for k in range(1, cfg.baseline.iterations):
         assert _resume_in_a_new_process(method, d, cfg=cfg, task_overrides={}, seed=0, stop_after=k) == "stopped"
     assert _resume_in_a_new_process(method, d, cfg=cfg, task_overrides={}, seed=0) == "done"
+    assert_same_run(d, ref)
+
+
+@pytest.mark.parametrize("method", ["lqr-flm", "dpsoc-em"])
+def test_a_kinematic_estimator_run_resumed_in_new_processes_equals_the_uninterrupted_run(tmp_path, method):
+    """Issues 18 x 19: the kinematic filter is stored as data (no MuJoCo model in the checkpoint) and
+    bound again to the task's model by the rollouts of the resumed process (``for_task``)."""
+    cfg = load_run_config("peg", ROOT / "docs/results/noise/peg_kinematic.toml", method=method,
+                          overrides={"iterations": 3, "samples": 6, "i_switch": 1})
+    kw = {"cfg": cfg, "task": "peg", "task_overrides": {"T": 25}, "seed": 0}
+    ref, d = tmp_path / "ref", tmp_path / "chain"
+    assert _resume_in_a_new_process(method, ref, **kw) == "done"
+    for k in range(1, cfg.baseline.iterations):
+        assert _resume_in_a_new_process(method, d, stop_after=k, **kw) == "stopped"
+    assert _resume_in_a_new_process(method, d, **kw) == "done"
     assert_same_run(d, ref)
 
 

@@ -56,11 +56,13 @@ def _schema() -> dict[str, type]:
     from ..methods import ilqg
     from ..methods import state as algorithms
     from ..noise import estimator
+    from ..noise.kinematic import filter as kinematic
 
     classes = [algorithms.RunState, algorithms.IterationRecord, algorithms.EMDiagnostics, algorithms.BestPolicy,
                algorithms.PreviousStep, models.LinearGaussianPolicy, models.LinearGaussianDynamics,
                models.QuadraticCost, models.Rollouts, estimator.FilteredPolicy, estimator.KalmanFilter,
-               step_size.LocalModel, mixture.MixturePrior, mixture.VBState, ilqg.ILQGState, ilqg.ILQGRecord]
+               step_size.LocalModel, mixture.MixturePrior, mixture.VBState, ilqg.ILQGState, ilqg.ILQGRecord,
+               kinematic.KinematicFilter, kinematic.KinematicFilteredPolicy]
     return {c.__name__: c for c in classes}
 
 

@@ -324,6 +324,11 @@ class FilteredPolicy:
     def m(self) -> int:
         return self.policy.m
 
+    def for_task(self, task) -> "FilteredPolicy":
+        """This policy as the rollouts of ``task`` run it (a Kalman filter needs nothing of the task;
+        an estimator whose filter evaluates the task's model binds it here)."""
+        return self
+
     def estimate(self, k: int, s_k, xhat_prev=None, a_prev=None) -> np.ndarray:
         """:func:`filter_step` with this policy's filter."""
         return filter_step(self.filter, k, s_k, xhat_prev, a_prev)

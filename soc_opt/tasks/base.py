@@ -293,7 +293,7 @@ class TaskBase:
         ``xhat_k``, run online inside the rollout; ``gains`` is its linear-Gaussian part.  A plain
         :class:`LinearGaussianPolicy` acts on the measured ``s_k`` (``filtered`` is ``None``).
         """
-        filtered = policy if isinstance(policy, FilteredPolicy) else None
+        filtered = policy.for_task(self) if isinstance(policy, FilteredPolicy) else None
         gains = policy.policy if filtered is not None else policy
         if not isinstance(gains, LinearGaussianPolicy):
             raise TypeError(f"policy must be a LinearGaussianPolicy or a FilteredPolicy, got {type(policy).__name__}")

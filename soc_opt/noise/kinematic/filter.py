@@ -187,6 +187,16 @@ class KinematicFilteredPolicy(FilteredPolicy):
         if (p.T, p.n, p.m) != (f.T, f.n, f.m):
             raise ShapeError(f"policy has (T, n, m) = {(p.T, p.n, p.m)} but its kinematic filter has {(f.T, f.n, f.m)}")
 
+    def for_task(self, task) -> "KinematicFilteredPolicy":
+        """The policy with its filter evaluating ``h`` through ``task``'s MuJoCo model, as in the loop
+        that made it: a filter read back from a checkpoint (data only, no model) is attached here, on
+        first use by the task's rollouts; an attached one is returned as is."""
+        if self.filter.__dict__.get("_km") is None:
+            from .model import KinematicModel
+
+            self.filter.attach(KinematicModel(task))
+        return self
+
     def estimate(self, k: int, s_k, xhat_prev=None, a_prev=None) -> np.ndarray:
         return self.filter.step(k, s_k, xhat_prev, a_prev)
 
