@@ -9,6 +9,7 @@ what differs.  Register an instance in :data:`soc_opt.methods.registry.METHODS`.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol, runtime_checkable
 
@@ -71,8 +72,9 @@ class Method(Protocol):
         """Write the method's own final files into ``out``; the closing console line."""
 
 
-class MethodBase:
-    """Defaults shared by the methods: no extra checks, the run ends at :meth:`total_iterations`."""
+class MethodBase(ABC):
+    """Defaults shared by the methods: no extra checks, the run ends at :meth:`total_iterations`
+    (which every method defines)."""
 
     name: str = ""
     sections: tuple[str, ...] = ()
@@ -89,8 +91,9 @@ class MethodBase:
     def check_file(self, data: dict, path: Path) -> None:
         """Extra checks of a run-configuration file's raw table (e.g. a hint for misplaced keys)."""
 
+    @abstractmethod
     def total_iterations(self, cfg) -> int:
-        raise NotImplementedError
+        """How many iterations a run of this configuration makes."""
 
     def finished(self, cfg, state) -> bool:
         return state.iteration >= self.total_iterations(cfg)
