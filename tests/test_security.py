@@ -141,11 +141,11 @@ def test_no_library_module_unpickles_except_the_trusted_converter():
                          r"np\.load\([^)]*allow_pickle\s*=\s*True")
     hits = [f"{p.relative_to(ROOT)}:{i}" for p in sorted((ROOT / "soc_opt").rglob("*.py"))
             for i, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
-    assert hits == ["soc_opt/convert_checkpoint.py:" + str(_unpickler_line())]
+    assert hits == ["soc_opt/experiments/convert_checkpoint.py:" + str(_unpickler_line())]
 
 
 def _unpickler_line() -> int:
-    lines = (ROOT / "soc_opt" / "convert_checkpoint.py").read_text().splitlines()
+    lines = (ROOT / "soc_opt" / "experiments" / "convert_checkpoint.py").read_text().splitlines()
     return next(i for i, ln in enumerate(lines, 1) if "pickle.Unpickler" in ln)
 
 

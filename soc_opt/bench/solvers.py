@@ -268,7 +268,7 @@ def _run_library(rows, base, insts, kind, solver, refs):
 
     def call(inst):
         cons = _constraints(kind, m, inst["b"], inst["delta"])
-        return maximize_moments(inst["model"], inst["mom"], cons, method="cvxpy", solver=solver,
+        return maximize_moments(inst["model"], inst["mom"], constraints=cons, method="cvxpy", solver=solver,
                                 previous=inst["prev"], return_result=True)
 
     t0 = _clock()
@@ -357,7 +357,7 @@ def _closed_form_rows(rows, base, insts, kind, refs):
     for i, inst in enumerate(insts):
         cons = _constraints(kind, base["m"])
         t0 = _clock()
-        pol = maximize_moments(inst["model"], inst["mom"], cons)
+        pol = maximize_moments(inst["model"], inst["mom"], constraints=cons)
         per = (_clock() - t0) / base["T"]
         for k in range(base["T"]):
             Q, r = inst["data"][k]

@@ -152,7 +152,7 @@ def encode_state(state: Any) -> bytes:
     """The bytes of a state file holding ``state`` (module docstring)."""
     arrays: dict[str, np.ndarray] = {}
     body = _encode(state, arrays, "state")
-    tree = json.dumps({"format": FORMAT, "version": VERSION, "state": body}, sort_keys=True).encode()
+    tree = json.dumps({"format": FORMAT, "version": VERSION, "state": body}).encode()  # insertion order: dicts read back in their order
     buf = io.BytesIO()
     np.savez(buf, **arrays, **{_TREE: np.frombuffer(tree, np.uint8),
                                _SUM: np.frombuffer(_digest(tree, arrays).encode(), np.uint8)})
