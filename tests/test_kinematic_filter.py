@@ -86,3 +86,17 @@ def test_policy_shape_mismatch_is_named(peg):
                                np.broadcast_to(np.eye(task.m), (task.T, task.m, task.m)).copy())
     with pytest.raises(ShapeError, match="kinematic filter"):
         KinematicFilteredPolicy(bad, filt)
+
+
+def test_learn_on_filtered_gives_the_new_filters_estimates_and_their_costs(peg):
+    """``learn_on = "filtered"``: the learner's rollouts carry the batch re-filtered by the batch's own new
+    filter (what the next policy acts on), with costs of those estimates; the filter is unchanged."""
+    task, ro, smoothed, filt, _ = peg
+    filtered, filt2, _ = loop.learn(task, ro, task.initial_policy(0.3), KinematicConfig(learn_on="filtered"))
+    for f in ("A", "G", "zbar", "accel_D"):
+        np.testing.assert_array_equal(getattr(filt2, f), getattr(filt, f))
+    np.testing.assert_allclose(filtered.s, filt.states(ro.s, ro.a), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(filtered.cost, task.cost(filtered.s, ro.a), rtol=1e-12)
+    np.testing.assert_array_equal(filtered.x, ro.x)
+    np.testing.assert_array_equal(filtered.a, ro.a)
+    assert not np.allclose(filtered.s, smoothed.s)

@@ -78,3 +78,23 @@ def test_the_kinematic_strategy_keeps_no_per_iteration_state():
     assert resolve(task, noise) is strategy
     assert set(vars(strategy)) == {"task", "cfg", "_noise"}
     assert strategy.task is task and strategy.cfg is noise
+
+
+def test_fit_filter_acts_on_the_kalman_filter_of_the_smoothed_state_fit():
+    """``filter = "fit"``: the learner still fits on the kinematic smoother's states, but the policy acts
+    on the §10.2 Kalman filter of that fit (a plain FilteredPolicy, not the structured EKF), for both
+    methods; the KL step runs on the innovation form (its start is the estimate's, not the known one)."""
+    from soc_opt.noise.estimator import FilteredPolicy, KalmanFilter
+
+    task = load_task("peg", overrides={"T": 30})
+    noise = NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"filter": "fit"}})
+    base = LQRFLMConfig(iterations=2, samples=8, init_var=1.0, noise=noise)
+    for method, i_switch in (("lqr-flm", 0), ("dpsoc-em", 1)):
+        st = run_algorithm(task, method, DPSOCConfig(baseline=base, i_switch=i_switch), seed=0)
+        assert type(st.policy) is FilteredPolicy and isinstance(st.policy.filter, KalmanFilter)
+        assert (st.policy.filter.T, st.policy.filter.n, st.policy.filter.m) == (30, task.n, task.m)
+        assert not np.allclose(st.prev.model.P0, 1e-6 * np.eye(task.n))
+        ro = task.rollouts(st.policy, 2, np.random.default_rng(0))
+        assert np.isfinite(ro.x).all()
+    with pytest.raises(ConfigError, match="filter"):
+        NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"filter": "ekf"}})

@@ -110,6 +110,26 @@ def test_steps_to_finds_the_first_window_at_the_threshold():
     assert steps_to(steps, [0, 0, 0, 0, 0, 0, 0], threshold=0.9, window=3) is None
 
 
+def test_a_long_run_is_also_reported_at_each_budget_it_was_scored_at(tmp_path):
+    """A 300-step run scored at 200 steps gives a 200-step run: its episodes up to the score, the
+    score as its final evaluation, the wall time to it; the run itself stays as it is."""
+    import json
+
+    from soc_opt.bench.peers.report import _rl_runs
+
+    run = {"algo": "ppo", "setting": "default", "task": "peg", "rho2": 0.1, "seed": 2, "budget": 300,
+           "wall_s": 9.0, "episodes": [{"steps": s, "success_rate": s / 1000, "cost": 1.0} for s in (100, 200, 300)],
+           "evals": [{"steps": 200, "budget": 200, "wall_s": 5.0, "success_rate": 0.25, "cost": 2.0}],
+           "final": {"success_rate": 0.5, "cost": 1.5}}
+    (tmp_path / "r.json").write_text(json.dumps(run))
+    runs = _rl_runs(tmp_path)
+    assert [r["budget"] for r in runs] == [300, 200]
+    assert runs[0] == run
+    cut = runs[1]
+    assert [e["steps"] for e in cut["episodes"]] == [100, 200]
+    assert cut["final"] == {"success_rate": 0.25, "cost": 2.0} and cut["wall_s"] == 5.0 and cut["seed"] == 2
+
+
 # ------------------------------------------------------------------ with the peers installed
 
 
@@ -147,7 +167,8 @@ def test_sb3_run_logs_every_episode_and_evaluates():
     _peer("stable_baselines3")
     from soc_opt.peers.rl import train
 
-    res = train("sac", "default", "peg", 0.1, seed=0, budget=200, eval_episodes=1)
+    res = train("sac", "default", "peg", 0.1, seed=0, budget=200, eval_episodes=1, eval_at=(100,))
     assert [r["steps"] for r in res["episodes"]] == [100, 200]
+    assert [(e["steps"], e["budget"]) for e in res["evals"]] == [(100, 100)] and res["evals"][0]["cost"] > 0
     assert {"cost", "cost_measured", "success_rate", "min_distance"} <= set(res["episodes"][0])
     assert res["final"]["cost"] > 0

@@ -81,11 +81,18 @@ def _callback_class():
     class EpisodeLog(BaseCallback):
         """Records ``(steps, cost, metrics)`` at the end of every training episode."""
 
-        def __init__(self, partial: str | None = None, header: dict | None = None):
+        def __init__(self, partial: str | None = None, header: dict | None = None, evaluate=None,
+                     eval_at: tuple[int, ...] = ()):
             super().__init__()
             self.rows: list[dict] = []
+            self.evals: list[dict] = []
             self._cost = 0.0
             self._partial, self._header = partial, header or {}
+            self._evaluate, self._eval_at = evaluate, sorted(int(s) for s in eval_at)
+            self._t0 = time.perf_counter()
+
+        def _on_training_start(self) -> None:
+            self._t0 = time.perf_counter()
 
         def _on_step(self) -> bool:
             info = self.locals["infos"][0]
@@ -94,6 +101,12 @@ def _callback_class():
                 self.rows.append({"steps": int(self.num_timesteps), "cost_measured": self._cost,
                                   **{k: float(v) for k, v in info["metrics"].items()}})
                 self._cost = 0.0
+                while self._eval_at and self.num_timesteps >= self._eval_at[0]:
+                    # the deterministic policy as it is at this budget (between episodes; SB3 updates
+                    # PPO only after n_steps, so at an episode end the policy is the one trained so far)
+                    row = {"steps": int(self.num_timesteps), "budget": self._eval_at.pop(0),
+                           "wall_s": time.perf_counter() - self._t0}
+                    self.evals.append({**row, **self._evaluate(self.model)})
                 if self._partial is not None and len(self.rows) % 10 == 0:
                     Path(self._partial).write_text(json.dumps({**self._header, "partial": True,
                                                                "episodes": self.rows}))
@@ -120,14 +133,18 @@ def _evaluate(model, task: str, rho2: float, seed: int, episodes: int, vecnorm) 
 
 
 def train(algo: str, setting: str, task: str, rho2: float, seed: int, budget: int,
-          eval_episodes: int = 20, partial: str | None = None) -> dict:
+          eval_episodes: int = 20, partial: str | None = None, eval_at: tuple[int, ...] = ()) -> dict:
     """Train one agent for ``budget`` environment steps; returns the log and the evaluation.
 
     Keys: ``algo, setting, task, rho2, seed, budget, wall_s, steps_per_s, episodes`` (list of
     per-episode rows: ``steps, cost_measured`` and the task's metrics, ``cost`` among them) and
     ``final`` (mean of the deterministic policy's ``eval_episodes`` episodes, same keys).
     ``partial``: a file rewritten every 10 episodes with the log so far (a run cut short by a
-    time limit still leaves its learning curve).
+    time limit still leaves its learning curve).  ``eval_at``: smaller budgets (environment steps)
+    at which the deterministic policy is also scored, at the first episode end at or after each
+    (key ``evals``: one row per budget, ``steps``, ``budget`` and the ``final`` keys); with the
+    constant learning rates of every setting here, a run's first ``b`` steps are those of a run
+    of budget ``b``, so one long run gives both budgets.
     """
     torch = require("torch")
     sb3 = require("stable_baselines3")
@@ -145,17 +162,27 @@ def train(algo: str, setting: str, task: str, rho2: float, seed: int, budget: in
     model = cls("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **kwargs)
     header = {"algo": algo, "setting": setting, "task": task, "rho2": float(rho2), "seed": int(seed),
               "budget": int(budget)}
-    log = _callback_class()(partial, header)
+    vecnorm = venv if norm is not None else None
+
+    def evaluate(model):
+        if vecnorm is not None:
+            vecnorm.training = False
+        try:
+            return _evaluate(model, task, rho2, seed, eval_episodes, vecnorm)
+        finally:
+            if vecnorm is not None:
+                vecnorm.training = True
+
+    log = _callback_class()(partial, header, evaluate, tuple(b for b in eval_at if b < budget))
     t0 = time.perf_counter()
     model.learn(total_timesteps=int(budget), callback=log)
     wall = time.perf_counter() - t0
-    vecnorm = venv if norm is not None else None
     if vecnorm is not None:
         vecnorm.training = False
     final = _evaluate(model, task, rho2, seed, eval_episodes, vecnorm)
     return {"algo": algo, "setting": setting, "task": task, "rho2": float(rho2), "seed": int(seed),
             "budget": int(budget), "wall_s": wall, "steps_per_s": budget / wall, "episodes": log.rows,
-            "final": final}
+            "evals": log.evals, "final": final}
 
 
 def steps_to(log_steps, values, threshold: float = 0.9, window: int = 20) -> int | None:

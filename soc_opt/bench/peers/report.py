@@ -69,7 +69,23 @@ def _rl_runs(root: Path) -> list[dict]:
     for f in sorted(Path(root).glob("*.json.partial")):
         if not f.with_suffix("").exists():
             runs.append(json.loads(f.read_text()))
-    return runs
+    return runs + [cut for r in runs for cut in _at_smaller_budgets(r)]
+
+
+def _at_smaller_budgets(run: dict) -> list[dict]:
+    """A long run seen at each smaller budget it was scored at (``evals``, :func:`soc_opt.peers.rl.train`):
+    its episodes up to that budget, the deterministic policy's score there as ``final`` and the wall
+    time to it.  With constant learning rates this is the run of that budget, up to where PPO's last
+    update falls (PPO updates every ``n_steps``, so the run of budget ``b`` makes one update more when
+    ``b`` is not a multiple of ``n_steps``)."""
+    out = []
+    for ev in run.get("evals", []):
+        b = int(ev["budget"])
+        final = {k: v for k, v in ev.items() if k not in ("steps", "budget", "wall_s")}
+        out.append({**{k: run[k] for k in ("algo", "setting", "task", "rho2", "seed")}, "budget": b,
+                    "wall_s": ev["wall_s"], "episodes": [e for e in run["episodes"] if e["steps"] <= ev["steps"]],
+                    "final": final, "cut_from": run["budget"]})
+    return out
 
 
 def rl_curves(root: Path, bin_steps: int = 2000) -> dict:

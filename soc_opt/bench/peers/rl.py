@@ -25,7 +25,8 @@ def plan(algos=("sac", "ppo"), settings=("default", "tuned"), tasks=("peg", "doo
          seeds=(0, 1, 2), budget: int = PAPER_BUDGET) -> list[dict]:
     """The runs, cheapest first within each seed round (PPO before SAC)."""
     order = sorted(algos, key=lambda a: a != "ppo")
-    return [{"algo": a, "setting": s, "task": t, "rho2": r, "seed": sd, "budget": budget}
+    extra = {"eval_at": [PAPER_BUDGET]} if budget > PAPER_BUDGET else {}
+    return [{"algo": a, "setting": s, "task": t, "rho2": r, "seed": sd, "budget": budget, **extra}
             for sd in seeds for a in order for s in settings for t in tasks for r in rho2s]
 
 
@@ -87,6 +88,27 @@ def run(out: str | Path = "runs/peers-rl", specs: list[dict] | None = None, work
     return rows
 
 
+def main(argv=None) -> None:
+    """``python -m soc_opt.bench.peers.rl [--budget N] [--algos ppo sac] ...``: run one plan."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m soc_opt.bench.peers.rl", description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("--out", default="runs/peers-rl")
+    ap.add_argument("--budget", type=int, default=PAPER_BUDGET,
+                    help="environment steps per run; above the paper's budget the run is also scored there")
+    ap.add_argument("--algos", nargs="+", default=["ppo", "sac"])
+    ap.add_argument("--settings", nargs="+", default=["default", "tuned"])
+    ap.add_argument("--tasks", nargs="+", default=["peg", "door"])
+    ap.add_argument("--rho2", nargs="+", type=float, default=[0.0, 0.1])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--time-box", type=float, default=3600.0, help="seconds after which no run is started")
+    a = ap.parse_args(argv)
+    specs = plan(tuple(a.algos), tuple(a.settings), tuple(a.tasks), tuple(a.rho2), tuple(a.seeds), a.budget)
+    for r in run(a.out, specs, a.workers, a.time_box):
+        print(json.dumps(r), flush=True)
+
+
 if __name__ == "__main__":
-    for r in run():
-        print(r)
+    main()

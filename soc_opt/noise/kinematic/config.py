@@ -35,6 +35,17 @@ class KinematicConfig(Config):
                     the state were known) or ``"innovation"`` (its innovation form with the
                     Kalman filter of that fit and ``R``, as in ``docs/noise.md`` §5: filter-error
                     cost term and innovation noise; the policy still acts on the kinematic filter).
+    filter:         what the policy acts on: ``"kinematic"`` (the extended Kalman filter of the
+                    structured model, docs/math.md §11.3) or ``"fit"`` (the Kalman filter of the
+                    local dynamics fitted on the smoothed states, docs/math.md §10.2: the KL step
+                    and the EM phase then run on that filter's innovation form, as with
+                    ``estimator = "kalman"``, and ``kl_model`` is not used).  With ``"fit"`` the
+                    sampling policy carries no acceleration map, so EM is not warm-started.
+    learn_on:       the states the learner (prior, fit, cost expansion, EM phase) sees: ``"smoothed"``
+                    (``h(E[z_k | s_0..s_T, a])``) or ``"filtered"`` (the estimates the new policy will
+                    act on: this batch re-filtered with the batch's new filter, ``E[z_k | s_0..s_k]``
+                    in the filter's model, so the fitted dynamics are those of the filter's estimate
+                    under the actions, estimation error included).
     """
 
     relin: int = 1
@@ -46,6 +57,8 @@ class KinematicConfig(Config):
     p0: float = 1e-6
     warm_start: bool = True
     kl_model: Literal["plain", "innovation"] = "plain"
+    filter: Literal["kinematic", "fit"] = "kinematic"
+    learn_on: Literal["smoothed", "filtered"] = "smoothed"
 
     _constraints = {
         "relin": [Interval(0)],
@@ -56,4 +69,6 @@ class KinematicConfig(Config):
         "s_floor": [Interval(0.0, None, "neither")],
         "p0": [Interval(0.0, None, "neither")],
         "kl_model": [Options(("plain", "innovation"))],
+        "filter": [Options(("kinematic", "fit"))],
+        "learn_on": [Options(("smoothed", "filtered"))],
     }

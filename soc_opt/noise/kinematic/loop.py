@@ -24,7 +24,8 @@ __all__ = ["learn"]
 
 
 def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig) -> tuple[Rollouts, KinematicFilter, dict]:
-    """``(smoothed rollouts, filter, diagnostics)`` of ``rollouts`` sampled by ``sampler`` (module docstring).
+    """``(smoothed rollouts, filter, diagnostics)`` of ``rollouts`` sampled by ``sampler`` (module docstring;
+    with ``cfg.learn_on = "filtered"`` the rollouts carry the new filter's estimates instead).
 
     Diagnostics: ``kin_loglik_first``/``kin_loglik_last`` (EM, summed over rollouts) and
     ``kin_time`` (s).
@@ -35,14 +36,17 @@ def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig) -> tuple[Roll
     if cfg.warm_start and isinstance(sampler, KinematicFilteredPolicy):
         init = sampler.filter.accel()
     res = em.fit(km, rollouts.s, rollouts.a, float(task.rho2), cfg, init)
+    lg = em.z_model(km, res.accel, cfg)
+    filt = build_filter(km, res.accel, lg, res.smoothed.mean.mean(axis=0), float(task.rho2)).attach(km)
     if float(task.rho2) == 0.0:  # exact: the smoother returns the measured states (h(z(s)) = s to 1e-15)
         smoothed = rollouts
     else:
-        xs = km.measure(res.smoothed.mean, False)
+        if cfg.learn_on == "filtered":
+            xs = filt.states(rollouts.s, rollouts.a)
+        else:
+            xs = km.measure(res.smoothed.mean, False)
         cost = np.asarray(task.cost(xs, rollouts.a))
         smoothed = dataclasses.replace(rollouts, s=xs, cost=cost, y=np.exp(-task.y_scale * cost))
-    lg = em.z_model(km, res.accel, cfg)
-    filt = build_filter(km, res.accel, lg, res.smoothed.mean.mean(axis=0), float(task.rho2)).attach(km)
     diag = {"kin_loglik_first": float(res.loglik[0]), "kin_loglik_last": float(res.loglik[-1]),
             "kin_time": time.perf_counter() - t0}
     return smoothed, filt, diag
