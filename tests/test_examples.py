@@ -28,3 +28,28 @@ def test_examples_import_only_public_names(path):
     private += [ast.unparse(node) for node in ast.walk(tree) if isinstance(node, ast.Attribute)
                 and node.attr.startswith("_") and not node.attr.startswith("__")]
     assert private == []
+
+
+def test_noise_sweep_table_gives_mean_interval_and_per_seed_values(tmp_path):
+    """examples/noise_sweep_table.py: one row per (variant, rho^2, method), t-interval of the seeds' mean."""
+    import csv
+
+    import numpy as np
+    from scipy import stats
+
+    mod = runpy.run_path(str(EXAMPLES / "noise_sweep_table.py"))
+    vals = [0.9, 0.5, 0.7]
+    path = tmp_path / "trials.csv"
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, ["task", "setting", "method", "seed", "state", "final_cost", "metric_success_rate"])
+        w.writeheader()
+        for s, v in enumerate(vals):
+            w.writerow({"task": "peg", "setting": "kinematic,rho2=0.1", "method": "lqr-flm", "seed": s,
+                        "state": "done", "final_cost": 10 + s, "metric_success_rate": v})
+        w.writerow({"task": "peg", "setting": "kinematic,rho2=0.1", "method": "lqr-flm", "seed": 3,
+                    "state": "failed", "final_cost": "", "metric_success_rate": ""})
+    lines = mod["table"](mod["rows"](str(path))).strip().splitlines()
+    assert len(lines) == 3
+    half = stats.t.ppf(0.975, 2) * np.std(vals, ddof=1) / np.sqrt(3)
+    assert lines[2].startswith("| kinematic | 0.1 | lqr-flm | success_rate | 0.700 ± 0.200 |")
+    assert f"[{0.7 - half:.3f}, {0.7 + half:.3f}]" in lines[2] and "| 3 (0–2) | 0.90, 0.50, 0.70 | 11.0 ± 1.0 |" in lines[2]

@@ -171,14 +171,16 @@ def test_the_paper_scale_peg_sweep_has_the_trials_of_the_paper_comparison():
 
 
 @pytest.mark.parametrize("task", ["peg", "door"])
-def test_the_noise_sweep_files_cross_both_variants_with_four_noise_levels(task):
+def test_the_noise_sweep_files_cross_three_variants_with_four_noise_levels(task):
+    """paper, noise-aware (§10) and kinematic (§11) x rho^2 in {0, 0.001, 0.01, 0.1} x 2 methods x 10 seeds."""
     spec = load_sweep(os.path.join(os.path.dirname(__file__), "..", "problems", "sweeps", f"noise_{task}.toml"))
-    assert len(spec.settings) == 8 and len(spec.trials) == 8 * 2 * 3
+    assert len(spec.settings) == 12 and len(spec.trials) == 12 * 2 * 10
     noise = {(s.group, s.grid[0][1]) for s in spec.settings}
-    assert noise == {(g, r) for g in ("paper", "noise-aware") for r in (0.0, 0.001, 0.01, 0.1)}
+    assert noise == {(g, r) for g in ("paper", "noise-aware", "kinematic") for r in (0.0, 0.001, 0.01, 0.1)}
+    expected = {"paper": "none", "noise-aware": "kalman", "kinematic": "kinematic"}
     for t in spec.trials:
         est = t.config.baseline.noise.estimator
-        assert est == ("kalman" if t.setting.startswith("noise-aware") else "none")
+        assert est == expected[t.setting.split(",")[0]]
         assert t.task_overrides["rho2"] in (0.0, 0.001, 0.01, 0.1) and t.config.baseline.iterations == 14
 
 
