@@ -171,6 +171,17 @@ def test_resume_refuses_an_edited_task_naming_the_changed_key(tmp_path):
     assert st.iteration == 3
 
 
+def test_a_task_with_a_matrix_cost_resumes(tmp_path):
+    """door's cost has a state weight matrix ``Qs`` (a list of tuples in the task's configuration, lists
+    in task.json): the resume check compares the two as stored and lets the run continue."""
+    door = load_task("door", overrides={"T": 10})
+    cfg = DPSOCConfig(i_switch=0, baseline=LQRFLMConfig(iterations=2, samples=4))
+    with pytest.raises(_Kill):
+        run_experiment(door, "lqr-flm", cfg, 0, tmp_path / "r", task_name="door", on_iteration=_kill_at(1))
+    st = run_experiment(load_task("door", overrides={"T": 10}), "lqr-flm", cfg, 0, tmp_path / "r", task_name="door")
+    assert st.iteration == 2
+
+
 def test_a_damaged_checkpoint_offers_the_previous_one_and_restart(task, tmp_path):
     cfg = _cfg(iterations=3, i_switch=0)
     full = run_experiment(task, "lqr-flm", cfg, seed=2, out=tmp_path / "full")

@@ -9,7 +9,7 @@ import pytest
 from soc_opt.models import LinearGaussianPolicy, ShapeError
 from soc_opt.noise.kinematic import loop
 from soc_opt.noise.kinematic.config import KinematicConfig
-from soc_opt.noise.kinematic.filter import KinematicFilteredPolicy
+from soc_opt.noise.kinematic.filter import KinematicFilter, KinematicFilteredPolicy
 from soc_opt.noise.kinematic.model import KinematicModel
 from soc_opt.tasks import load_task
 
@@ -100,3 +100,51 @@ def test_learn_on_filtered_gives_the_new_filters_estimates_and_their_costs(peg):
     np.testing.assert_array_equal(filtered.x, ro.x)
     np.testing.assert_array_equal(filtered.a, ro.a)
     assert not np.allclose(filtered.s, smoothed.s)
+
+
+@pytest.fixture(scope="module")
+def peg_online(peg):
+    task, ro, _, _, _ = peg
+    _, filt, _ = loop.learn(task, ro, task.initial_policy(0.3), KinematicConfig(gains="online"))
+    return task, ro, filt
+
+
+def test_online_update_is_the_extended_kalman_update_with_the_nominal_prior(peg_online):
+    """Oracle: the gain form ``z + P H^T (H P H^T + R)^{-1} (s - h(z))`` with ``H = dh/dz`` at the
+    rollout's own prediction and the nominal predicted covariance ``P``, one step at a time."""
+    task, ro, filt = peg_online
+    km = KinematicModel(task)
+    assert filt.online
+    xhat = filt.states(ro.s, ro.a)
+    for i in (0, 5):
+        for k in (0, 1, 40, task.T):
+            if k == 0:
+                pred, Pm = filt.z0, filt.P0
+            else:
+                pred = xhat[i, k - 1, filt.zidx] @ filt.A[k - 1].T + ro.a[i, k - 1] @ filt.Bz[k - 1].T + filt.cz[k - 1]
+                Pm = filt.A[k - 1] @ filt.P[k - 1] @ filt.A[k - 1].T + filt.Q[k - 1]
+            hx, H = km.measure(pred)
+            gain = Pm @ H.T @ np.linalg.inv(H @ Pm @ H.T + filt.R)
+            expect = km.measure(pred + gain @ (ro.s[i, k] - hx), False)
+            np.testing.assert_allclose(xhat[i, k], expect, rtol=1e-9, atol=1e-9)
+
+
+def test_online_filter_in_rollouts_equals_offline_and_is_saved(peg_online, tmp_path):
+    task, _, filt = peg_online
+    pol = KinematicFilteredPolicy(_policy(task, np.random.default_rng(0)), filt)
+    r = task.rollouts(pol, 2, np.random.default_rng(1))
+    xhat = filt.states(r.s, r.a)
+    draws = task.draw_noise(2, np.random.default_rng(1))
+    expect = pol.policy.k[None] + np.einsum("tij,mtj->mti", pol.policy.chol, draws.w)
+    np.testing.assert_allclose(r.a - np.einsum("tij,mtj->mti", pol.policy.K, xhat[:, :-1]), expect, atol=1e-10)
+    path = tmp_path / "policy.npz"
+    np.savez(path, **pol.to_dict())
+    with np.load(path, allow_pickle=False) as d:
+        back = KinematicFilteredPolicy.from_dict(d, task)
+        legacy = KinematicFilteredPolicy.from_dict({k: d[k] for k in d.files if k != "kfilter_online"}, task)
+    assert back.filter.online and not legacy.filter.online
+    np.testing.assert_array_equal(back.filter.states(r.s, r.a), xhat)
+    with pytest.raises(ValueError, match="R = rho"):
+        KinematicFilter(**{**{k: getattr(filt, k) for k in ("A", "Bz", "cz", "Q", "z0", "P0", "zbar", "h0", "H", "zidx",
+                                                            "accel_B", "accel_D", "accel_c", "accel_S")},
+                           "R": np.diag(np.linspace(0.1, 0.2, task.n)), "online": True})

@@ -334,7 +334,8 @@ class RunDirectory:
                        contract: Callable[[dict], dict] | None = None) -> None:
         """:class:`RunDirectoryError` listing what differs between the recorded contract and
         ``meta`` / ``task`` (see :meth:`prepare`); reads only, writes nothing."""
-        meta = json.loads(json.dumps(meta))
+        meta = json.loads(json.dumps(meta))  # compared as stored: JSON has lists, no tuples
+        task = None if task is None else json.loads(json.dumps(task))
         contract = contract or (lambda m: m)
         task_path = self.path / "task.json"
         try:

@@ -41,6 +41,11 @@ class KinematicConfig(Config):
                     and the EM phase then run on that filter's innovation form, as with
                     ``estimator = "kalman"``, and ``kl_model`` is not used).  With ``"fit"`` the
                     sampling policy carries no acceleration map, so EM is not warm-started.
+    gains:          the online filter's update: ``"online"`` (relinearised at each rollout's own
+                    prediction, the extended Kalman update with the nominal prior covariance;
+                    docs/math.md §11.3) or ``"nominal"`` (gains computed once along the mean
+                    smoothed trajectory; the default before issue 19's second round).  Used with
+                    ``filter = "kinematic"``.
     learn_on:       the states the learner (prior, fit, cost expansion, EM phase) sees: ``"smoothed"``
                     (``h(E[z_k | s_0..s_T, a])``) or ``"filtered"`` (the estimates the new policy will
                     act on: this batch re-filtered with the batch's new filter, ``E[z_k | s_0..s_k]``
@@ -59,6 +64,7 @@ class KinematicConfig(Config):
     kl_model: Literal["plain", "innovation"] = "plain"
     filter: Literal["kinematic", "fit"] = "kinematic"
     learn_on: Literal["smoothed", "filtered"] = "smoothed"
+    gains: Literal["nominal", "online"] = "online"
 
     _constraints = {
         "relin": [Interval(0)],
@@ -71,4 +77,5 @@ class KinematicConfig(Config):
         "kl_model": [Options(("plain", "innovation"))],
         "filter": [Options(("kinematic", "fit"))],
         "learn_on": [Options(("smoothed", "filtered"))],
+        "gains": [Options(("nominal", "online"))],
     }

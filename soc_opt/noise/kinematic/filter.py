@@ -8,6 +8,16 @@ gains are then data-independent (computed once, like those of docs/math.md §10.
     z^-_k  = A_{k-1} zhat_{k-1} + Bz_{k-1} a_{k-1} + cz_{k-1}            (z^-_0 = z_0)
     zhat_k = z^-_k + G_k (s_k - h(zbar_k) - H_k (z^-_k - zbar_k))
 
+With ``online`` (``gains = "online"``) and ``h`` attached, the update is relinearised at each
+rollout's own prediction instead: ``H = dh/dz(z^-_k)`` and, with the nominal predicted information
+``Lm_k = (P^-_k)^{-1}`` and ``R = rho^2 I``::
+
+    zhat_k = z^-_k + (Lm_k + H^T H / rho^2)^{-1} H^T (s_k - h(z^-_k)) / rho^2
+
+(the extended Kalman update with the prior covariance of the nominal pass; it needs nothing but
+``xhat_{k-1}`` from the previous step, so the rollout loop is unchanged).  On widely spread rollouts
+the nominal gains err: on a weak peg seed 0.073-0.089 rad against 0.054-0.059 relinearised.
+
 The policy acts on the task-state estimate ``xhat_k = h(zbar_k) + H_k (zhat_k - zbar_k)``, whose
 joint coordinates are ``zhat_k`` exactly (so the rollout loop, which passes ``xhat_{k-1}`` back,
 needs nothing else) and whose point coordinates are ``h(zhat_k)`` to first order in the distance
@@ -27,7 +37,7 @@ from .model import AccelMap
 __all__ = ["KinematicFilter", "KinematicFilteredPolicy", "build_filter"]
 
 _FIELDS = ("A", "Bz", "cz", "Q", "z0", "P0", "zbar", "h0", "H", "R", "zidx", "accel_B", "accel_D", "accel_c",
-           "accel_S")
+           "accel_S", "online")
 
 
 @dataclass(frozen=True)
@@ -41,7 +51,9 @@ class KinematicFilter:
         R (n, n)                                                 measurement noise
         zidx (nz,)                                               positions of ``z`` in the task state
         accel_B, accel_D, accel_c, accel_S                       the learned map (warm start of EM)
+        online (bool)                                            relinearise the update per rollout
         G (T+1, nz, n), P (T+1, nz, nz)                          gains and filtered covariances
+        Lm (T+1, nz, nz)                                         nominal predicted information
     """
 
     A: np.ndarray
@@ -59,8 +71,10 @@ class KinematicFilter:
     accel_D: np.ndarray
     accel_c: np.ndarray
     accel_S: np.ndarray
+    online: bool = False
     G: np.ndarray = None
     P: np.ndarray = None
+    Lm: np.ndarray = None
 
     def __post_init__(self):
         T, nz, m = np.shape(self.Bz)
@@ -75,8 +89,11 @@ class KinematicFilter:
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
         object.__setattr__(self, "zidx", self.zidx.astype(int))
-        G, P = _gains(self)
-        for name, arr in (("G", G), ("P", P)):
+        object.__setattr__(self, "online", bool(self.online))
+        if self.online and np.any(self.R) and not np.allclose(self.R, self.R[0, 0] * np.eye(n)):
+            raise ValueError("kinematic filter: the online update needs R = rho^2 I")
+        G, P, Lm = _gains(self)
+        for name, arr in (("G", G), ("P", P), ("Lm", Lm)):
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
 
@@ -110,6 +127,12 @@ class KinematicFilter:
             zp = np.asarray(xhat_prev, dtype=float)[..., self.zidx]
             pred = zp @ self.A[k - 1].T + np.asarray(a_prev, dtype=float) @ self.Bz[k - 1].T + self.cz[k - 1]
         km = self.__dict__.get("_km")
+        if km is not None and self.online:
+            r2 = self.R[0, 0]
+            hx, H = km.measure(pred)
+            Ht = np.swapaxes(H, -1, -2)
+            g = np.einsum("...ij,...j->...i", Ht, s_k - hx) / r2
+            return km.measure(pred + np.linalg.solve(self.Lm[k] + Ht @ H / r2, g[..., None])[..., 0], False)
         if km is None:
             dz = pred - self.zbar[k]
             nu = s_k - self.h0[k] - dz @ self.H[k].T
@@ -139,18 +162,22 @@ class KinematicFilter:
 
     @staticmethod
     def from_dict(d) -> "KinematicFilter":
-        return KinematicFilter(**{k: np.asarray(d[k]) for k in _FIELDS})
+        """From :meth:`to_dict` output (a file saved before ``online`` existed reads as nominal gains)."""
+        return KinematicFilter(**{k: np.asarray(d[k]) for k in _FIELDS if k in d or k != "online"})
 
 
 def _gains(f: KinematicFilter):
     T1, nz = f.zbar.shape
     G = np.empty((T1, nz, f.n))
     P = np.empty((T1, nz, nz))
+    Lm = np.empty((T1, nz, nz))
     Pm = f.P0
     eye = np.eye(nz)
     for k in range(T1):
         if k > 0:
             Pm = f.A[k - 1] @ P[k - 1] @ f.A[k - 1].T + f.Q[k - 1]
+        Lm[k] = np.linalg.inv(0.5 * (Pm + Pm.T))
+        Lm[k] = 0.5 * (Lm[k] + Lm[k].T)
         H = f.H[k]
         S = H @ Pm @ H.T + f.R
         S = 0.5 * (S + S.T)
@@ -158,15 +185,16 @@ def _gains(f: KinematicFilter):
         IG = eye - G[k] @ H
         P[k] = IG @ Pm @ IG.T + G[k] @ f.R @ G[k].T
         P[k] = 0.5 * (P[k] + P[k].T)
-    return G, P
+    return G, P, Lm
 
 
-def build_filter(km, accel: AccelMap, lg, zbar, rho2: float) -> KinematicFilter:
-    """The policy's filter from the learned ``accel`` (its transition ``lg``) linearised along ``zbar (T+1, nz)``."""
+def build_filter(km, accel: AccelMap, lg, zbar, rho2: float, online: bool = False) -> KinematicFilter:
+    """The policy's filter from the learned ``accel`` (its transition ``lg``) linearised along ``zbar (T+1, nz)``;
+    ``online``: relinearise the update at each rollout's prediction (module docstring)."""
     h0, H = km.measure(zbar)
     return KinematicFilter(A=lg.A, Bz=lg.Bz, cz=lg.cz, Q=lg.Q, z0=lg.z0, P0=lg.P0, zbar=zbar, h0=h0, H=H,
                            R=rho2 * np.eye(km.n), zidx=km.zidx, accel_B=accel.B, accel_D=accel.D,
-                           accel_c=accel.c, accel_S=accel.S)
+                           accel_c=accel.c, accel_S=accel.S, online=online)
 
 
 @dataclass(frozen=True)
@@ -212,5 +240,5 @@ class KinematicFilteredPolicy(FilteredPolicy):
         cov = np.asarray(d["cov"], dtype=float)
         singular = bool(cov.size) and bool(np.any(np.linalg.eigvalsh(cov)[..., 0] <= 0.0))
         pol = LinearGaussianPolicy(d["K"], d["k"], cov, allow_singular=singular)
-        f = KinematicFilter.from_dict({k: d[f"kfilter_{k}"] for k in _FIELDS})
+        f = KinematicFilter.from_dict({k: d[f"kfilter_{k}"] for k in _FIELDS if f"kfilter_{k}" in d})
         return KinematicFilteredPolicy(pol, f if task is None else f.attach(KinematicModel(task)))

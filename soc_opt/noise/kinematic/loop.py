@@ -37,7 +37,8 @@ def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig) -> tuple[Roll
         init = sampler.filter.accel()
     res = em.fit(km, rollouts.s, rollouts.a, float(task.rho2), cfg, init)
     lg = em.z_model(km, res.accel, cfg)
-    filt = build_filter(km, res.accel, lg, res.smoothed.mean.mean(axis=0), float(task.rho2)).attach(km)
+    filt = build_filter(km, res.accel, lg, res.smoothed.mean.mean(axis=0), float(task.rho2),
+                        online=cfg.gains == "online").attach(km)
     if float(task.rho2) == 0.0:  # exact: the smoother returns the measured states (h(z(s)) = s to 1e-15)
         smoothed = rollouts
     else:
