@@ -81,7 +81,8 @@ def main(argv=None):
     est["kinematic smoother"] = smoothed.s
     times["kinematic smoother"] = time.perf_counter() - t0
     est["kinematic filter"] = kf.states(ro.s, ro.a)
-    est["kinematic filter, nominal gains (first round)"] = loop.learn(task, ro, pol.policy, KinematicConfig(gains="nominal"))[1].states(ro.s, ro.a)
+    nominal = loop.learn(task, ro, pol.policy, KinematicConfig(gains="nominal"))[1]
+    est["kinematic filter, nominal gains (first round)"] = nominal.states(ro.s, ro.a)
     est["kinematic filter (saved, of the policy)"] = pol.filter.states(ro.s, ro.a)
 
     xro = dataclasses.replace(ro, s=ro.x)
