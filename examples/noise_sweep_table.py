@@ -7,8 +7,13 @@ Reads a sweep's ``trials.csv`` (``soc-opt sweep problems/sweeps/noise_peg.toml``
 cost.  The ``kinematic`` variant uses the robot's kinematics (not its masses, inertia or damping),
 which the paper's learner does not assume.
 
+With ``--claims VARIANT RHO2``: the paper's claims (docs/math.md §9.5) for DPSOC-EM against
+LQR-FLM in that cell, per seed: final cost, state spread and action spread, mean ± std per method
+and the seeds on which DPSOC-EM is lower.
+
 Usage:
     python examples/noise_sweep_table.py runs/sweep-noise_peg/trials.csv
+    python examples/noise_sweep_table.py runs/sweep-noise_peg/trials.csv --claims kinematic 0.1
 """
 
 from __future__ import annotations
@@ -53,11 +58,33 @@ def table(trials: list[dict]) -> str:
     return "\n".join(out) + "\n"
 
 
+CLAIMS = (("final_cost", "DPSOC-EM lowers the final expected cost"),
+          ("state_spread", "DPSOC-EM lowers the spread of the state (end-effector) trajectories"),
+          ("action_spread", "DPSOC-EM lowers the spread of the actions"))
+
+
+def claims(trials: list[dict], variant: str, rho2: float) -> str:
+    cell = [r for r in trials if r["setting"] == f"{variant},rho2={rho2:g}"]
+    by = {m: {int(r["seed"]): r for r in cell if r["method"] == m} for m in ("lqr-flm", "dpsoc-em")}
+    seeds = sorted(set(by["lqr-flm"]) & set(by["dpsoc-em"]))
+    out = ["| claim | LQR-FLM | DPSOC-EM | seeds where DPSOC-EM lower | held (mean) |", "|---|---|---|---|---|"]
+    for col, text in CLAIMS:
+        a = np.array([float(by["lqr-flm"][s][col]) for s in seeds])
+        b = np.array([float(by["dpsoc-em"][s][col]) for s in seeds])
+        out.append(f"| {text} | {a.mean():.4g} ± {a.std(ddof=1):.3g} | {b.mean():.4g} ± {b.std(ddof=1):.3g} | "
+                   f"{int((b < a).sum())}/{len(seeds)} | {'yes' if b.mean() < a.mean() else 'no'} |")
+    return "\n".join(out) + "\n"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("trials", help="a sweep's trials.csv")
+    ap.add_argument("--claims", nargs=2, metavar=("VARIANT", "RHO2"), default=None)
     a = ap.parse_args(argv)
-    print(table(rows(a.trials)), end="")
+    if a.claims:
+        print(claims(rows(a.trials), a.claims[0], float(a.claims[1])), end="")
+    else:
+        print(table(rows(a.trials)), end="")
 
 
 if __name__ == "__main__":

@@ -53,3 +53,21 @@ def test_noise_sweep_table_gives_mean_interval_and_per_seed_values(tmp_path):
     half = stats.t.ppf(0.975, 2) * np.std(vals, ddof=1) / np.sqrt(3)
     assert lines[2].startswith("| kinematic | 0.1 | lqr-flm | success_rate | 0.700 ± 0.200 |")
     assert f"[{0.7 - half:.3f}, {0.7 + half:.3f}]" in lines[2] and "| 3 (0–2) | 0.90, 0.50, 0.70 | 11.0 ± 1.0 |" in lines[2]
+
+
+def test_noise_sweep_claims_count_the_seeds_where_dpsoc_em_is_lower(tmp_path):
+    import csv
+
+    mod = runpy.run_path(str(EXAMPLES / "noise_sweep_table.py"))
+    path = tmp_path / "trials.csv"
+    cols = ["task", "setting", "method", "seed", "state", "final_cost", "state_spread", "action_spread", "metric_success_rate"]
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, cols)
+        w.writeheader()
+        for s, (lc, dc) in enumerate([(10.0, 8.0), (10.0, 12.0), (10.0, 9.0)]):
+            for m, c in (("lqr-flm", lc), ("dpsoc-em", dc)):
+                w.writerow({"task": "peg", "setting": "kinematic,rho2=0.1", "method": m, "seed": s, "state": "done",
+                            "final_cost": c, "state_spread": 1.0, "action_spread": 2.0 if m == "lqr-flm" else 1.0,
+                            "metric_success_rate": 1.0})
+    lines = mod["claims"](mod["rows"](str(path)), "kinematic", 0.1).strip().splitlines()
+    assert "| 2/3 | yes |" in lines[2] and "| 0/3 | no |" in lines[3] and "| 3/3 | yes |" in lines[4]
