@@ -18,7 +18,7 @@ from ..models import symmetrize
 from . import aware as noise_aware
 from .kinematic import loop as kinematic_loop
 from .kinematic.filter import KinematicFilteredPolicy
-from .strategy import EMModel, Estimates, KalmanEstimator, LoopModel, NoiseStrategy
+from .strategy import EMModel, Estimates, LoopModel, NoiseStrategy, kalman_em_model, kalman_lqg_model
 
 __all__ = ["KinematicEstimator"]
 
@@ -48,7 +48,7 @@ class KinematicEstimator(NoiseStrategy):
         innovation form with the Kalman filter of that fit (``"innovation"``, docs/math.md §10.2).
         With ``filter = "fit"`` the policy acts on that Kalman filter (as ``estimator = "kalman"``)."""
         if self.cfg.kinematic.filter == "fit":
-            return KalmanEstimator.lqg_model(self, dynamics, cost, estimates, where)
+            return kalman_lqg_model(self.noise, self.cfg, dynamics, cost, where)
         if self.cfg.kinematic.kl_model == "innovation":
             kf = noise_aware.loop_filter(dynamics, self.noise, self.cfg, where)
             local = noise_aware.innovation_local_model(kf, cost)
@@ -60,6 +60,6 @@ class KinematicEstimator(NoiseStrategy):
         """The fit on the smoothed states as is, from the known start (``P0`` plus ``estep_p0_jitter``);
         with ``filter = "fit"`` the augmented model in the estimate of that fit's Kalman filter."""
         if self.cfg.kinematic.filter == "fit":
-            return KalmanEstimator.em_model(self, model, estimates, where)
+            return kalman_em_model(self.noise, self.cfg, model, where)
         P0 = symmetrize(self.noise.P0 + self.cfg.estep_p0_jitter * np.eye(model.n))
         return EMModel(model, self.noise.mu0, P0, self._wrap(estimates))

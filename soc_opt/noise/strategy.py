@@ -51,7 +51,7 @@ if TYPE_CHECKING:
     from .aware import NoiseConfig
 
 __all__ = ["NoiseStrategy", "MeasuredState", "KalmanEstimator", "Estimates", "LoopModel", "EMModel", "resolve",
-           "strategy_class"]
+           "strategy_class", "kalman_lqg_model", "kalman_em_model"]
 
 
 def _identity(policy: LinearGaussianPolicy):
@@ -189,12 +189,22 @@ class KalmanEstimator(NoiseStrategy):
     name = "kalman"
 
     def lqg_model(self, dynamics, cost, estimates: Estimates, where: str = "") -> LoopModel:
-        kf = noise_aware.loop_filter(dynamics, self.noise, self.cfg, where)
-        return LoopModel(noise_aware.innovation_local_model(kf, cost), lambda policy: FilteredPolicy(policy, kf))
+        return kalman_lqg_model(self.noise, self.cfg, dynamics, cost, where)
 
     def em_model(self, model, estimates: Estimates, where: str = "") -> EMModel:
-        model, kf, mu0, P0 = noise_aware.filtered_em_model(model, self.noise, self.cfg, where)
-        return EMModel(model, mu0, P0, lambda policy: FilteredPolicy(policy, kf))
+        return kalman_em_model(self.noise, self.cfg, model, where)
+
+
+def kalman_lqg_model(noise, cfg: NoiseConfig, dynamics, cost, where: str = "") -> LoopModel:
+    """The KL step on the innovation form of ``dynamics``' Kalman filter; the policy acts on that filter."""
+    kf = noise_aware.loop_filter(dynamics, noise, cfg, where)
+    return LoopModel(noise_aware.innovation_local_model(kf, cost), lambda policy: FilteredPolicy(policy, kf))
+
+
+def kalman_em_model(noise, cfg: NoiseConfig, model, where: str = "") -> EMModel:
+    """The EM recursion on the augmented model in that filter's estimate ``xhat``."""
+    model, kf, mu0, P0 = noise_aware.filtered_em_model(model, noise, cfg, where)
+    return EMModel(model, mu0, P0, lambda policy: FilteredPolicy(policy, kf))
 
 
 def strategy_class(name: str) -> type[NoiseStrategy]:
