@@ -29,7 +29,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-__all__ = ["Config", "ConfigError", "Interval", "Options", "config_error", "read_toml", "check_finite"]
+__all__ = ["Config", "ConfigError", "Interval", "Options", "config_error", "read_toml", "check_finite", "IMPLIED_WHEN_ABSENT"]
 
 C = TypeVar("C", bound="Config")
 
@@ -273,6 +273,15 @@ def read_toml(path: str | Path) -> dict:
         raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from e
 
 
+#: Dotted key suffix -> ``(value, when)``: the value implied by the key's absence from a recorded
+#: configuration (a run directory's ``config.json``, a sweep's ``trial.json``) when the table holding the
+#: key's section has the entries ``when`` (the section is in use), declared by each class's
+#: ``_implied_when_absent``.  A key
+#: missing from an old record normally means an option added later whose default reproduces what the
+#: run did; these are the exceptions, so resuming compares them (:func:`soc_opt.experiments.rundir.differences`).
+IMPLIED_WHEN_ABSENT: dict[str, tuple[Any, dict]] = {}
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
     """Base class: a frozen dataclass with strict ``from_dict`` / ``from_toml`` / ``to_dict``.
@@ -284,9 +293,14 @@ class Config:
     """
 
     _constraints: typing.ClassVar[dict[str, list]] = {}
+    #: ``{"section.field": (value, when)}``: a field added after runs were recorded whose default changes
+    #: what such a run did; a record without the field ran with ``value`` if the table holding ``section``
+    #: has the entries ``when`` (:data:`IMPLIED_WHEN_ABSENT`).
+    _implied_when_absent: typing.ClassVar[dict[str, tuple[Any, dict]]] = {}
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
+        IMPLIED_WHEN_ABSENT.update(cls.__dict__.get("_implied_when_absent", {}))
         own = cls.__dict__.get("__post_init__")
         if own is not None and not getattr(own, "_checks_finite", False):
             def __post_init__(self, _own=own):

@@ -118,3 +118,29 @@ def test_a_finished_run_opens_in_a_directory_without_write_permission(finished, 
     finally:
         for p in [d, *d.rglob("*")]:
             p.chmod(p.stat().st_mode | 0o200)
+
+
+def test_an_option_whose_default_changed_behaviour_is_compared_when_absent_from_the_record():
+    """A key missing from an old record is an option added later and is ignored, unless its default
+    changed what such a run did (``IMPLIED_WHEN_ABSENT``): then the record implies the old value."""
+    from soc_opt.config import IMPLIED_WHEN_ABSENT
+    from soc_opt.experiments.rundir import differences
+    from soc_opt.noise.aware import NoiseConfig
+
+    assert IMPLIED_WHEN_ABSENT["kinematic.gains"] == ("nominal", {"estimator": "kinematic"})
+    new = {"baseline": {"noise": NoiseConfig(estimator="kinematic").to_dict()}}
+    old = {"baseline": {"noise": {k: v for k, v in new["baseline"]["noise"].items()}}}
+    old["baseline"]["noise"]["kinematic"] = {k: v for k, v in new["baseline"]["noise"]["kinematic"].items()
+                                             if k not in ("gains", "fit_moments", "w_floor")}
+    diffs = differences(old, new)
+    gains = [d for d in diffs if d.startswith("baseline.noise.kinematic.gains")]
+    assert gains == ["baseline.noise.kinematic.gains: (unset: 'nominal' when recorded) -> 'online'"]
+    assert not any("w_floor" in d for d in diffs)            # an added option with a neutral default
+    # the same record against a configuration with the implied values: no difference
+    same = {"baseline": {"noise": NoiseConfig.from_dict(
+        {"estimator": "kinematic", "kinematic": {"gains": "nominal", "fit_moments": "means"}}).to_dict()}}
+    assert differences(old, same) == []
+    # with another estimator the kinematic section is not in use: its absent keys imply nothing
+    paper_new = {"baseline": {"noise": NoiseConfig().to_dict()}}
+    paper_old = {"baseline": {"noise": dict(paper_new["baseline"]["noise"], kinematic=old["baseline"]["noise"]["kinematic"])}}
+    assert differences(paper_old, paper_new) == []

@@ -55,7 +55,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from ..config import ConfigError
+from ..config import IMPLIED_WHEN_ABSENT, ConfigError
 from .statefile import StateFileError, decode_state, encode_state, peek_state
 
 try:  # POSIX advisory locks; elsewhere a pid check stands in (see _PidLock)
@@ -153,17 +153,39 @@ def _short(v: Any) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def differences(old: Any, new: Any, prefix: str = "") -> list[str]:
+_NOTHING = object()
+
+
+def _implied(key: str, grandparent: Any):
+    """The value :data:`soc_opt.config.IMPLIED_WHEN_ABSENT` gives a recorded key ``key`` (a dotted path) by
+    its absence, or ``_NOTHING`` (also when its condition, on the ``grandparent`` table holding the key's
+    section, does not hold: the section is not in use)."""
+    for suffix, (value, when) in IMPLIED_WHEN_ABSENT.items():
+        if key == suffix or key.endswith("." + suffix):
+            gp = grandparent if isinstance(grandparent, dict) else {}
+            return value if all(gp.get(k) == v for k, v in when.items()) else _NOTHING
+    return _NOTHING
+
+
+def differences(old: Any, new: Any, prefix: str = "", _parent: Any = None) -> list[str]:
     """``"key: old -> new"`` for every setting recorded in ``old`` whose value differs in ``new``.
 
     Keys only in ``new`` are options added by a later version of soc_opt after the run was started;
-    they do not make the run a different one.  Lists of tables are compared entry by entry.
+    they do not make the run a different one, unless the option's default changed what such a run
+    does: those (:data:`soc_opt.config.IMPLIED_WHEN_ABSENT`, e.g. ``kinematic.gains``, absent meaning
+    ``"nominal"`` when ``estimator = "kinematic"``) are compared with the value their absence implies.  Lists of tables are compared
+    entry by entry.
     """
     if isinstance(old, dict) and isinstance(new, dict):
         out = []
         for k, v in old.items():
             key = f"{prefix}.{k}" if prefix else str(k)
-            out += differences(v, new[k], key) if k in new else [f"{key}: {_short(v)} -> (unset)"]
+            out += differences(v, new[k], key, new) if k in new else [f"{key}: {_short(v)} -> (unset)"]
+        for k in sorted(new.keys() - old.keys()):
+            key = f"{prefix}.{k}" if prefix else str(k)
+            implied = _implied(key, _parent)
+            if implied is not _NOTHING and new[k] != implied:
+                out.append(f"{key}: (unset: {_short(implied)} when recorded) -> {_short(new[k])}")
         return out
     if (isinstance(old, list) and isinstance(new, list) and len(old) == len(new)
             and any(isinstance(v, dict) for v in old)):

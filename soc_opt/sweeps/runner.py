@@ -51,7 +51,9 @@ def prepare_out(spec: SweepSpec, out: Path) -> dict[str, str]:
     """Check ``out`` against the spec (before anything runs); return the trials' initial states.
 
     A trial directory holding a different trial spec is an error naming it (a changed sweep
-    file must not silently resume unrelated runs).  Finished trials are ``"done"``.
+    file must not silently resume unrelated runs).  Finished trials are ``"done"``; every other
+    trial's ``trial.json`` is (re)written with the spec it will run with, so that the record names
+    options added to soc_opt since the directory was first prepared.
     """
     states = {}
     for t in spec.trials:
@@ -68,7 +70,7 @@ def prepare_out(spec: SweepSpec, out: Path) -> dict[str, str]:
     for t in spec.trials:
         d = out / t.relpath
         d.mkdir(parents=True, exist_ok=True)
-        if read_json(d / TRIAL) is None:
+        if states[t.id] != "done":  # it runs with this spec: record all of it (options added since included)
             write_json(d / TRIAL, t.to_dict())
     return states
 
