@@ -98,3 +98,30 @@ def test_fit_filter_acts_on_the_kalman_filter_of_the_smoothed_state_fit():
         assert np.isfinite(ro.x).all()
     with pytest.raises(ConfigError, match="filter"):
         NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"filter": "ekf"}})
+
+
+def test_structured_dynamics_gives_gains_on_the_joint_state_only():
+    """``dynamics = "structured"``: the KL step's model ignores the site columns of x, so from the
+    initial policy (no gains) the new gains act on zhat alone; the KL step ran on that model."""
+    task = load_task("peg", overrides={"T": 30})
+    noise = NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"dynamics": "structured"}})
+    base = LQRFLMConfig(iterations=2, samples=8, init_var=1.0, noise=noise)
+    st = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
+    zidx = st.policy.filter.zidx
+    sites = np.setdiff1d(np.arange(task.n), zidx)
+    K = st.policy.policy.K
+    assert np.abs(K[:, :, zidx]).max() > 0.0
+    np.testing.assert_allclose(K[:, :, sites], 0.0, atol=1e-9 * np.abs(K).max())
+    np.testing.assert_array_equal(st.prev.model.dynamics.A[:, :, sites], 0.0)
+
+
+def test_posterior_moments_change_the_fit_not_the_zero_noise_loop():
+    """``fit_moments = "posterior"`` is a different fit at rho^2 > 0 and the paper's loop at rho^2 = 0."""
+    noise = NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"fit_moments": "posterior"}})
+    plain = NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"fit_moments": "means"}})
+    for rho2, same in ((0.0, True), (0.1, False)):
+        task = load_task("peg", overrides={"rho2": rho2, "T": 30})
+        runs = [run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=LQRFLMConfig(iterations=2, samples=8, init_var=1.0,
+                                                                                   noise=nc), i_switch=0), seed=1)
+                for nc in (noise, plain)]
+        assert np.array_equal(runs[0].policy.policy.K, runs[1].policy.policy.K) == same

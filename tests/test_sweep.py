@@ -171,16 +171,21 @@ def test_the_paper_scale_peg_sweep_has_the_trials_of_the_paper_comparison():
 
 
 @pytest.mark.parametrize("task", ["peg", "door"])
-def test_the_noise_sweep_files_cross_three_variants_with_four_noise_levels(task):
-    """paper, noise-aware (§10) and kinematic (§11) x rho^2 in {0, 0.001, 0.01, 0.1} x 2 methods x 10 seeds."""
+def test_the_noise_sweep_files_cross_four_variants_with_four_noise_levels(task):
+    """paper, noise-aware (§10), kinematic (§11) and kinematic on the smoothed means alone (its second round)
+    x rho^2 in {0, 0.001, 0.01, 0.1} x 2 methods x 10 seeds."""
     spec = load_sweep(os.path.join(os.path.dirname(__file__), "..", "problems", "sweeps", f"noise_{task}.toml"))
-    assert len(spec.settings) == 12 and len(spec.trials) == 12 * 2 * 10
+    assert len(spec.settings) == 16 and len(spec.trials) == 16 * 2 * 10
     noise = {(s.group, s.grid[0][1]) for s in spec.settings}
-    assert noise == {(g, r) for g in ("paper", "noise-aware", "kinematic") for r in (0.0, 0.001, 0.01, 0.1)}
-    expected = {"paper": "none", "noise-aware": "kalman", "kinematic": "kinematic"}
+    groups = ("paper", "noise-aware", "kinematic", "kinematic-means")
+    assert noise == {(g, r) for g in groups for r in (0.0, 0.001, 0.01, 0.1)}
+    expected = {"paper": "none", "noise-aware": "kalman", "kinematic": "kinematic", "kinematic-means": "kinematic"}
     for t in spec.trials:
         est = t.config.baseline.noise.estimator
-        assert est == expected[t.setting.split(",")[0]]
+        group = t.setting.split(",")[0]
+        assert est == expected[group]
+        if est == "kinematic":
+            assert t.config.baseline.noise.kinematic.fit_moments == ("means" if group == "kinematic-means" else "posterior")
         assert t.task_overrides["rho2"] in (0.0, 0.001, 0.01, 0.1) and t.config.baseline.iterations == 14
 
 
@@ -317,6 +322,26 @@ def test_sweep_report_holds_mean_and_std_over_seeds(reference):
         assert float(r["final_cost_std"]) == pytest.approx(np.std(vals), rel=1e-12)
     md = (out / "report.md").read_text()
     assert "| default | dpsoc-em | 2 |" in md and "final_linear2d.png" in md
+
+
+def test_a_trial_to_run_records_its_whole_spec_and_a_finished_one_keeps_its_record(tmp_path):
+    """trial.json of a trial that has not finished is rewritten with the spec it runs with (a record
+    written by an older soc_opt may lack options added since); a finished trial's record is kept."""
+    from soc_opt.sweeps.runner import prepare_out
+    from soc_opt.sweeps.spec import read_json, write_json
+
+    spec = sweep_from_dict({"name": "rec", "tasks": ["linear2d"], "methods": ["lqr-flm"], "seeds": 2})
+    prepare_out(spec, tmp_path)
+    done, pending = (tmp_path / t.relpath for t in spec.trials)
+    for d in (done, pending):
+        rec = read_json(d / "trial.json")
+        del rec["config"]["baseline"]["noise"]["kinematic"]["gains"]  # as written before the option existed
+        write_json(d / "trial.json", rec)
+    write_json(done / "result.json", {"status": "done"})
+    states = prepare_out(spec, tmp_path)
+    assert sorted(states.values()) == ["done", "pending"]
+    assert "gains" not in read_json(done / "trial.json")["config"]["baseline"]["noise"]["kinematic"]
+    assert read_json(pending / "trial.json")["config"]["baseline"]["noise"]["kinematic"]["gains"] == "online"
 
 
 def test_rerunning_a_finished_sweep_skips_every_trial(reference):

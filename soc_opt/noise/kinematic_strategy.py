@@ -13,14 +13,35 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..learning import fit
 from ..lqg import LocalModel
 from ..models import symmetrize
 from . import aware as noise_aware
 from .kinematic import loop as kinematic_loop
+from .kinematic.dynamics import structured_dynamics, with_dynamics
 from .kinematic.filter import KinematicFilteredPolicy
 from .strategy import EMModel, Estimates, LoopModel, NoiseStrategy, kalman_em_model, kalman_lqg_model
 
-__all__ = ["KinematicEstimator"]
+__all__ = ["KinematicEstimator", "posterior_correction"]
+
+
+def posterior_correction(Px: np.ndarray, Cx: np.ndarray, n: int, m: int, weight: float):
+    """The ``correct`` hook of :func:`soc_opt.learning.fit.fit_dynamics`: the joint moments of the smoothed
+    tuples ``(x_k, a_k, x_{k+1}[, y_k])`` plus the smoother's posterior (co)variances ``Px (T+1, n, n)``,
+    ``Cx (T, n, n)`` (:func:`soc_opt.noise.kinematic.loop.posterior_moments`), scaled by ``weight``
+    (``M / (M + n0)`` under the NIW prior, whose posterior weighs the data's moments so)."""
+    nz = n + m
+    x1 = slice(nz, nz + n)
+
+    def correct(mu, Lam):
+        Lam = np.array(Lam)
+        Lam[:, :n, :n] += weight * Px[:-1]
+        Lam[:, x1, x1] += weight * Px[1:]
+        Lam[:, x1, :n] += weight * Cx
+        Lam[:, :n, x1] += weight * np.swapaxes(Cx, -1, -2)
+        return mu, symmetrize(Lam)
+
+    return correct
 
 
 class KinematicEstimator(NoiseStrategy):
@@ -38,18 +59,34 @@ class KinematicEstimator(NoiseStrategy):
         """Smooth ``rollouts`` (sampled by ``sampler``), then the mixture prior on the smoothed tuples."""
         learn, filt, diag = kinematic_loop.learn(self.task, rollouts, sampler, self.cfg.kinematic)
         base = super().estimate(prior, learn, fit_cfg, sampler, rng)
-        return base._replace(learn=learn, filter=filt, timings={"estimator": diag["kin_time"]})
+        return base._replace(learn=learn, filter=filt, moments=diag.get("posterior"),
+                             timings={"estimator": diag["kin_time"]})
+
+    def fit(self, rollouts, fit_cfg, estimates: Estimates, sampler, *, include_y: bool = False):
+        """The paper's fit of the smoothed rollouts; with ``fit_moments = "posterior"`` on their expected
+        sufficient statistics (:func:`posterior_correction`)."""
+        if estimates.moments is None:
+            return super().fit(rollouts, fit_cfg, estimates, sampler, include_y=include_y)
+        used_prior = estimates.prior is not None and fit_cfg.prior == "mixture"
+        weight = rollouts.M / (rollouts.M + fit_cfg.n0) if used_prior else 1.0
+        correct = posterior_correction(*estimates.moments, rollouts.n, rollouts.m, weight)
+        return (fit.fit_augmented if include_y else fit.fit_dynamics)(rollouts, fit_cfg, estimates.prior,
+                                                                       correct=correct)
 
     def _wrap(self, estimates: Estimates):
         return lambda policy: KinematicFilteredPolicy(policy, estimates.filter)
 
     def lqg_model(self, dynamics, cost, estimates: Estimates, where: str = "") -> LoopModel:
-        """The fit on the smoothed states from the known start (``kl_model = "plain"``), or its
+        """The fit on the smoothed states (or, with ``dynamics = "structured"``, the filter's own
+        transition: :mod:`soc_opt.noise.kinematic.dynamics`) from the known start (``kl_model = "plain"``), or its
         innovation form with the Kalman filter of that fit (``"innovation"``, docs/math.md §10.2).
         With ``filter = "fit"`` the policy acts on that Kalman filter (as ``estimator = "kalman"``)."""
-        if self.cfg.kinematic.filter == "fit":
+        kin = self.cfg.kinematic
+        if kin.filter == "fit":
             return kalman_lqg_model(self.noise, self.cfg, dynamics, cost, where)
-        if self.cfg.kinematic.kl_model == "innovation":
+        if kin.dynamics == "structured":
+            dynamics = structured_dynamics(estimates.filter, kin.w_floor)
+        if kin.kl_model == "innovation":
             kf = noise_aware.loop_filter(dynamics, self.noise, self.cfg, where)
             local = noise_aware.innovation_local_model(kf, cost)
         else:
@@ -57,9 +94,13 @@ class KinematicEstimator(NoiseStrategy):
         return LoopModel(local, self._wrap(estimates))
 
     def em_model(self, model, estimates: Estimates, where: str = "") -> EMModel:
-        """The fit on the smoothed states as is, from the known start (``P0`` plus ``estep_p0_jitter``);
+        """The fit on the smoothed states as is (its state rows replaced by the filter's transition with
+        ``dynamics = "structured"``), from the known start (``P0`` plus ``estep_p0_jitter``);
         with ``filter = "fit"`` the augmented model in the estimate of that fit's Kalman filter."""
-        if self.cfg.kinematic.filter == "fit":
+        kin = self.cfg.kinematic
+        if kin.filter == "fit":
             return kalman_em_model(self.noise, self.cfg, model, where)
+        if kin.dynamics == "structured":
+            model = with_dynamics(model, structured_dynamics(estimates.filter, kin.w_floor))
         P0 = symmetrize(self.noise.P0 + self.cfg.estep_p0_jitter * np.eye(model.n))
         return EMModel(model, self.noise.mu0, P0, self._wrap(estimates))

@@ -67,6 +67,9 @@ class Estimates(NamedTuple):
     learn:   the rollouts the learner fits on instead of the measured ones (``None``: the measured)
     filter:  the estimator's own result for this batch, e.g. the filter its new policy acts on
              (``None``: none)
+    moments: the posterior covariances of the states in :attr:`learn`, for a fit on expected
+             sufficient statistics (``(Px (T+1, n, n), Cx (T, n, n))``; ``None``: the states are
+             taken as they are)
     timings: seconds the estimator spent, by name (merged into the iteration's timings, not
              counted in its ``fit`` time)
     """
@@ -75,6 +78,7 @@ class Estimates(NamedTuple):
     states: Rollouts | None = None
     learn: Rollouts | None = None
     filter: Any = None
+    moments: Any = None
     timings: Mapping[str, float] = types.MappingProxyType({})
 
     def data(self, rollouts: Rollouts) -> Rollouts:

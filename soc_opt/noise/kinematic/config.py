@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from ...config import Config, Interval, Options
+from ...config import Config, Interval, Options, config_error
 
 __all__ = ["KinematicConfig"]
 
@@ -46,6 +46,21 @@ class KinematicConfig(Config):
                     docs/math.md §11.3) or ``"nominal"`` (gains computed once along the mean
                     smoothed trajectory; the default before issue 19's second round).  Used with
                     ``filter = "kinematic"``.
+    dynamics:       the local dynamics of the KL step and the EM phase: ``"fit"`` (the §2 regression
+                    on the smoothed states) or ``"structured"`` (the estimator's own transition in ``z``,
+                    kinematic rows and acceleration map, carried into the task's state through ``h``
+                    linearised along the batch's mean smoothed trajectory; docs/math.md §11.3 (a):
+                    the model the policy's filter predicts with).  With ``filter = "kinematic"`` only.
+    fit_moments:    the statistics of the §2 fit on the smoothed states: ``"means"`` (the smoothed means
+                    as if they were the states) or ``"posterior"`` (plus the smoother's posterior
+                    covariances ``H P H^T`` and cross-covariances of consecutive states, in task
+                    coordinates, averaged over rollouts and weighted as data against the NIW prior:
+                    the expected sufficient statistics of the EM M-step, docs/math.md §11.3; the
+                    default since issue 19's third round, before it ``"means"``).  Used with
+                    ``learn_on = "smoothed"`` and ``rho^2 > 0`` (otherwise the states are exact or
+                    filtered, and the fit takes them as they are).
+    w_floor:        with ``dynamics = "structured"``: variance added to every diagonal entry of the
+                    process noise in task coordinates (the transition's noise has rank ``nz`` there).
     learn_on:       the states the learner (prior, fit, cost expansion, EM phase) sees: ``"smoothed"``
                     (``h(E[z_k | s_0..s_T, a])``) or ``"filtered"`` (the estimates the new policy will
                     act on: this batch re-filtered with the batch's new filter, ``E[z_k | s_0..s_k]``
@@ -65,6 +80,13 @@ class KinematicConfig(Config):
     filter: Literal["kinematic", "fit"] = "kinematic"
     learn_on: Literal["smoothed", "filtered"] = "smoothed"
     gains: Literal["nominal", "online"] = "online"
+    dynamics: Literal["fit", "structured"] = "fit"
+    fit_moments: Literal["means", "posterior"] = "posterior"
+    w_floor: float = 1e-6
+
+    # runs of the kinematic estimator recorded before these fields existed used fixed gains and the means fit
+    _implied_when_absent = {"kinematic.gains": ("nominal", {"estimator": "kinematic"}),
+                            "kinematic.fit_moments": ("means", {"estimator": "kinematic"})}
 
     _constraints = {
         "relin": [Interval(0)],
@@ -78,4 +100,12 @@ class KinematicConfig(Config):
         "filter": [Options(("kinematic", "fit"))],
         "learn_on": [Options(("smoothed", "filtered"))],
         "gains": [Options(("nominal", "online"))],
+        "dynamics": [Options(("fit", "structured"))],
+        "fit_moments": [Options(("means", "posterior"))],
+        "w_floor": [Interval(0.0, None, "neither")],
     }
+
+    def __post_init__(self):
+        if self.dynamics == "structured" and self.filter != "kinematic":
+            raise config_error("dynamics", "'structured' is the transition of the kinematic filter; it needs "
+                               f"filter = 'kinematic' (got {self.filter!r})")

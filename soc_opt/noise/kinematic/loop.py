@@ -20,15 +20,29 @@ from .config import KinematicConfig
 from .filter import KinematicFilter, KinematicFilteredPolicy, build_filter
 from .model import KinematicModel
 
-__all__ = ["learn"]
+__all__ = ["learn", "posterior_moments"]
+
+
+def posterior_moments(sm) -> tuple[np.ndarray, np.ndarray]:
+    """``(Px (T+1, n, n), Cx (T, n, n))``: the smoother's ``Cov(z_k)`` and ``Cov(z_{k+1}, z_k)`` carried
+    into task coordinates with ``H`` at the linearisation point, averaged over the rollouts::
+
+        Px_k = mean_i H_ik P_ik H_ik^T,    Cx_k = mean_i H_i,k+1 C_ik H_ik^T
+    """
+    H = sm.lin[1]
+    Ht = np.swapaxes(H, -1, -2)
+    Px = (H @ sm.cov @ Ht).mean(axis=0)
+    Cx = (H[:, 1:] @ sm.cross @ Ht[:, :-1]).mean(axis=0)
+    return 0.5 * (Px + np.swapaxes(Px, -1, -2)), Cx
 
 
 def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig) -> tuple[Rollouts, KinematicFilter, dict]:
     """``(smoothed rollouts, filter, diagnostics)`` of ``rollouts`` sampled by ``sampler`` (module docstring;
     with ``cfg.learn_on = "filtered"`` the rollouts carry the new filter's estimates instead).
 
-    Diagnostics: ``kin_loglik_first``/``kin_loglik_last`` (EM, summed over rollouts) and
-    ``kin_time`` (s).
+    Diagnostics: ``kin_loglik_first``/``kin_loglik_last`` (EM, summed over rollouts),
+    ``kin_time`` (s) and, with ``cfg.fit_moments = "posterior"``, ``posterior``
+    (:func:`posterior_moments` of the smoothed states).
     """
     t0 = time.perf_counter()
     km = KinematicModel(task)
@@ -48,6 +62,8 @@ def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig) -> tuple[Roll
             xs = km.measure(res.smoothed.mean, False)
         cost = np.asarray(task.cost(xs, rollouts.a))
         smoothed = dataclasses.replace(rollouts, s=xs, cost=cost, y=np.exp(-task.y_scale * cost))
-    diag = {"kin_loglik_first": float(res.loglik[0]), "kin_loglik_last": float(res.loglik[-1]),
-            "kin_time": time.perf_counter() - t0}
+    diag = {"kin_loglik_first": float(res.loglik[0]), "kin_loglik_last": float(res.loglik[-1])}
+    if cfg.fit_moments == "posterior" and float(task.rho2) > 0.0 and cfg.learn_on == "smoothed":
+        diag["posterior"] = posterior_moments(res.smoothed)
+    diag["kin_time"] = time.perf_counter() - t0
     return smoothed, filt, diag
