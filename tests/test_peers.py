@@ -130,6 +130,35 @@ def test_a_long_run_is_also_reported_at_each_budget_it_was_scored_at(tmp_path):
     assert cut["final"] == {"success_rate": 0.25, "cost": 2.0} and cut["wall_s"] == 5.0 and cut["seed"] == 2
 
 
+def test_sweep_curves_read_a_noise_sweeps_trials_per_setting_method_and_rho2(tmp_path):
+    """``--sweep``: the paper / noise-aware / kinematic trials at rho^2 0 and 0.1, one curve per
+    (label, task, rho2) with a row per finished seed; other settings, rho^2 and unfinished seeds left out."""
+    import json
+
+    from soc_opt.bench.peers.report import sweep_curves
+
+    def trial(setting, method, seed, values, done=True):
+        d = tmp_path / "trials" / "peg" / setting / method / f"seed_{seed}"
+        d.mkdir(parents=True)
+        lines = ["iteration,metric_success_rate,metric_cost"] + [f"{i},{v},{10 - i}" for i, v in enumerate(values)]
+        (d / "metrics.csv").write_text("\n".join(lines) + "\n")
+        if done:
+            (d / "result.json").write_text(json.dumps({"final_cost": 1.5 + seed}))
+
+    trial("kinematic,rho2=0.1", "lqr-flm", 0, [0.0, 0.5, 1.0])
+    trial("kinematic,rho2=0.1", "lqr-flm", 1, [0.0, 0.25, 0.75])
+    trial("kinematic,rho2=0.1", "lqr-flm", 2, [0.0, 0.0, 0.0], done=False)
+    trial("kinematic-means,rho2=0.1", "lqr-flm", 0, [0.0, 0.0, 0.0])
+    trial("paper,rho2=0.01", "lqr-flm", 0, [0.0, 0.0, 0.0])
+    trial("paper,rho2=0", "dpsoc-em", 0, [0.5, 1.0, 1.0])
+    out = sweep_curves(tmp_path)
+    assert set(out) == {("LQR-FLM kinematic", "peg", 0.1), ("DPSOC-EM", "peg", 0.0)}
+    c = out[("LQR-FLM kinematic", "peg", 0.1)]
+    np.testing.assert_array_equal(c["steps"], [2000, 4000, 6000])
+    np.testing.assert_array_equal(c["seeds"]["success_rate"], [[0.0, 0.5, 1.0], [0.0, 0.25, 0.75]])
+    assert c["eval_cost"] == [1.5, 2.5]
+
+
 # ------------------------------------------------------------------ with the peers installed
 
 

@@ -1,13 +1,14 @@
 """Tables and figures of docs/results/peers/ from the parts' outputs.
 
     python -m soc_opt.bench.peers.report --out docs/results/peers \
-        [--rl runs/peers-rl] [--soc runs/peers-soc] [--skip-kernels]
+        [--rl runs/peers-rl] [--soc runs/peers-soc] [--sweep runs/sweep-noise_peg ...] [--skip-kernels]
 
 * runs the smoother and LQR parts (unless ``--skip-kernels``) and writes ``smoothers.json``,
   ``lqr.json``;
 * reads the RL runs (``--rl``: one JSON per run, :mod:`.rl`) and the soc_opt runs (``--soc``:
   ``soc-opt compare`` directories named ``<task>-<paper|noiseaware>-rho<rho2>``, per-iteration
-  ``metrics.csv`` of each seed and method);
+  ``metrics.csv`` of each seed and method; or ``--sweep``: the noise sweeps' trials, 10 seeds, with
+  the kinematic estimator too);
 * writes ``rl.json`` (per method, task and rho2: the metric at each budget, mean and std over
   seeds, steps to 90% peg success), ``tables.md`` and ``<task>_vs_steps.png``.
 
@@ -25,10 +26,12 @@ import numpy as np
 
 from ...peers.rl import steps_to
 
-__all__ = ["soc_curves", "rl_curves", "rl_table", "main"]
+__all__ = ["soc_curves", "sweep_curves", "rl_curves", "rl_table", "main"]
 
 METRIC = {"peg": "success_rate", "door": "min_hinge"}
 SOC_LABEL = {"paper": "{m}", "noiseaware": "{m} noise-aware"}
+#: the noise sweeps' settings (problems/sweeps/noise_*.toml) shown beside RL, and their labels
+SWEEP_LABEL = {"paper": "{m}", "noise-aware": "{m} noise-aware", "kinematic": "{m} kinematic"}
 METHODS = {"lqr-flm": "LQR-FLM", "dpsoc-em": "DPSOC-EM"}
 
 
@@ -46,17 +49,48 @@ def soc_curves(root: Path, samples: int = 20, T: int = 100) -> dict:
                 per_seed.append(rows)
             if not per_seed:
                 continue
-            n_it = min(len(r) for r in per_seed)
             key = (SOC_LABEL[variant].format(m=name), task, rho2)
             summary = d / "summary.json"
             eval_cost = (json.loads(summary.read_text())["per_seed"].get(method, {}).get("cost")
                          if summary.exists() else None)
-            out[key] = {
-                "eval_cost": eval_cost,
-                "steps": (np.arange(n_it) + 1) * samples * T,
-                "seeds": {m: np.array([[float(r[i][f"metric_{m}"]) for i in range(n_it)] for r in per_seed])
-                          for m in (METRIC[task], "cost")},
-            }
+            out[key] = _curve(per_seed, task, samples, T, eval_cost)
+    return out
+
+
+def _curve(per_seed: list[list[dict]], task: str, samples: int, T: int, eval_cost) -> dict:
+    n_it = min(len(r) for r in per_seed)
+    return {
+        "eval_cost": eval_cost,
+        "steps": (np.arange(n_it) + 1) * samples * T,
+        "seeds": {m: np.array([[float(r[i][f"metric_{m}"]) for i in range(n_it)] for r in per_seed])
+                  for m in (METRIC[task], "cost")},
+    }
+
+
+def sweep_curves(root: Path, rho2s=(0.0, 0.1), samples: int = 20, T: int = 100) -> dict:
+    """The same from a noise sweep's trials (``soc-opt sweep problems/sweeps/noise_<task>.toml``:
+    ``trials/<task>/<setting>,rho2=<r>/<method>/seed_<s>/metrics.csv``) for the settings of
+    :data:`SWEEP_LABEL` at ``rho2s``; ``eval_cost`` from each trial's ``result.json``."""
+    out = {}
+    for task_dir in sorted((Path(root) / "trials").glob("*")):
+        task = task_dir.name
+        if task not in METRIC:
+            continue
+        for d in sorted(task_dir.glob("*,rho2=*")):
+            setting, _, rho = d.name.partition(",rho2=")
+            if setting not in SWEEP_LABEL or float(rho) not in rho2s:
+                continue
+            for method, name in METHODS.items():
+                per_seed, costs = [], []
+                for sd in sorted(d.glob(f"{method}/seed_*"), key=lambda p: int(p.name.split("_")[1])):
+                    if not (sd / "result.json").exists():
+                        continue
+                    with open(sd / "metrics.csv") as fh:
+                        per_seed.append(list(csv.DictReader(fh)))
+                    costs.append(json.loads((sd / "result.json").read_text())["final_cost"])
+                if per_seed:
+                    key = (SWEEP_LABEL[setting].format(m=name), task, float(rho))
+                    out[key] = _curve(per_seed, task, samples, T, costs)
     return out
 
 
@@ -200,8 +234,9 @@ def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
         series += [(f"{k[0]} ({k[3] // 1000}k)", c) for k, c in rl.items() if k[1] == task and k[2] == rho2]
         for label, c in series:
             base = label.split(" (")[0]
-            color = _COLORS.get(base.replace(" noise-aware", ""), "gray")
-            ls = ":" if "noise-aware" in base else ("-" if base.startswith(("LQR", "DPSOC")) else "--")
+            color = _COLORS.get(base.replace(" noise-aware", "").replace(" kinematic", ""), "gray")
+            ls = ":" if "noise-aware" in base else "-." if "kinematic" in base else \
+                ("-" if base.startswith(("LQR", "DPSOC")) else "--")
             for i, key in enumerate((m, "cost")):
                 v = c["seeds"][key]
                 with np.errstate(all="ignore"):
@@ -217,7 +252,8 @@ def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
         axes[1, j].set_ylabel("task cost (true states)")
         axes[1, j].set_yscale("log")
         for i in range(2):
-            axes[i, j].set_xlabel("environment steps")
+            axes[i, j].set_xscale("log")  # the paper's budget (28k) and 10x it on one axis
+            axes[i, j].set_xlabel("environment steps (log scale)")
             axes[i, j].grid(alpha=0.3)
         axes[0, j].legend(fontsize=7, loc="best")
     fig.suptitle(f"{task}: soc_opt (solid) vs stable-baselines3 (dashed), mean ± std over seeds; "
@@ -232,6 +268,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="docs/results/peers")
     ap.add_argument("--rl", default="runs/peers-rl")
     ap.add_argument("--soc", default="runs/peers-soc")
+    ap.add_argument("--sweep", nargs="*", default=[],
+                    help="noise sweep output directories (runs/sweep-noise_peg ...): their paper, noise-aware and "
+                         "kinematic trials at rho^2 0 and 0.1 replace --soc's rows of the same method, task and rho^2")
     ap.add_argument("--skip-kernels", action="store_true")
     a = ap.parse_args(argv)
     out = Path(a.out)
@@ -247,6 +286,8 @@ def main(argv=None) -> int:
         if f.exists():
             parts.append(f"## {name}\n\n" + _md(json.loads(f.read_text())))
     soc = soc_curves(Path(a.soc)) if Path(a.soc).exists() else {}
+    for d in a.sweep:
+        soc.update(sweep_curves(Path(d)))
     rl = rl_curves(Path(a.rl)) if Path(a.rl).exists() else {}
     table = rl_table(soc, rl)
     (out / "rl.json").write_text(json.dumps(table, indent=1))
