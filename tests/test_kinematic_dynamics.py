@@ -165,3 +165,122 @@ def test_posterior_fit_in_the_loop_has_more_process_noise_than_the_means_fit(peg
         W[fm] = strat.fit(est.data(ro), fcfg, est, task.initial_policy(0.3)).cov
     # the smoothed means understate the spread of the states: the posterior fit's noise is larger
     assert np.mean(np.trace(W["posterior"], axis1=1, axis2=2)) > np.mean(np.trace(W["means"], axis1=1, axis2=2))
+
+
+# --------------------------------------------------------------------------- structured_prior
+
+
+def _sigma_points(mu, S):
+    """``2d`` points with mean ``mu (d,)`` and (population) covariance ``S (d, d)`` exactly."""
+    d = mu.size
+    L = np.linalg.cholesky(S)
+    return np.concatenate([mu + np.sqrt(d) * L.T, mu - np.sqrt(d) * L.T])
+
+
+def _random_moments(rng, T, d):
+    mu = rng.standard_normal((T, d))
+    G = rng.standard_normal((T, d, d))
+    return mu, G @ np.swapaxes(G, -1, -2) / d + 0.1 * np.eye(d)
+
+
+def _random_dynamics(rng, T, n, m):
+    from soc_opt.models import LinearGaussianDynamics
+
+    G = rng.standard_normal((T, n, n))
+    return LinearGaussianDynamics(rng.standard_normal((T, n, n)), rng.standard_normal((T, n, m)),
+                                  rng.standard_normal((T, n)), G @ np.swapaxes(G, -1, -2) / n + 0.05 * np.eye(n))
+
+
+@pytest.mark.parametrize("with_y", [False, True])
+def test_structured_prior_equals_the_moments_of_data_pooled_with_tuples_of_the_transition(with_y):
+    from soc_opt.noise.kinematic.dynamics import structured_prior
+
+    rng = np.random.default_rng(11)
+    T, n, m, count, strength = 3, 3, 2, 21.0, 7.0
+    nz, d = n + m, 2 * n + m + int(with_y)
+    mu, Lam = _random_moments(rng, T, d)
+    dyn = _random_dynamics(rng, T, n, m)
+    got_mu, got_Lam = structured_prior(dyn, strength, count)(mu, Lam)
+    F = np.concatenate([dyn.A, dyn.B], -1)
+    for k in range(T):
+        data = _sigma_points(mu[k], Lam[k])
+        # pseudo-tuples: the data's (x, a[, y]) moments, x' from the transition with independent noise W
+        keep = np.r_[np.arange(nz), np.arange(nz + n, d)]
+        zy = _sigma_points(mu[k, keep], Lam[k][np.ix_(keep, keep)])
+        w = _sigma_points(np.zeros(n), dyn.cov[k])
+        pseudo = np.zeros((zy.shape[0] * w.shape[0], d))
+        for i, p in enumerate(zy):
+            rows = slice(i * w.shape[0], (i + 1) * w.shape[0])
+            pseudo[rows, keep] = p
+            pseudo[rows, nz:nz + n] = F[k] @ p[:nz] + dyn.c[k] + w
+        pooled = np.concatenate([data, pseudo])
+        weights = np.r_[np.full(len(data), count / len(data)), np.full(len(pseudo), strength / len(pseudo))]
+        np.testing.assert_allclose(got_mu[k], np.average(pooled, axis=0, weights=weights), atol=1e-10)
+        np.testing.assert_allclose(got_Lam[k], np.cov(pooled.T, aweights=weights, bias=True), atol=1e-10)
+
+
+def test_structured_prior_regression_is_the_weighted_mean_of_the_data_and_the_transition():
+    from soc_opt.noise.kinematic.dynamics import structured_prior
+
+    rng = np.random.default_rng(12)
+    T, n, m, count = 4, 3, 2, 20.0
+    mu, Lam = _random_moments(rng, T, 2 * n + m)
+    dyn = _random_dynamics(rng, T, n, m)
+    A0, c0, _ = fit._condition(mu, Lam, n + m, 1e-12)
+    for strength, w in ((0.0, 0.0), (20.0, 0.5), (60.0, 0.75), (1e12, 1.0)):
+        A, c, S = fit._condition(*structured_prior(dyn, strength, count)(mu, Lam), n + m, 1e-12)
+        F = np.concatenate([dyn.A, dyn.B], -1)
+        np.testing.assert_allclose(A, (1 - w) * A0 + w * F, atol=1e-8)
+        np.testing.assert_allclose(c, (1 - w) * c0 + w * dyn.c, atol=1e-8)
+    np.testing.assert_allclose(S, dyn.cov, atol=1e-6)  # all prior: the transition's own noise
+
+
+def test_structured_prior_leaves_data_from_the_transition_unchanged():
+    from soc_opt.noise.kinematic.dynamics import structured_prior
+
+    rng = np.random.default_rng(13)
+    T, n, m = 2, 3, 2
+    nz = n + m
+    mu_z, Szz = _random_moments(rng, T, nz)
+    dyn = _random_dynamics(rng, T, n, m)
+    F = np.concatenate([dyn.A, dyn.B], -1)
+    mu = np.concatenate([mu_z, np.einsum("tij,tj->ti", F, mu_z) + dyn.c], -1)
+    Lam = np.block([[Szz, Szz @ np.swapaxes(F, -1, -2)], [F @ Szz, F @ Szz @ np.swapaxes(F, -1, -2) + dyn.cov]])
+    got_mu, got_Lam = structured_prior(dyn, 13.0, 20.0)(mu, Lam)
+    np.testing.assert_allclose(got_mu, mu, atol=1e-12)
+    np.testing.assert_allclose(got_Lam, Lam, atol=1e-10)
+
+
+def test_structured_prior_rejects_bad_weights_shapes_and_configurations():
+    from soc_opt.noise.kinematic.dynamics import structured_prior
+
+    rng = np.random.default_rng(14)
+    dyn = _random_dynamics(rng, 2, 3, 2)
+    with pytest.raises(ValueError, match="strength"):
+        structured_prior(dyn, -1.0, 20.0)
+    with pytest.raises(ShapeError, match="do not fit"):
+        structured_prior(dyn, 1.0, 20.0)(*_random_moments(rng, 2, 6))
+    with pytest.raises(ConfigError, match="structured_prior"):
+        KinematicConfig(structured_prior=5.0, dynamics="structured")
+    with pytest.raises(ConfigError, match="structured_prior"):
+        KinematicConfig(structured_prior=5.0, filter="fit")
+    with pytest.raises(ConfigError, match="structured_prior"):
+        KinematicConfig(structured_prior=-1.0)
+
+
+def test_structured_prior_in_the_loop_pulls_the_fit_towards_the_transition(peg):
+    task, ro, _, _ = peg
+    from soc_opt.noise.aware import NoiseConfig
+    from soc_opt.noise.strategy import resolve
+
+    fcfg = fit.FitConfig(prior="none")
+    models = {}
+    for sp in (0.0, 20.0):
+        strat = resolve(task, NoiseConfig(estimator="kinematic", kinematic=KinematicConfig(structured_prior=sp)))
+        est = strat.estimate(None, ro, fcfg, task.initial_policy(0.3), np.random.default_rng(0))
+        models[sp] = strat.fit(est.data(ro), fcfg, est, task.initial_policy(0.3))
+    target = structured_dynamics(est.filter, KinematicConfig().w_floor)
+    # M = 8 rollouts against 20 pseudo-tuples: the B of the fit moves most of the way to the transition's
+    far = np.linalg.norm(models[0.0].B - target.B)
+    near = np.linalg.norm(models[20.0].B - target.B)
+    assert near < 0.5 * far

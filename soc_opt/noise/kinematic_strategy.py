@@ -18,8 +18,8 @@ from ..lqg import LocalModel
 from ..models import symmetrize
 from . import aware as noise_aware
 from .kinematic import loop as kinematic_loop
-from .kinematic.dynamics import structured_dynamics, with_dynamics
-from .kinematic.filter import KinematicFilteredPolicy
+from .kinematic.dynamics import structured_dynamics, structured_prior, with_dynamics
+from .kinematic.filter import KinematicFilter, KinematicFilteredPolicy
 from .strategy import EMModel, Estimates, LoopModel, NoiseStrategy, kalman_em_model, kalman_lqg_model
 
 __all__ = ["KinematicEstimator", "posterior_correction"]
@@ -64,12 +64,25 @@ class KinematicEstimator(NoiseStrategy):
 
     def fit(self, rollouts, fit_cfg, estimates: Estimates, sampler, *, include_y: bool = False):
         """The paper's fit of the smoothed rollouts; with ``fit_moments = "posterior"`` on their expected
-        sufficient statistics (:func:`posterior_correction`)."""
-        if estimates.moments is None:
+        sufficient statistics (:func:`posterior_correction`); with ``structured_prior > 0`` pulled towards
+        the filter's structured transition (:func:`~soc_opt.noise.kinematic.dynamics.structured_prior`)."""
+        kin = self.cfg.kinematic
+        use_structured = kin.structured_prior > 0 and isinstance(estimates.filter, KinematicFilter)
+        if estimates.moments is None and not use_structured:
             return super().fit(rollouts, fit_cfg, estimates, sampler, include_y=include_y)
         used_prior = estimates.prior is not None and fit_cfg.prior == "mixture"
-        weight = rollouts.M / (rollouts.M + fit_cfg.n0) if used_prior else 1.0
-        correct = posterior_correction(*estimates.moments, rollouts.n, rollouts.m, weight)
+        count = rollouts.M + fit_cfg.n0 if used_prior else float(rollouts.M)
+        steps = []
+        if estimates.moments is not None:
+            steps.append(posterior_correction(*estimates.moments, rollouts.n, rollouts.m, rollouts.M / count))
+        if use_structured:
+            steps.append(structured_prior(structured_dynamics(estimates.filter, kin.w_floor), kin.structured_prior, count))
+
+        def correct(mu, Lam):
+            for step in steps:
+                mu, Lam = step(mu, Lam)
+            return mu, Lam
+
         return (fit.fit_augmented if include_y else fit.fit_dynamics)(rollouts, fit_cfg, estimates.prior,
                                                                        correct=correct)
 

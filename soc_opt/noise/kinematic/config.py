@@ -59,7 +59,13 @@ class KinematicConfig(Config):
                     default since issue 19's third round, before it ``"means"``).  Used with
                     ``learn_on = "smoothed"`` and ``rho^2 > 0`` (otherwise the states are exact or
                     filtered, and the fit takes them as they are).
-    w_floor:        with ``dynamics = "structured"``: variance added to every diagonal entry of the
+    structured_prior: pseudo-count of the structured transition (the one ``dynamics = "structured"``
+                    uses) as a conjugate prior on the per-step fit of ``dynamics = "fit"``: the fit's
+                    joint moments pooled with ``structured_prior`` pseudo-tuples drawn from that
+                    transition at the data's ``(x_k, a_k)`` moments, against ``M + n0`` for the batch
+                    (docs/math.md §11.3).  ``0`` (default): the fit on the data alone.  With
+                    ``filter = "kinematic"`` and ``dynamics = "fit"`` only.
+    w_floor:        with ``dynamics = "structured"`` or ``structured_prior > 0``: variance added to every diagonal entry of the
                     process noise in task coordinates (the transition's noise has rank ``nz`` there).
     learn_on:       the states the learner (prior, fit, cost expansion, EM phase) sees: ``"smoothed"``
                     (``h(E[z_k | s_0..s_T, a])``) or ``"filtered"`` (the estimates the new policy will
@@ -82,6 +88,7 @@ class KinematicConfig(Config):
     gains: Literal["nominal", "online"] = "online"
     dynamics: Literal["fit", "structured"] = "fit"
     fit_moments: Literal["means", "posterior"] = "posterior"
+    structured_prior: float = 0.0
     w_floor: float = 1e-6
 
     # runs of the kinematic estimator recorded before these fields existed used fixed gains and the means fit
@@ -103,9 +110,14 @@ class KinematicConfig(Config):
         "dynamics": [Options(("fit", "structured"))],
         "fit_moments": [Options(("means", "posterior"))],
         "w_floor": [Interval(0.0, None, "neither")],
+        "structured_prior": [Interval(0.0)],
     }
 
     def __post_init__(self):
         if self.dynamics == "structured" and self.filter != "kinematic":
             raise config_error("dynamics", "'structured' is the transition of the kinematic filter; it needs "
                                f"filter = 'kinematic' (got {self.filter!r})")
+        if self.structured_prior > 0 and (self.dynamics != "fit" or self.filter != "kinematic"):
+            raise config_error("structured_prior", "the structured prior is a prior on the fit of dynamics = 'fit' "
+                               "with filter = 'kinematic' (got dynamics = "
+                               f"{self.dynamics!r}, filter = {self.filter!r})")

@@ -16,6 +16,9 @@ gains on them are zero when the reference policy's are: the policy acts on the f
 
 It is the model the policy's filter predicts with, so the KL step's predictions and the filter agree.
 It cannot represent what the acceleration map cannot (contact that differs within a time segment).
+
+``structured_prior > 0`` keeps the §2 regression and uses the same transition as a conjugate prior
+on it (:func:`structured_prior`, ``docs/math.md §11.3``).
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import numpy as np
 from ...models import AugmentedModel, LinearGaussianDynamics, ShapeError, symmetrize
 from .filter import KinematicFilter
 
-__all__ = ["structured_dynamics", "with_dynamics"]
+__all__ = ["structured_dynamics", "with_dynamics", "structured_prior"]
 
 
 def structured_dynamics(f: KinematicFilter, w_floor: float) -> LinearGaussianDynamics:
@@ -58,3 +61,53 @@ def with_dynamics(model: AugmentedModel, dyn: LinearGaussianDynamics) -> Augment
     So[:, :n, :n] = dyn.cov
     So[:, n, n] = model.So[:, n, n]
     return AugmentedModel(Ao, co, So, n)
+
+
+def structured_prior(dyn: LinearGaussianDynamics, strength: float, count: float):
+    """The ``correct`` hook of :func:`soc_opt.learning.fit.fit_dynamics`: the structured transition ``dyn``
+    as a conjugate prior of ``strength`` pseudo-observations on the per-step fit whose joint moments
+    ``(mu (T, d), Lam (T, d, d))`` of the tuples ``(x_k, a_k, x_{k+1}[, y_k])`` weigh ``count``
+    (``docs/math.md §11.3``, *structured prior*).
+
+    The prior's tuples share the data's ``(x_k, a_k)`` moments ``(mu_z, S_zz)`` and follow ``dyn``::
+
+        mu_s  = (mu_z, F mu_z + f),   S_s = [[S_zz, S_zz F^T], [F S_zz, F S_zz F^T + W]]
+
+    (the cost column ``y``, if present, keeps its moments, with ``Cov(x_{k+1}, y) = F Cov(z, y)``); the
+    result is the moments of the pooled sample, ``w = strength / (strength + count)``::
+
+        mu'  = (1 - w) mu + w mu_s
+        Lam' = (1 - w) Lam + w S_s + w (1 - w) (mu - mu_s)(mu - mu_s)^T
+
+    so the fit's regression lies between the data's and ``dyn``, nearer ``dyn`` where the batch says
+    little, and its covariance carries their disagreement.
+    """
+    if not (strength >= 0 and count > 0):
+        raise ValueError(f"structured_prior: need strength >= 0 and count > 0, got {strength!r}, {count!r}")
+    n, m = dyn.n, dyn.m
+    nz = n + m
+    x1 = slice(nz, nz + n)
+    F = np.concatenate([dyn.A, dyn.B], axis=-1)                      # (T, n, n + m)
+    w = strength / (strength + count)
+
+    def correct(mu, Lam):
+        if mu.shape[-1] < nz + n or Lam.shape[-2:] != (mu.shape[-1],) * 2 or mu.shape[0] != dyn.T:
+            raise ShapeError(f"structured_prior: moments {mu.shape}, {Lam.shape} do not fit dynamics "
+                             f"(T, n, m) = {(dyn.T, n, m)}")
+        Szz = Lam[:, :nz, :nz]
+        mu_s = np.array(mu)
+        mu_s[:, x1] = np.einsum("tij,tj->ti", F, mu[:, :nz]) + dyn.c
+        S_s = np.array(Lam)
+        FS = F @ Szz                                                  # (T, n, nz)
+        S_s[:, x1, :nz] = FS
+        S_s[:, :nz, x1] = np.swapaxes(FS, -1, -2)
+        S_s[:, x1, x1] = FS @ np.swapaxes(F, -1, -2) + dyn.cov
+        y = slice(nz + n, None)
+        Fy = F @ Lam[:, :nz, y]                                       # (T, n, dy)
+        S_s[:, x1, y] = Fy
+        S_s[:, y, x1] = np.swapaxes(Fy, -1, -2)
+        d = mu - mu_s
+        out = (1 - w) * Lam + w * S_s + w * (1 - w) * (d[:, :, None] * d[:, None, :])
+        return (1 - w) * mu + w * mu_s, symmetrize(out)
+
+    return correct
