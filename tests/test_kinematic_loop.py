@@ -1,6 +1,8 @@
 """The kinematic estimator in the loop (soc_opt/noise/kinematic/loop.py; its wiring in
 soc_opt/algorithms.py and the [baseline.noise] knob, docs/math.md §11.3)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -125,3 +127,53 @@ def test_posterior_moments_change_the_fit_not_the_zero_noise_loop():
                                                                                    noise=nc), i_switch=0), seed=1)
                 for nc in (noise, plain)]
         assert np.array_equal(runs[0].policy.policy.K, runs[1].policy.policy.K) == same
+
+
+def test_cold_start_smoothing_does_not_depend_on_the_sampling_policys_map():
+    """``warm_start = false``: EM starts from the data's own initial map, so the smoothed states of a
+    batch are the same whichever filter drew it; warm-started (alone), they depend on its map."""
+    from soc_opt.noise.kinematic import loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+
+    task = load_task("peg", overrides={"rho2": 0.1, "T": 30})
+    pol = task.initial_policy(0.5)
+    first = task.rollouts(pol, 6, np.random.default_rng(0))
+    _, filt, _ = loop.learn(task, first, pol, KinematicConfig())
+    batch = task.rollouts(pol, 6, np.random.default_rng(1))
+    with_map = KinematicFilteredPolicy(pol, filt)
+    for warm, same in ((False, True), (True, False)):
+        cfg = KinematicConfig(warm_start=warm, restart_from_data=False)
+        a, _, _ = loop.learn(task, batch, with_map, cfg)
+        b, _, _ = loop.learn(task, batch, pol, cfg)
+        assert np.array_equal(a.s, b.s) == same
+
+
+def test_restart_keeps_the_em_start_with_the_higher_likelihood():
+    """``restart_from_data`` (default): EM from the sampler's map and from the data's own map, the run
+    with the higher final ``log p(s | a)`` kept, whichever it is."""
+    from soc_opt.noise.kinematic import em, loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+    from soc_opt.noise.kinematic.model import AccelMap, KinematicModel
+
+    task = load_task("peg", overrides={"rho2": 0.1, "T": 30})
+    km = KinematicModel(task)
+    pol = task.initial_policy(0.5)
+    batch = task.rollouts(pol, 6, np.random.default_rng(1))
+    _, filt, _ = loop.learn(task, task.rollouts(pol, 6, np.random.default_rng(0)), pol, KinematicConfig())
+    good = filt.accel()
+    # a poor start: the learned map with its torque response reversed and its noise 100 times smaller
+    bad = AccelMap(-good.B, good.D, good.c, 0.01 * good.S)
+    cfg = KinematicConfig()
+    assert cfg.warm_start and cfg.restart_from_data
+    cold = em.fit(km, batch.s, batch.a, 0.1, cfg, None)
+    picked = set()
+    for accel in (good, bad):
+        sampler = KinematicFilteredPolicy(pol, dataclasses.replace(filt, accel_B=accel.B, accel_D=accel.D,
+                                                                   accel_c=accel.c, accel_S=accel.S))
+        warm = em.fit(km, batch.s, batch.a, 0.1, cfg, sampler.filter.accel())
+        best = warm if warm.loglik[-1] > cold.loglik[-1] else cold
+        got, _, diag = loop.learn(task, batch, sampler, cfg)
+        np.testing.assert_array_equal(got.s, km.measure(best.smoothed.mean, False))
+        assert diag["kin_loglik_last"] == max(warm.loglik[-1], cold.loglik[-1])
+        picked.add(diag["kin_start"])
+    assert picked == {"sampler", "data"}  # the test exercises both outcomes
