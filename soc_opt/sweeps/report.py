@@ -166,7 +166,7 @@ def _plot_versus(task: str, spec: SweepSpec, rows: list[dict], key: str, path: P
         return None
     groups = list(dict.fromkeys(s.group for s in spec.settings))
     fig, axes = plt.subplots(len(qkeys), 1, figsize=(6.5, 3.0 * len(qkeys)), squeeze=False)
-    styles = ["o-", "s--", "^:", "d-."]
+    styles = ["o-", "s--", "^:", "d-.", "x--", "v:"]
     values = sorted({s.grid[0][1] for s in spec.settings})
     for ax, q in zip(axes[:, 0], qkeys):
         for gi, g in enumerate(groups):
