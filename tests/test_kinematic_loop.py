@@ -177,3 +177,131 @@ def test_restart_keeps_the_em_start_with_the_higher_likelihood():
         assert diag["kin_loglik_last"] == max(warm.loglik[-1], cold.loglik[-1])
         picked.add(diag["kin_start"])
     assert picked == {"sampler", "data"}  # the test exercises both outcomes
+
+
+def test_em_loglik_of_a_fixed_map_is_the_extended_kalman_pass_likelihood():
+    """``em.loglik``: the likelihood a fixed map gives a batch is the first (extended-Kalman) pass of EM
+    from that map, before any M-step."""
+    from soc_opt.noise.kinematic import em, loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+    from soc_opt.noise.kinematic.model import KinematicModel
+
+    task = load_task("peg", overrides={"rho2": 0.1, "T": 30})
+    km = KinematicModel(task)
+    pol = task.initial_policy(0.5)
+    _, filt, _ = loop.learn(task, task.rollouts(pol, 6, np.random.default_rng(0)), pol, KinematicConfig())
+    batch = task.rollouts(pol, 5, np.random.default_rng(2))
+    first = em.fit(km, batch.s, batch.a, 0.1, KinematicConfig(relin=0, em_iters=0), filt.accel())
+    assert em.loglik(km, filt.accel(), batch.s, batch.a, 0.1, KinematicConfig()) == first.loglik[0]
+
+
+def _held_out_setting():
+    """A batch, its predecessor, and sampling policies whose maps are the one learned from the
+    predecessor and that map with its torque response reversed and its noise 100 times smaller."""
+    from soc_opt.noise.kinematic import loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+    from soc_opt.noise.kinematic.model import KinematicModel
+
+    task = load_task("peg", overrides={"rho2": 0.1, "T": 30})
+    pol = task.initial_policy(0.5)
+    previous = task.rollouts(pol, 6, np.random.default_rng(0))
+    _, filt, _ = loop.learn(task, previous, pol, KinematicConfig())
+    good = filt.accel()
+    samplers = [KinematicFilteredPolicy(pol, filt),
+                KinematicFilteredPolicy(pol, dataclasses.replace(filt, accel_B=-good.B, accel_S=0.01 * good.S))]
+    return task, KinematicModel(task), previous, task.rollouts(pol, 6, np.random.default_rng(1)), samplers
+
+
+def test_held_out_selection_keeps_the_start_whose_map_predicts_the_previous_batch_better():
+    """``start_select = "previous"``: both EM starts run on the batch as before, and the map kept is the
+    one with the higher likelihood of the previous batch (held out), whichever start it came from, not
+    the one with the higher likelihood of the batch itself."""
+    from soc_opt.noise.kinematic import em, loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+
+    task, km, previous, batch, samplers = _held_out_setting()
+    cfg = KinematicConfig(start_select="previous", filter_start="kept")
+    cold = em.fit(km, batch.s, batch.a, 0.1, cfg, None)
+    picked = set()
+    for sampler in samplers:
+        warm = em.fit(km, batch.s, batch.a, 0.1, cfg, sampler.filter.accel())
+        held = [em.loglik(km, r.accel, previous.s, previous.a, 0.1, cfg) for r in (warm, cold)]
+        best = warm if held[0] >= held[1] else cold
+        got, filt, diag = loop.learn(task, batch, sampler, cfg, previous)
+        np.testing.assert_array_equal(got.s, km.measure(best.smoothed.mean, False))
+        np.testing.assert_array_equal(filt.accel_B, best.accel.B)
+        assert (diag["kin_heldout_sampler"], diag["kin_heldout_data"]) == tuple(held)
+        assert diag["kin_start"] == ("sampler" if best is warm else "data")
+        picked.add(diag["kin_start"])
+    assert picked == {"sampler", "data"}  # the test exercises both outcomes
+
+
+def test_held_out_selection_without_a_previous_batch_is_the_in_sample_rule():
+    """With no previous batch (the first iteration) ``start_select = "previous"`` compares the starts on
+    the batch itself, as ``"batch"`` does; with one, the two rules may differ but ``"batch"`` ignores it."""
+    from soc_opt.noise.kinematic import loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+
+    task, _, previous, batch, samplers = _held_out_setting()
+    for sampler in samplers:
+        a, _, da = loop.learn(task, batch, sampler, KinematicConfig(start_select="previous"))
+        b, _, db = loop.learn(task, batch, sampler, KinematicConfig(start_select="batch"), previous)
+        np.testing.assert_array_equal(a.s, b.s)
+        assert da["kin_start"] == db["kin_start"] and "kin_heldout_data" not in da and "kin_heldout_data" not in db
+
+
+def test_the_loop_hands_each_iteration_the_batch_its_sampler_was_learned_from():
+    """LQR-FLM and DPSOC-EM (through its EM phase) pass each estimate the batch sampled just before
+    (the one the sampling policy's filter was learned from; none on the first), taken from the run
+    state's ``last_rollouts``, which the checkpoint carries."""
+    from soc_opt.noise.kinematic.config import KinematicConfig
+    from soc_opt.noise.kinematic_strategy import KinematicEstimator
+
+    seen = []
+    orig = KinematicEstimator.estimate
+
+    def spy(self, prior, rollouts, fit_cfg, sampler, rng, previous=None):
+        seen.append((rollouts, previous))
+        return orig(self, prior, rollouts, fit_cfg, sampler, rng, previous)
+
+    task = load_task("peg", overrides={"rho2": 0.1, "T": 20})
+    nc = NoiseConfig(estimator="kinematic", kinematic=KinematicConfig(start_select="previous"))
+    for method, i_switch in (("lqr-flm", 0), ("dpsoc-em", 1)):
+        seen.clear()
+        KinematicEstimator.estimate = spy
+        try:
+            run_algorithm(task, method, DPSOCConfig(baseline=LQRFLMConfig(iterations=3, samples=5, init_var=1.0,
+                                                                          noise=nc), i_switch=i_switch), seed=0)
+        finally:
+            KinematicEstimator.estimate = orig
+        assert seen[0][1] is None
+        for (before, _), (_, prev) in zip(seen, seen[1:]):
+            assert prev is before
+        assert len(seen) == (3 if method == "lqr-flm" else 4)
+
+
+def test_filter_from_the_sampler_start_keeps_its_own_line_while_the_learner_gets_the_kept_run():
+    """``filter_start = "sampler"``: the online filter is built from the EM run started at the sampling
+    policy's map (its map, transition and nominal trajectory), the learner's smoothed states come from
+    the run ``start_select`` kept, whichever that is; ``"kept"`` builds both from the kept run."""
+    from soc_opt.noise.kinematic import em, loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+    from soc_opt.noise.kinematic.filter import build_filter
+
+    task, km, _, batch, samplers = _held_out_setting()
+    cold = em.fit(km, batch.s, batch.a, 0.1, KinematicConfig(), None)
+    kept_starts = set()
+    for sampler in samplers:
+        warm = em.fit(km, batch.s, batch.a, 0.1, KinematicConfig(), sampler.filter.accel())
+        kept = warm if warm.loglik[-1] > cold.loglik[-1] else cold
+        for where, source in (("sampler", warm), ("kept", kept)):
+            cfg = KinematicConfig(filter_start=where)
+            got, filt, diag = loop.learn(task, batch, sampler, cfg)
+            np.testing.assert_array_equal(got.s, km.measure(kept.smoothed.mean, False))
+            ref = build_filter(km, source.accel, em.z_model(km, source.accel, cfg), source.smoothed.mean.mean(axis=0),
+                               0.1, online=True)
+            for name in ("A", "Q", "zbar", "accel_B", "accel_S", "Lm"):
+                np.testing.assert_array_equal(getattr(filt, name), getattr(ref, name))
+            assert diag["kin_filter_start"] == ("sampler" if where == "sampler" else diag["kin_start"])
+        kept_starts.add("sampler" if kept is warm else "data")
+    assert kept_starts == {"sampler", "data"}  # with the data's run kept, the two settings differ

@@ -171,16 +171,17 @@ def test_the_paper_scale_peg_sweep_has_the_trials_of_the_paper_comparison():
 
 
 @pytest.mark.parametrize("task", ["peg", "door"])
-def test_the_noise_sweep_files_cross_five_variants_with_four_noise_levels(task):
-    """paper, noise-aware (§10), kinematic (§11), kinematic with EM from the sampler's map only (its third round) and on the
-    smoothed means alone (its second round) x rho^2 in {0, 0.001, 0.01, 0.1} x 2 methods x 10 seeds."""
+def test_the_noise_sweep_files_cross_six_variants_with_four_noise_levels(task):
+    """paper, noise-aware (§10), kinematic (§11), kinematic with the filter from the EM run the learner keeps (its
+    fourth round), with EM from the sampler's map only (its third round) and on the smoothed means alone (its second
+    round) x rho^2 in {0, 0.001, 0.01, 0.1} x 2 methods x 10 seeds."""
     spec = load_sweep(os.path.join(os.path.dirname(__file__), "..", "problems", "sweeps", f"noise_{task}.toml"))
-    assert len(spec.settings) == 20 and len(spec.trials) == 20 * 2 * 10
+    assert len(spec.settings) == 24 and len(spec.trials) == 24 * 2 * 10
     noise = {(s.group, s.grid[0][1]) for s in spec.settings}
-    groups = ("paper", "noise-aware", "kinematic", "kinematic-warm", "kinematic-means")
+    groups = ("paper", "noise-aware", "kinematic", "kinematic-r4", "kinematic-warm", "kinematic-means")
     assert noise == {(g, r) for g in groups for r in (0.0, 0.001, 0.01, 0.1)}
-    expected = {"paper": "none", "noise-aware": "kalman", "kinematic": "kinematic", "kinematic-warm": "kinematic",
-                "kinematic-means": "kinematic"}
+    expected = {"paper": "none", "noise-aware": "kalman", "kinematic": "kinematic", "kinematic-r4": "kinematic",
+                "kinematic-warm": "kinematic", "kinematic-means": "kinematic"}
     for t in spec.trials:
         est = t.config.baseline.noise.estimator
         group = t.setting.split(",")[0]
@@ -188,7 +189,8 @@ def test_the_noise_sweep_files_cross_five_variants_with_four_noise_levels(task):
         if est == "kinematic":
             kin = t.config.baseline.noise.kinematic
             assert kin.fit_moments == ("means" if group == "kinematic-means" else "posterior")
-            assert kin.warm_start and kin.restart_from_data == (group == "kinematic")
+            assert kin.warm_start and kin.restart_from_data == (group in ("kinematic", "kinematic-r4"))
+            assert kin.filter_start == ("sampler" if group == "kinematic" else "kept")
         assert t.task_overrides["rho2"] in (0.0, 0.001, 0.01, 0.1) and t.config.baseline.iterations == 14
 
 

@@ -90,11 +90,12 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
         prior = state.prior
         history = state.history
         best = state.best
+        previous = state.last_rollouts
         for r in range(cfg.em.n_em):
             t0 = time.perf_counter()
             rollouts = task.rollouts(policy, cfg.baseline.samples, rng, workers=cfg.baseline.workers)
             timings = {"rollouts": time.perf_counter() - t0}
-            est = noise.estimate(prior, rollouts, cfg.baseline.fit, policy, rng)
+            est = noise.estimate(prior, rollouts, cfg.baseline.fit, policy, rng, previous=previous)
             timings.update(est.timings)
             prior = est.prior
             new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r, estimates=est, noise=noise)
@@ -102,9 +103,10 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
             history = history + (rec,)
             best = improved(best, float(np.mean(rec.cost)), policy, state.iteration)
             policy = new
+            previous = rollouts  # the batch the new policy's estimator was learned from
         state = dataclasses.replace(
             state, policy=policy, prior=prior, rng_state=rng.bit_generator.state,
-            history=history, best=best, em_done=True, prev=None,
+            history=history, best=best, em_done=True, prev=None, last_rollouts=previous,
         )
         # The EM policy is the KL reference (and the sampling policy) of this iteration.
         return lqr_flm_iteration(task, cfg.baseline, state, reference=policy, noise=noise)

@@ -73,7 +73,7 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     timings["rollouts"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    est = noise.estimate(state.prior, rollouts, cfg.fit, state.policy, rng)
+    est = noise.estimate(state.prior, rollouts, cfg.fit, state.policy, rng, previous=state.last_rollouts)
     timings.update(est.timings)
     data = est.data(rollouts)  # what the learner fits on: the measured rollouts unless the estimator says
     dyn = noise.fit(data, cfg.fit, est, state.policy)

@@ -55,9 +55,10 @@ class KinematicEstimator(NoiseStrategy):
 
     name = "kinematic"
 
-    def estimate(self, prior, rollouts, fit_cfg, sampler, rng: np.random.Generator) -> Estimates:
-        """Smooth ``rollouts`` (sampled by ``sampler``), then the mixture prior on the smoothed tuples."""
-        learn, filt, diag = kinematic_loop.learn(self.task, rollouts, sampler, self.cfg.kinematic)
+    def estimate(self, prior, rollouts, fit_cfg, sampler, rng: np.random.Generator, previous=None) -> Estimates:
+        """Smooth ``rollouts`` (sampled by ``sampler``), then the mixture prior on the smoothed tuples;
+        ``previous``: the batch ``sampler``'s filter was learned from (held out for the EM start's choice)."""
+        learn, filt, diag = kinematic_loop.learn(self.task, rollouts, sampler, self.cfg.kinematic, previous)
         base = super().estimate(prior, learn, fit_cfg, sampler, rng)
         return base._replace(learn=learn, filter=filt, moments=diag.get("posterior"),
                              timings={"estimator": diag["kin_time"]})

@@ -141,10 +141,12 @@ class NoiseStrategy:
         return noise_aware.gains(policy)
 
     def estimate(self, prior, rollouts: Rollouts, fit_cfg: fit.FitConfig, sampler,
-                 rng: np.random.Generator) -> Estimates:
+                 rng: np.random.Generator, previous: Rollouts | None = None) -> Estimates:
         """Step 2a: the mixture prior on the measured tuples (the paper), or on state estimates
         (``prior_data = "smoothed"``: :func:`soc_opt.noise.aware.update_prior`), as
-        ``Estimates(prior or None, rollouts with estimated states or None)``."""
+        ``Estimates(prior or None, rollouts with estimated states or None)``.  ``previous``: the
+        batch before this one (the one ``sampler``'s estimator was learned from), for estimators
+        that validate on it; unused here."""
         if fit_cfg.prior != "mixture":
             return Estimates()
         if self.cfg.prior_data == "measured":

@@ -40,6 +40,27 @@ class KinematicConfig(Config):
                     bias of the peg position while it rests on the table, the learner's cost 22
                     against a true 33).  Default on since that round (off before it); doubles the
                     estimator's time.
+    start_select:   how the two EM starts of ``restart_from_data`` are compared: ``"previous"`` (the
+                    likelihood each final map gives the previous batch, which the sampling policy's
+                    filter was learned from and which was drawn under other gains: held out, one
+                    extended-Kalman pass per map, docs/math.md §11.2) or ``"batch"`` (the final
+                    likelihood of this batch, the fourth round's rule).  In-sample, the batch's own
+                    start can win with a map that explains this batch through the state feedback
+                    ``D`` the sampler's gains tie to its actions, and predicts badly once the gains
+                    change: the new filter then drives the closed loop off (door, issue 19's fifth
+                    round).  Without a previous batch (the first iteration) ``"batch"`` is used.
+    filter_start:   the EM run the online filter (what the next policy acts on) is built from:
+                    ``"kept"`` (the run ``start_select`` kept, which the learner also learns from; the
+                    fourth round) or ``"sampler"`` (the run started from the sampling policy's filter's
+                    map, so the filter's map follows its own line of warm starts, the third round's,
+                    while the learner still gets the kept run's smoothed states).  The batch's own
+                    start ends with a larger acceleration noise ``S`` (EM shrinks it slowly from its
+                    broad start): the smoother then follows the measurements more, which removes the
+                    bias the learner needs removed, and the filter follows them more too: under
+                    high-gain feedback that drove the door's closed loop off, although the same
+                    filter estimated the batch itself better (issue 19's fifth round).  Default ``"sampler"`` since that round
+                    (``"kept"`` before it).  Without a sampler's map (the first iteration), or with
+                    a single EM start, the filter is the kept run's.
     kl_model:       the LQR-FLM KL step's model: ``"plain"`` (the fit on the smoothed states as if
                     the state were known) or ``"innovation"`` (its innovation form with the
                     Kalman filter of that fit and ``R``, as in ``docs/noise.md`` §5: filter-error
@@ -92,6 +113,8 @@ class KinematicConfig(Config):
     p0: float = 1e-6
     warm_start: bool = True
     restart_from_data: bool = True
+    start_select: Literal["previous", "batch"] = "batch"
+    filter_start: Literal["kept", "sampler"] = "sampler"
     kl_model: Literal["plain", "innovation"] = "plain"
     filter: Literal["kinematic", "fit"] = "kinematic"
     learn_on: Literal["smoothed", "filtered"] = "smoothed"
@@ -104,7 +127,9 @@ class KinematicConfig(Config):
     # runs of the kinematic estimator recorded before these fields existed used fixed gains and the means fit
     _implied_when_absent = {"kinematic.gains": ("nominal", {"estimator": "kinematic"}),
                             "kinematic.fit_moments": ("means", {"estimator": "kinematic"}),
-                            "kinematic.restart_from_data": (False, {"estimator": "kinematic"})}
+                            "kinematic.restart_from_data": (False, {"estimator": "kinematic"}),
+                            "kinematic.start_select": ("batch", {"estimator": "kinematic"}),
+                            "kinematic.filter_start": ("kept", {"estimator": "kinematic"})}
 
     _constraints = {
         "relin": [Interval(0)],
@@ -115,6 +140,8 @@ class KinematicConfig(Config):
         "s_floor": [Interval(0.0, None, "neither")],
         "p0": [Interval(0.0, None, "neither")],
         "kl_model": [Options(("plain", "innovation"))],
+        "start_select": [Options(("previous", "batch"))],
+        "filter_start": [Options(("kept", "sampler"))],
         "filter": [Options(("kinematic", "fit"))],
         "learn_on": [Options(("smoothed", "filtered"))],
         "gains": [Options(("nominal", "online"))],

@@ -26,7 +26,7 @@ from .config import KinematicConfig
 from .model import AccelMap, KinematicModel, transition
 from .smoother import LinearGaussianZ, Smoothed, smooth
 
-__all__ = ["initial_map", "mstep", "EMResult", "fit", "z_model"]
+__all__ = ["initial_map", "mstep", "EMResult", "fit", "z_model", "loglik"]
 
 
 def initial_map(km: KinematicModel, s, rho2: float, floor: float) -> AccelMap:
@@ -123,3 +123,11 @@ def fit(km: KinematicModel, s, a, rho2: float, cfg: KinematicConfig, init: Accel
         sm = smooth(km, lg, s, a, R, sm.z_lin, sm.lin)
         ll.append(float(sm.loglik.sum()))
     return EMResult(accel, sm, np.array(ll))
+
+
+def loglik(km: KinematicModel, accel: AccelMap, s, a, rho2: float, cfg: KinematicConfig) -> float:
+    """``log p(s | a)`` of rollouts under a fixed acceleration map, summed over rollouts: the extended
+    Kalman filter's prediction-error decomposition (one pass, linearised at each prediction), i.e.
+    how well the filter of ``accel`` predicts these measurements (``docs/math.md §11.2``)."""
+    s, a = np.asarray(s, dtype=float), np.asarray(a, dtype=float)
+    return float(smooth(km, z_model(km, accel, cfg), s, a, rho2 * np.eye(km.n)).loglik.sum())

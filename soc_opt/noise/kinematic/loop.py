@@ -1,11 +1,13 @@
 """The kinematic estimator in the learning loop (``docs/math.md §11.3``).
 
 One call per batch of rollouts: EM for the acceleration map (from the sampling policy's filter's map
-and from the batch's own initial map, the higher final likelihood kept; ``warm_start`` and
-``restart_from_data`` choose the starts), the rollouts with ``s`` replaced by the smoothed states ``h(E[z_k | s, a])`` and
-their costs recomputed on them (what the paper's fit, prior and cost expansion then learn from),
-and the online filter the next policy acts on (exact ``h`` through MuJoCo, gains linearised along
-the mean smoothed trajectory).  Uses the robot's kinematics, not its masses, inertia or damping.
+and from the batch's own initial map; ``warm_start`` and ``restart_from_data`` choose the starts,
+``start_select`` how the two are compared: the likelihood of the previous batch, held out, or of
+this one; ``filter_start`` which of them the online filter is built from), the rollouts with ``s``
+replaced by the smoothed states ``h(E[z_k | s, a])`` and their costs recomputed on them (what the
+paper's fit, prior and cost expansion then learn from), and the online filter the next policy acts
+on (exact ``h`` through MuJoCo, gains linearised along the mean smoothed trajectory).  Uses the
+robot's kinematics, not its masses, inertia or damping.
 """
 
 from __future__ import annotations
@@ -37,12 +39,19 @@ def posterior_moments(sm) -> tuple[np.ndarray, np.ndarray]:
     return 0.5 * (Px + np.swapaxes(Px, -1, -2)), Cx
 
 
-def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig) -> tuple[Rollouts, KinematicFilter, dict]:
+def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig,
+          previous: Rollouts | None = None) -> tuple[Rollouts, KinematicFilter, dict]:
     """``(smoothed rollouts, filter, diagnostics)`` of ``rollouts`` sampled by ``sampler`` (module docstring;
     with ``cfg.learn_on = "filtered"`` the rollouts carry the new filter's estimates instead).
+    ``previous``: the batch before (the one ``sampler``'s filter was learned from, drawn under other
+    gains and another filter); with ``cfg.start_select = "previous"`` the two EM starts' maps are
+    compared by their likelihood of it (:func:`~soc_opt.noise.kinematic.em.loglik`), else, or when
+    there is none, by their final likelihood of this batch.
 
     Diagnostics: ``kin_loglik_first``/``kin_loglik_last`` (EM, summed over rollouts, of the start kept),
-    ``kin_start`` (``"sampler"`` or ``"data"``: the EM start kept),
+    ``kin_start`` (``"sampler"`` or ``"data"``: the EM start kept), ``kin_heldout_sampler`` and
+    ``kin_heldout_data`` (the two maps' likelihood of ``previous``, when compared on it),
+    ``kin_filter_start`` (the EM run the filter was built from),
     ``kin_time`` (s) and, with ``cfg.fit_moments = "posterior"``, ``posterior``
     (:func:`posterior_moments` of the smoothed states).
     """
@@ -51,14 +60,23 @@ def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig) -> tuple[Roll
     init = None
     if cfg.warm_start and isinstance(sampler, KinematicFilteredPolicy):
         init = sampler.filter.accel()
-    res = em.fit(km, rollouts.s, rollouts.a, float(task.rho2), cfg, init)
+    rho2 = float(task.rho2)
+    res = em.fit(km, rollouts.s, rollouts.a, rho2, cfg, init)
+    from_sampler = res if init is not None else None
     start = "data" if init is None else "sampler"
-    if init is not None and cfg.restart_from_data and float(task.rho2) > 0.0:  # (at rho^2 = 0 the states are exact)
-        fresh = em.fit(km, rollouts.s, rollouts.a, float(task.rho2), cfg, None)
-        if fresh.loglik[-1] > res.loglik[-1]:
+    diag = {}
+    if init is not None and cfg.restart_from_data and rho2 > 0.0:  # (at rho^2 = 0 the states are exact)
+        fresh = em.fit(km, rollouts.s, rollouts.a, rho2, cfg, None)
+        if cfg.start_select == "previous" and previous is not None:
+            held = [em.loglik(km, r.accel, previous.s, previous.a, rho2, cfg) for r in (res, fresh)]
+            diag.update(kin_heldout_sampler=held[0], kin_heldout_data=held[1])
+            better = held[1] > held[0]
+        else:
+            better = fresh.loglik[-1] > res.loglik[-1]
+        if better:
             res, start = fresh, "data"
-    lg = em.z_model(km, res.accel, cfg)
-    filt = build_filter(km, res.accel, lg, res.smoothed.mean.mean(axis=0), float(task.rho2),
+    fres = from_sampler if cfg.filter_start == "sampler" and from_sampler is not None else res
+    filt = build_filter(km, fres.accel, em.z_model(km, fres.accel, cfg), fres.smoothed.mean.mean(axis=0), rho2,
                         online=cfg.gains == "online").attach(km)
     if float(task.rho2) == 0.0:  # exact: the smoother returns the measured states (h(z(s)) = s to 1e-15)
         smoothed = rollouts
@@ -69,7 +87,8 @@ def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig) -> tuple[Roll
             xs = km.measure(res.smoothed.mean, False)
         cost = np.asarray(task.cost(xs, rollouts.a))
         smoothed = dataclasses.replace(rollouts, s=xs, cost=cost, y=np.exp(-task.y_scale * cost))
-    diag = {"kin_loglik_first": float(res.loglik[0]), "kin_loglik_last": float(res.loglik[-1]), "kin_start": start}
+    diag.update(kin_loglik_first=float(res.loglik[0]), kin_loglik_last=float(res.loglik[-1]), kin_start=start,
+                kin_filter_start="sampler" if fres is from_sampler else start)
     if cfg.fit_moments == "posterior" and float(task.rho2) > 0.0 and cfg.learn_on == "smoothed":
         diag["posterior"] = posterior_moments(res.smoothed)
     diag["kin_time"] = time.perf_counter() - t0
