@@ -71,3 +71,28 @@ def test_noise_sweep_claims_count_the_seeds_where_dpsoc_em_is_lower(tmp_path):
                             "metric_success_rate": 1.0})
     lines = mod["claims"](mod["rows"](str(path)), "kinematic", 0.1).strip().splitlines()
     assert "| 2/3 | yes |" in lines[2] and "| 0/3 | no |" in lines[3] and "| 3/3 | yes |" in lines[4]
+
+
+def test_filter_noise_example_rebuilds_the_filter_around_the_scaled_acceleration_noise():
+    """examples/noise_kinematic_filter_noise.py: factor 1 gives the learned filter back; factor 2 doubles
+    the velocity block of the transition noise (``dt^2 S``) and changes the gains."""
+    import numpy as np
+
+    from soc_opt.noise.kinematic import loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+    from soc_opt.noise.kinematic.filter import KinematicFilteredPolicy
+    from soc_opt.noise.kinematic.model import KinematicModel
+    from soc_opt.tasks import load_task
+
+    mod = runpy.run_path(str(EXAMPLES / "noise_kinematic_filter_noise.py"))
+    task = load_task("peg", overrides={"rho2": 0.1, "T": 20})
+    km, pol = KinematicModel(task), task.initial_policy(0.5)
+    _, filt, _ = loop.learn(task, task.rollouts(pol, 5, np.random.default_rng(0)), pol, KinematicConfig())
+    policy = KinematicFilteredPolicy(pol, filt)
+    same = mod["scaled"](policy, km, 1.0, KinematicConfig().q_noise)
+    np.testing.assert_array_equal(same.filter.Q, filt.Q)
+    np.testing.assert_array_equal(same.filter.G, filt.G)
+    double = mod["scaled"](policy, km, 2.0, KinematicConfig().q_noise)
+    v = slice(km.nq, km.nz)
+    np.testing.assert_allclose(double.filter.Q[:, v, v], 2.0 * filt.Q[:, v, v], rtol=1e-12)
+    assert not np.allclose(double.filter.G, filt.G)
