@@ -305,3 +305,20 @@ def test_filter_from_the_sampler_start_keeps_its_own_line_while_the_learner_gets
             assert diag["kin_filter_start"] == ("sampler" if where == "sampler" else diag["kin_start"])
         kept_starts.add("sampler" if kept is warm else "data")
     assert kept_starts == {"sampler", "data"}  # with the data's run kept, the two settings differ
+
+
+def test_data_start_select_keeps_the_batch_start_for_the_learner_and_the_sampler_line_for_the_filter():
+    """``start_select = "data"``: the learner's smoothed states are always those of EM from the batch's own
+    map, whatever the likelihoods; with ``filter_start = "sampler"`` the filter is the sampler-start run's."""
+    from soc_opt.noise.kinematic import em, loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+
+    task, km, _, batch, samplers = _held_out_setting()
+    cfg = KinematicConfig(start_select="data")
+    cold = em.fit(km, batch.s, batch.a, 0.1, cfg, None)
+    for sampler in samplers:
+        warm = em.fit(km, batch.s, batch.a, 0.1, cfg, sampler.filter.accel())
+        got, filt, diag = loop.learn(task, batch, sampler, cfg)
+        np.testing.assert_array_equal(got.s, km.measure(cold.smoothed.mean, False))
+        np.testing.assert_array_equal(filt.accel_B, warm.accel.B)
+        assert diag["kin_start"] == "data" and diag["kin_filter_start"] == "sampler"

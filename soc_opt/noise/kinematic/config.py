@@ -49,6 +49,8 @@ class KinematicConfig(Config):
                     ``D`` the sampler's gains tie to its actions, and predicts badly once the gains
                     change: the new filter then drives the closed loop off (door, issue 19's fifth
                     round).  Without a previous batch (the first iteration) ``"batch"`` is used.
+                    ``"data"``: always the batch's own start (for the learner; with
+                    ``filter_start = "sampler"`` the filter still follows the sampler's line).
     filter_start:   the EM run the online filter (what the next policy acts on) is built from:
                     ``"kept"`` (the run ``start_select`` kept, which the learner also learns from; the
                     fourth round) or ``"sampler"`` (the run started from the sampling policy's filter's
@@ -113,7 +115,7 @@ class KinematicConfig(Config):
     p0: float = 1e-6
     warm_start: bool = True
     restart_from_data: bool = True
-    start_select: Literal["previous", "batch"] = "batch"
+    start_select: Literal["previous", "batch", "data"] = "batch"
     filter_start: Literal["kept", "sampler"] = "sampler"
     kl_model: Literal["plain", "innovation"] = "plain"
     filter: Literal["kinematic", "fit"] = "kinematic"
@@ -140,7 +142,7 @@ class KinematicConfig(Config):
         "s_floor": [Interval(0.0, None, "neither")],
         "p0": [Interval(0.0, None, "neither")],
         "kl_model": [Options(("plain", "innovation"))],
-        "start_select": [Options(("previous", "batch"))],
+        "start_select": [Options(("previous", "batch", "data"))],
         "filter_start": [Options(("kept", "sampler"))],
         "filter": [Options(("kinematic", "fit"))],
         "learn_on": [Options(("smoothed", "filtered"))],

@@ -46,7 +46,7 @@ def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig,
     ``previous``: the batch before (the one ``sampler``'s filter was learned from, drawn under other
     gains and another filter); with ``cfg.start_select = "previous"`` the two EM starts' maps are
     compared by their likelihood of it (:func:`~soc_opt.noise.kinematic.em.loglik`), else, or when
-    there is none, by their final likelihood of this batch.
+    there is none, by their final likelihood of this batch; ``"data"`` keeps the batch's own start.
 
     Diagnostics: ``kin_loglik_first``/``kin_loglik_last`` (EM, summed over rollouts, of the start kept),
     ``kin_start`` (``"sampler"`` or ``"data"``: the EM start kept), ``kin_heldout_sampler`` and
@@ -67,7 +67,9 @@ def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig,
     diag = {}
     if init is not None and cfg.restart_from_data and rho2 > 0.0:  # (at rho^2 = 0 the states are exact)
         fresh = em.fit(km, rollouts.s, rollouts.a, rho2, cfg, None)
-        if cfg.start_select == "previous" and previous is not None:
+        if cfg.start_select == "data":
+            better = True
+        elif cfg.start_select == "previous" and previous is not None:
             held = [em.loglik(km, r.accel, previous.s, previous.a, rho2, cfg) for r in (res, fresh)]
             diag.update(kin_heldout_sampler=held[0], kin_heldout_data=held[1])
             better = held[1] > held[0]
