@@ -46,11 +46,12 @@ class KinematicConfig(Config):
                     extended-Kalman pass per map, docs/math.md §11.2) or ``"batch"`` (the final
                     likelihood of this batch, the fourth round's rule).  In-sample, the batch's own
                     start can win with a map that explains this batch through the state feedback
-                    ``D`` the sampler's gains tie to its actions, and predicts badly once the gains
-                    change: the new filter then drives the closed loop off (door, issue 19's fifth
-                    round).  Without a previous batch (the first iteration) ``"batch"`` is used.
-                    ``"data"``: always the batch's own start (for the learner; with
-                    ``filter_start = "sampler"`` the filter still follows the sampler's line).
+                    ``D`` the sampler's gains tie to its actions, and predict badly once the gains
+                    change (the hypothesis; measured in issue 19's fifth round, ``"previous"`` is
+                    worse on peg and no better on the door, so it is off).  Without a previous
+                    batch (the first iteration) ``"batch"`` is used.  ``"data"``: always the batch's
+                    own start (for the learner; with ``filter_start = "sampler"`` the filter still
+                    follows the sampler's line; measured worse on both tasks, off).
     filter_start:   the EM run the online filter (what the next policy acts on) is built from:
                     ``"kept"`` (the run ``start_select`` kept, which the learner also learns from; the
                     fourth round) or ``"sampler"`` (the run started from the sampling policy's filter's
@@ -60,8 +61,8 @@ class KinematicConfig(Config):
                     broad start): the smoother then follows the measurements more, which removes the
                     bias the learner needs removed, and the filter follows them more too: under
                     high-gain feedback that drove the door's closed loop off, although the same
-                    filter estimated the batch itself better (issue 19's fifth round).  Default ``"sampler"`` since that round
-                    (``"kept"`` before it).  Without a sampler's map (the first iteration), or with
+                    filter estimated the batch itself better (issue 19's fifth round).  Default
+                    ``"sampler"`` since that round (``"kept"`` before it).  Without a sampler's map (the first iteration), or with
                     a single EM start, the filter is the kept run's.
     kl_model:       the LQR-FLM KL step's model: ``"plain"`` (the fit on the smoothed states as if
                     the state were known) or ``"innovation"`` (its innovation form with the
