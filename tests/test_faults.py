@@ -350,12 +350,19 @@ def test_every_iteration_in_its_own_process_equals_the_uninterrupted_run(tmp_pat
     assert_same_run(d, ref)
 
 
-@pytest.mark.parametrize("method", ["lqr-flm", "dpsoc-em"])
-def test_a_kinematic_estimator_run_resumed_in_new_processes_equals_the_uninterrupted_run(tmp_path, method):
+@pytest.mark.parametrize("method, start_select", [("lqr-flm", "batch"), ("dpsoc-em", "batch"), ("lqr-flm", "previous")])
+def test_a_kinematic_estimator_run_resumed_in_new_processes_equals_the_uninterrupted_run(tmp_path, method,
+                                                                                      start_select):
     """Issues 18 x 19: the kinematic filter is stored as data (no MuJoCo model in the checkpoint) and
-    bound again to the task's model by the rollouts of the resumed process (``for_task``)."""
-    cfg = load_run_config("peg", ROOT / "docs/results/noise/peg_kinematic.toml", method=method,
+    bound again to the task's model by the rollouts of the resumed process (``for_task``); with
+    ``start_select = "previous"`` the resumed process judges the EM starts on the previous batch, which
+    it reads from the checkpoint (``last_rollouts``)."""
+    text = (ROOT / "docs/results/noise/peg_kinematic.toml").read_text()
+    text = text.replace("[baseline.noise.kinematic]", f'[baseline.noise.kinematic]\nstart_select = "{start_select}"', 1)
+    (tmp_path / "cfg.toml").write_text(text)
+    cfg = load_run_config("peg", tmp_path / "cfg.toml", method=method,
                           overrides={"iterations": 3, "samples": 6, "i_switch": 1})
+    assert cfg.baseline.noise.kinematic.start_select == start_select
     kw = {"cfg": cfg, "task": "peg", "task_overrides": {"T": 25}, "seed": 0}
     ref, d = tmp_path / "ref", tmp_path / "chain"
     assert _resume_in_a_new_process(method, ref, **kw) == "done"
