@@ -8,6 +8,7 @@ from soc_opt.noise.kinematic import em
 from soc_opt.noise.kinematic.config import KinematicConfig
 from soc_opt.noise.kinematic.model import KinematicModel
 from soc_opt.noise.kinematic.smoother import smooth
+from soc_opt.parallel import can_fork
 from soc_opt.tasks import load_task
 
 
@@ -69,3 +70,43 @@ def test_initial_noise_is_second_difference_variance_minus_measurement_noise(dat
     v = np.diff(qd, axis=1).reshape(-1, km.nq).var(axis=0) / km.dt ** 2 - 0.2 / km.dt ** 2
     np.testing.assert_allclose(np.diagonal(acc.S[0]), np.maximum(v, 1e-4))
     assert not acc.B.any() and not acc.D.any() and not acc.c.any()
+
+
+
+def _same(r1, r2):
+    for f in ("B", "D", "c", "S"):
+        np.testing.assert_array_equal(getattr(r1.accel, f), getattr(r2.accel, f))
+    for a, b in zip(r1.smoothed[:5], r2.smoothed[:5]):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(r1.loglik, r2.loglik)
+
+
+@pytest.mark.skipif(not can_fork(), reason="needs fork and two CPUs")
+def test_parallel_starts_equal_the_starts_run_in_turn(data):
+    task, km, ro = data
+    cfg = KinematicConfig()
+    warm = em.fit(km, ro.s[:3], ro.a[:3], 0.1, cfg).accel        # another start, as the sampler's map would be
+    inits = [warm, None]
+    par = em.fit_starts(km, ro.s, ro.a, 0.1, cfg, inits, parallel=True)
+    seq = em.fit_starts(km, ro.s, ro.a, 0.1, cfg, inits, parallel=False)
+    assert len(par) == len(seq) == 2
+    for p, q in zip(par, seq):
+        _same(p, q)
+    _same(seq[1], em.fit(km, ro.s, ro.a, 0.1, cfg, None))
+    assert not np.array_equal(par[0].loglik, par[1].loglik)     # the two starts differ
+
+
+@pytest.mark.skipif(not can_fork(), reason="needs fork and two CPUs")
+def test_an_error_in_the_forked_start_is_raised_in_the_caller(data, monkeypatch):
+    task, km, ro = data
+    real = em.fit
+
+    def failing(km, s, a, rho2, cfg, init=None):
+        if init is None:
+            raise np.linalg.LinAlgError("start from the data failed")
+        return real(km, s, a, rho2, cfg, init)
+
+    monkeypatch.setattr(em, "fit", failing)                       # the child is forked with it
+    warm = real(km, ro.s[:3], ro.a[:3], 0.1, KinematicConfig()).accel
+    with pytest.raises(np.linalg.LinAlgError, match="start from the data failed"):
+        em.fit_starts(km, ro.s, ro.a, 0.1, KinematicConfig(), [warm, None], parallel=True)

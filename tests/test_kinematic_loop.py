@@ -322,3 +322,23 @@ def test_data_start_select_keeps_the_batch_start_for_the_learner_and_the_sampler
         np.testing.assert_array_equal(got.s, km.measure(cold.smoothed.mean, False))
         np.testing.assert_array_equal(filt.accel_B, warm.accel.B)
         assert diag["kin_start"] == "data" and diag["kin_filter_start"] == "sampler"
+
+
+def test_parallel_starts_change_nothing_but_the_wall_time():
+    """``parallel_starts`` (default on) runs the data's EM start in a forked process: the smoothed
+    rollouts, the filter and the diagnostics equal those of the two starts run in turn."""
+    from soc_opt.noise.kinematic import loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+    from soc_opt.parallel import can_fork
+
+    if not can_fork():
+        pytest.skip("needs fork and two CPUs")
+    task, km, _, batch, samplers = _held_out_setting()
+    for sampler in samplers:
+        out = [loop.learn(task, batch, sampler, KinematicConfig(parallel_starts=p)) for p in (True, False)]
+        np.testing.assert_array_equal(out[0][0].s, out[1][0].s)
+        for name in ("A", "Q", "zbar", "accel_B", "accel_S", "Lm", "G"):
+            np.testing.assert_array_equal(getattr(out[0][1], name), getattr(out[1][1], name))
+        for key in ("kin_loglik_first", "kin_loglik_last", "kin_start", "kin_filter_start"):
+            assert out[0][2][key] == out[1][2][key]
+        np.testing.assert_array_equal(out[0][2]["posterior"][0], out[1][2]["posterior"][0])

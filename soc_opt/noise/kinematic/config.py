@@ -39,7 +39,11 @@ class KinematicConfig(Config):
                     fourth round, measured on peg: the warm start's likelihood 5,000 lower, a 3 cm
                     bias of the peg position while it rests on the table, the learner's cost 22
                     against a true 33).  Default on since that round (off before it); doubles the
-                    estimator's time.
+                    estimator's work (see ``parallel_starts``).
+    parallel_starts: run the second EM start in a forked child process while this one runs the
+                    first (:func:`soc_opt.noise.kinematic.em.fit_starts`), when ``fork`` exists and
+                    more than one CPU is available; else in turn.  Results are identical either way
+                    (each start's arithmetic is unchanged); only the wall time differs.
     start_select:   how the two EM starts of ``restart_from_data`` are compared: ``"previous"`` (the
                     likelihood each final map gives the previous batch, which the sampling policy's
                     filter was learned from and which was drawn under other gains: held out, one
@@ -116,6 +120,7 @@ class KinematicConfig(Config):
     p0: float = 1e-6
     warm_start: bool = True
     restart_from_data: bool = True
+    parallel_starts: bool = True
     start_select: Literal["previous", "batch", "data"] = "batch"
     filter_start: Literal["kept", "sampler"] = "sampler"
     kl_model: Literal["plain", "innovation"] = "plain"

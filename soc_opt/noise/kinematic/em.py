@@ -22,11 +22,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ...parallel import fork_map
 from .config import KinematicConfig
 from .model import AccelMap, KinematicModel, transition
 from .smoother import LinearGaussianZ, Smoothed, smooth
 
-__all__ = ["initial_map", "mstep", "EMResult", "fit", "z_model", "loglik"]
+__all__ = ["initial_map", "mstep", "EMResult", "fit", "fit_starts", "z_model", "loglik"]
 
 
 def initial_map(km: KinematicModel, s, rho2: float, floor: float) -> AccelMap:
@@ -123,6 +124,17 @@ def fit(km: KinematicModel, s, a, rho2: float, cfg: KinematicConfig, init: Accel
         sm = smooth(km, lg, s, a, R, sm.z_lin, sm.lin)
         ll.append(float(sm.loglik.sum()))
     return EMResult(accel, sm, np.array(ll))
+
+
+def fit_starts(km: KinematicModel, s, a, rho2: float, cfg: KinematicConfig, inits, parallel: bool = True) -> list[EMResult]:
+    """:func:`fit` from each start in ``inits`` (``None``: the batch's own initial map), in order.
+
+    With ``parallel``, every start after the first runs in a forked child process while this one runs
+    the first (:func:`soc_opt.parallel.fork_map`; in turn where forking cannot help).  Each start's
+    arithmetic is the same either way, so the results are identical (tested); only the wall time differs.
+    """
+    s, a = np.asarray(s, dtype=float), np.asarray(a, dtype=float)
+    return fork_map(lambda init: fit(km, s, a, rho2, cfg, init), list(inits), parallel)
 
 
 def loglik(km: KinematicModel, accel: AccelMap, s, a, rho2: float, cfg: KinematicConfig) -> float:

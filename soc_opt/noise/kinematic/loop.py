@@ -61,12 +61,15 @@ def learn(task, rollouts: Rollouts, sampler, cfg: KinematicConfig,
     if cfg.warm_start and isinstance(sampler, KinematicFilteredPolicy):
         init = sampler.filter.accel()
     rho2 = float(task.rho2)
-    res = em.fit(km, rollouts.s, rollouts.a, rho2, cfg, init)
+    restart = init is not None and cfg.restart_from_data and rho2 > 0.0  # (at rho^2 = 0 the states are exact)
+    runs = em.fit_starts(km, rollouts.s, rollouts.a, rho2, cfg, [init, None] if restart else [init],
+                         cfg.parallel_starts)
+    res = runs[0]
     from_sampler = res if init is not None else None
     start = "data" if init is None else "sampler"
     diag = {}
-    if init is not None and cfg.restart_from_data and rho2 > 0.0:  # (at rho^2 = 0 the states are exact)
-        fresh = em.fit(km, rollouts.s, rollouts.a, rho2, cfg, None)
+    if restart:
+        fresh = runs[1]
         if cfg.start_select == "data":
             better = True
         elif cfg.start_select == "previous" and previous is not None:
