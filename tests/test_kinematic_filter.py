@@ -148,3 +148,19 @@ def test_online_filter_in_rollouts_equals_offline_and_is_saved(peg_online, tmp_p
         KinematicFilter(**{**{k: getattr(filt, k) for k in ("A", "Bz", "cz", "Q", "z0", "P0", "zbar", "h0", "H", "zidx",
                                                             "accel_B", "accel_D", "accel_c", "accel_S")},
                            "R": np.diag(np.linspace(0.1, 0.2, task.n)), "online": True})
+
+
+def test_rollouts_of_a_filtered_policy_in_forked_workers_equal_those_in_one_process(peg_online):
+    """``workers > 1`` runs a filtered policy's rollouts in forked processes (the filter is Python):
+    the same states, measurements and actions, bit for bit, as one process."""
+    from soc_opt.parallel import can_fork
+
+    if not can_fork():
+        pytest.skip("needs fork and two CPUs")
+    task, _, filt = peg_online
+    pol = KinematicFilteredPolicy(_policy(task, np.random.default_rng(0)), filt)
+    one = task.rollouts(pol, 5, np.random.default_rng(4))
+    for workers in (2, 3):
+        many = task.rollouts(pol, 5, np.random.default_rng(4), workers=workers)
+        for name in ("x", "s", "a", "cost", "y"):
+            np.testing.assert_array_equal(getattr(many, name), getattr(one, name))

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..config import ConfigError
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
+from ..parallel import can_fork, fork_map
 from . import linearize as _linearize
 from .base import SimulationError, TaskBase, as_rng
 from .config import StateConfig, TaskConfig
@@ -391,8 +392,9 @@ class MujocoTask(TaskBase):
         Noise ``eps (M,T+1,n) ~ N(0, rho2 I)`` then ``w (M,T,m) ~ N(0, I)`` is drawn from
         ``rng`` up front (``noise=False``: both zero, the policy mean on the true state).
         ``workers > 1`` simulates contiguous blocks of samples in threads, one ``MjData``
-        each (MuJoCo releases the GIL while stepping); results are identical for any
-        ``workers``.  ``x0``: another initial state in task coordinates (its joint
+        each (MuJoCo releases the GIL while stepping), or, for a policy acting on a filter (whose
+        steps are Python), in forked processes (:func:`soc_opt.parallel.fork_map`); results are
+        identical for any ``workers``.  ``x0``: another initial state in task coordinates (its joint
         components are used; default ``self.x0``).  ``a`` records the policy's action
         before MuJoCo clamps it to ``ctrlrange``.  Raises :class:`SimulationError`
         naming the sample and step on divergence.  A :class:`~soc_opt.noise.estimator.FilteredPolicy`
@@ -417,6 +419,15 @@ class MujocoTask(TaskBase):
         workers = max(1, min(int(workers), M))
         if workers == 1:
             self._run_samples(range(M), K, offs, eps, x, s, a, x0, filtered)
+        elif filtered is not None and can_fork():  # the filter is Python: processes, not threads
+            blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
+
+            def run_block(b):
+                self._run_samples(b.tolist(), K, offs, eps, x, s, a, x0, filtered)
+                return x[b], s[b], a[b]
+
+            for b, (xb, sb, ab) in zip(blocks, fork_map(run_block, blocks)):
+                x[b], s[b], a[b] = xb, sb, ab
         else:
             blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
             with ThreadPoolExecutor(max_workers=workers) as ex:
