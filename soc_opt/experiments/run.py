@@ -28,6 +28,7 @@ from ..methods.config import DPSOCConfig, with_task_init_var
 from ..methods.registry import METHODS, get_method
 from ..methods.state import RunState
 from ..tasks.loading import problems_dir
+from .environment import environment, environment_differences
 from .progress import Progress, as_progress
 from .rundir import CHECKPOINT, CheckpointError, RunDirectory, RunDirectoryError, differences, lock_directory
 from .statefile import decode_state, encode_state
@@ -191,6 +192,11 @@ def run_experiment(
             elif prog:
                 prog.message(f"resuming {method} in {rd.path}: {state.iteration} iterations done "
                              f"(next: iteration {state.iteration})")
+            changed = environment_differences(rd.recorded_meta().get("environment"), meta["environment"])
+            if changed and prog and not done(state):
+                prog.message("note: this run was started in another environment (" + "; ".join(changed[:6])
+                             + "): the iterations from here on may differ in the last digits from the "
+                             "same run continued there (docs/reproducibility.md)")
         tb = RunLog.open(rd.path, purge_step=state.iteration if saved is not None else None)
         if tb is None and prog:
             prog.message(MISSING_MESSAGE)
@@ -214,8 +220,9 @@ def run_experiment(
 
 
 def _meta(task, method: str, cfg: DPSOCConfig, seed: int, task_name) -> dict:
-    """The content of ``config.json``."""
-    return {"task": str(task_name or task.name), "method": method, "seed": seed, "config": cfg.to_dict()}
+    """The content of ``config.json`` (the environment is recorded, not part of the contract)."""
+    return {"task": str(task_name or task.name), "method": method, "seed": seed, "config": cfg.to_dict(),
+            "environment": environment()}
 
 
 def _done(method: str, cfg: DPSOCConfig) -> Callable[[object], bool]:

@@ -2,7 +2,9 @@
 
 A run directory (``soc-opt run|compare --out DIR``) holds
 
-- ``config.json``: method, seed and the resolved algorithm configuration of the run;
+- ``config.json``: method, seed and the resolved algorithm configuration of the run, and the
+  environment it was started in (package versions, BLAS kernel: :mod:`soc_opt.experiments.environment`;
+  recorded, not part of the contract);
 - ``task.json``: the resolved task (its configuration after overrides, the task TOML's path,
   text and SHA-256, and the SHA-256 of every MJCF file the model reads);
 - ``metrics.csv`` and ``metrics.json``: one row per iteration (``IterationRecord.summary``);
@@ -351,6 +353,14 @@ class RunDirectory:
         atomic_write_bytes(meta_path, json.dumps(meta, indent=2, sort_keys=True).encode())
         if task is not None:
             atomic_write_bytes(task_path, json.dumps(task, indent=2, sort_keys=True).encode())
+
+    def recorded_meta(self) -> dict:
+        """The content of the directory's ``config.json`` (``{}`` when absent or unreadable)."""
+        try:
+            meta = json.loads((self.path / "config.json").read_text())
+        except (OSError, ValueError):
+            return {}
+        return meta if isinstance(meta, dict) else {}
 
     def check_contract(self, meta: dict, task: dict | None = None,
                        contract: Callable[[dict], dict] | None = None) -> None:
