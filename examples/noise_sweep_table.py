@@ -64,16 +64,26 @@ CLAIMS = (("final_cost", "DPSOC-EM lowers the final expected cost"),
 
 
 def claims(trials: list[dict], variant: str, rho2: float) -> str:
+    """The claims table of ``variant`` at ``rho2``, one per task in ``trials`` (a ``### task`` heading
+    before each when there are several: seeds are compared within a task)."""
     cell = [r for r in trials if r["setting"] == f"{variant},rho2={rho2:g}"]
-    by = {m: {int(r["seed"]): r for r in cell if r["method"] == m} for m in ("lqr-flm", "dpsoc-em")}
-    seeds = sorted(set(by["lqr-flm"]) & set(by["dpsoc-em"]))
-    out = ["| claim | LQR-FLM | DPSOC-EM | seeds where DPSOC-EM lower | held (mean) |", "|---|---|---|---|---|"]
-    for col, text in CLAIMS:
-        a = np.array([float(by["lqr-flm"][s][col]) for s in seeds])
-        b = np.array([float(by["dpsoc-em"][s][col]) for s in seeds])
-        out.append(f"| {text} | {a.mean():.4g} ± {a.std(ddof=1):.3g} | {b.mean():.4g} ± {b.std(ddof=1):.3g} | "
-                   f"{int((b < a).sum())}/{len(seeds)} | {'yes' if b.mean() < a.mean() else 'no'} |")
-    return "\n".join(out) + "\n"
+    tasks = sorted({r["task"] for r in cell})
+    out = []
+    for task in tasks:
+        rows_t = [r for r in cell if r["task"] == task]
+        by = {m: {int(r["seed"]): r for r in rows_t if r["method"] == m} for m in ("lqr-flm", "dpsoc-em")}
+        seeds = sorted(set(by["lqr-flm"]) & set(by["dpsoc-em"]))
+        if len(tasks) > 1:
+            out += [f"### {task}", ""]
+        out += ["| claim | LQR-FLM | DPSOC-EM | seeds where DPSOC-EM lower | held (mean) |", "|---|---|---|---|---|"]
+        for col, text in CLAIMS:
+            a = np.array([float(by["lqr-flm"][s][col]) for s in seeds])
+            b = np.array([float(by["dpsoc-em"][s][col]) for s in seeds])
+            out.append(f"| {text} | {a.mean():.4g} ± {a.std(ddof=1):.3g} | {b.mean():.4g} ± {b.std(ddof=1):.3g} | "
+                       f"{int((b < a).sum())}/{len(seeds)} | {'yes' if b.mean() < a.mean() else 'no'} |")
+        if len(tasks) > 1:
+            out.append("")
+    return "\n".join(out).rstrip("\n") + "\n"
 
 
 def main(argv=None):

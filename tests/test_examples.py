@@ -71,6 +71,17 @@ def test_noise_sweep_claims_count_the_seeds_where_dpsoc_em_is_lower(tmp_path):
                             "metric_success_rate": 1.0})
     lines = mod["claims"](mod["rows"](str(path)), "kinematic", 0.1).strip().splitlines()
     assert "| 2/3 | yes |" in lines[2] and "| 0/3 | no |" in lines[3] and "| 3/3 | yes |" in lines[4]
+    # a second task with the same seeds: one table per task, seeds compared within the task
+    with open(path, "a", newline="") as f:
+        w = csv.DictWriter(f, cols)
+        for s in range(3):
+            for m, c in (("lqr-flm", 5.0), ("dpsoc-em", 6.0)):
+                w.writerow({"task": "door", "setting": "kinematic,rho2=0.1", "method": m, "seed": s, "state": "done",
+                            "final_cost": c, "state_spread": 1.0, "action_spread": 1.0, "metric_success_rate": 0.5})
+    text = mod["claims"](mod["rows"](str(path)), "kinematic", 0.1)
+    door, peg = text.split("### peg")
+    assert door.startswith("### door") and "| 0/3 | no |" in door.splitlines()[4]
+    assert "| 2/3 | yes |" in peg.splitlines()[4]
 
 
 def test_filter_noise_example_rebuilds_the_filter_around_the_scaled_acceleration_noise():
@@ -96,3 +107,35 @@ def test_filter_noise_example_rebuilds_the_filter_around_the_scaled_acceleration
     v = slice(km.nq, km.nz)
     np.testing.assert_allclose(double.filter.Q[:, v, v], 2.0 * filt.Q[:, v, v], rtol=1e-12)
     assert not np.allclose(double.filter.G, filt.G)
+
+
+def test_final_modes_oracle_map_is_the_m_step_on_the_true_states_and_estimates_them_better(tmp_path):
+    """examples/noise_kinematic_final_modes.py --oracle-map: the policy keeps its gains; its filter's map is
+    the M-step on the last batch's true states; on that batch its estimates of the joint angles are
+    closer to the truth than those of the filter learned from the measurements."""
+    import numpy as np
+
+    from soc_opt.noise.kinematic import em, loop
+    from soc_opt.noise.kinematic.config import KinematicConfig
+    from soc_opt.noise.kinematic.filter import KinematicFilteredPolicy
+    from soc_opt.noise.kinematic.model import KinematicModel
+    from soc_opt.noise.kinematic.smoother import smooth
+    from soc_opt.tasks import load_task
+
+    mod = runpy.run_path(str(EXAMPLES / "noise_kinematic_final_modes.py"))
+    task = load_task("peg", overrides={"rho2": 0.1, "T": 30})
+    km, pol = KinematicModel(task), task.initial_policy(0.5)
+    batch = task.rollouts(pol, 8, np.random.default_rng(0))
+    _, filt, _ = loop.learn(task, batch, pol, KinematicConfig())
+    policy = KinematicFilteredPolicy(pol, filt)
+    (tmp_path / "samples").mkdir()
+    np.savez(tmp_path / "samples" / "iter_000.npz", x=batch.x, a=batch.a)
+    oracle = mod["oracle_map_policy"](task, policy, tmp_path)
+    assert oracle.policy is policy.policy
+    exact = smooth(km, em.z_model(km, filt.accel(), KinematicConfig()), batch.x, batch.a, np.zeros((km.n, km.n)))
+    cfg = KinematicConfig()
+    ref = em.mstep(exact, batch.a, km.dt, km.nq, cfg.segments, cfg.prior_strength, cfg.s_floor)
+    np.testing.assert_array_equal(oracle.filter.accel_D, ref.D)
+    q = km.zidx[:km.nq]
+    err = [np.sqrt(np.mean((f.states(batch.s, batch.a)[..., q] - batch.x[..., q]) ** 2)) for f in (filt, oracle.filter)]
+    assert err[1] < err[0], err
