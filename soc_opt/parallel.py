@@ -11,17 +11,31 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 from typing import Any, Callable, Sequence
 
 __all__ = ["can_fork", "fork_map"]
 
 
+
+def _thread_pools_running() -> bool:
+    """Whether a library that runs its own thread pools is live in this process, after which a fork
+    can leave the child deadlocked: PyTorch or TensorFlow imported, or JAX with a backend started
+    (importing JAX alone, as CVXPY does when probing its solvers, starts no threads)."""
+    if "torch" in sys.modules or "tensorflow" in sys.modules:
+        return True
+    xla = sys.modules.get("jax._src.xla_bridge")
+    return bool(getattr(xla, "_backends", None))
+
+
 def can_fork() -> bool:
     """Whether :func:`fork_map` can run pieces side by side: ``fork`` exists, this process may use more
-    than one CPU and may have child processes (a daemonic process may not)."""
+    than one CPU, may have child processes (a daemonic process may not) and runs no thread pools of
+    JAX, PyTorch or TensorFlow (the peers' benchmarks), which a fork can leave deadlocked."""
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return (cpus > 1 and "fork" in multiprocessing.get_all_start_methods()
-            and not multiprocessing.current_process().daemon)
+            and not multiprocessing.current_process().daemon
+            and not _thread_pools_running())
 
 
 def _child(conn, fn, item):

@@ -8,10 +8,16 @@ import pytest
 
 from soc_opt.parallel import can_fork, fork_map
 
-pytestmark = pytest.mark.skipif(not can_fork(), reason="needs fork and two CPUs")
 
 
-def test_results_are_those_of_running_in_turn_in_item_order():
+@pytest.fixture
+def forking():
+    """Skip at run time (another test module may have started a thread pool since collection)."""
+    if not can_fork():
+        pytest.skip("needs fork, two CPUs and no running JAX/PyTorch thread pools")
+
+
+def test_results_are_those_of_running_in_turn_in_item_order(forking):
     rng = np.random.default_rng(0)
     mats = [rng.standard_normal((6, 4, 4)) + 4 * np.eye(4) for _ in range(3)]
     got = fork_map(np.linalg.inv, mats)
@@ -20,12 +26,12 @@ def test_results_are_those_of_running_in_turn_in_item_order():
     assert fork_map(lambda i: i * i, range(5), parallel=False) == [0, 1, 4, 9, 16]
 
 
-def test_items_after_the_first_run_in_other_processes():
+def test_items_after_the_first_run_in_other_processes(forking):
     pids = fork_map(lambda _: os.getpid(), range(3))
     assert pids[0] == os.getpid() and len(set(pids)) == 3
 
 
-def test_the_first_failing_item_in_order_is_raised_whichever_process_ran_it():
+def test_the_first_failing_item_in_order_is_raised_whichever_process_ran_it(forking):
     def f(i):
         if i >= 1:
             raise ValueError(f"item {i} failed")
@@ -43,11 +49,32 @@ def test_the_first_failing_item_in_order_is_raised_whichever_process_ran_it():
         fork_map(first_fails, range(3))
 
 
-def test_a_child_that_dies_is_reported_with_its_exit_code():
+def test_a_child_that_dies_is_reported_with_its_exit_code(forking):
+    parent = os.getpid()
+
     def die(i):
-        if i == 1:
+        if i == 1 and os.getpid() != parent:                      # never the test process itself
             os._exit(3)
         return i
 
     with pytest.raises(RuntimeError, match="exit code 3"):
         fork_map(die, range(2))
+
+
+def test_runs_in_turn_once_a_thread_pool_library_is_live(monkeypatch):
+    import sys
+    import types
+
+    xla = types.ModuleType("jax._src.xla_bridge")
+    xla._backends = {}
+    monkeypatch.setitem(sys.modules, "jax._src.xla_bridge", xla)
+    monkeypatch.delitem(sys.modules, "torch", raising=False)
+    monkeypatch.delitem(sys.modules, "tensorflow", raising=False)
+    started = can_fork()                                          # JAX imported, no backend: no threads yet
+    xla._backends = {"cpu": object()}
+    assert not can_fork()
+    assert set(fork_map(lambda _: os.getpid(), range(3))) == {os.getpid()}
+    monkeypatch.setitem(sys.modules, "torch", types.ModuleType("torch"))
+    xla._backends = {}
+    assert not can_fork()
+    assert started == (len(os.sched_getaffinity(0)) > 1)
