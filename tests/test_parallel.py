@@ -9,7 +9,6 @@ import pytest
 from soc_opt.parallel import can_fork, fork_map
 
 
-
 @pytest.fixture
 def forking():
     """Skip at run time (another test module may have started a thread pool since collection)."""
