@@ -19,19 +19,18 @@ __all__ = ["can_fork", "fork_map"]
 
 
 def _thread_pools_running() -> bool:
-    """Whether a library that runs its own thread pools is live in this process, after which a fork
-    can leave the child deadlocked: PyTorch or TensorFlow imported, or JAX with a backend started
-    (importing JAX alone, as CVXPY does when probing its solvers, starts no threads)."""
-    if "torch" in sys.modules or "tensorflow" in sys.modules:
-        return True
+    """Whether JAX has started a backend in this process: its thread pools can leave a forked child
+    deadlocked (JAX warns on such a fork).  Importing JAX alone, as CVXPY does when it probes its
+    solvers, starts no threads; nor does importing PyTorch (the TensorBoard writer may), whose
+    thread pool starts only with its first parallel operation, which soc_opt does not run."""
     xla = sys.modules.get("jax._src.xla_bridge")
     return bool(getattr(xla, "_backends", None))
 
 
 def can_fork() -> bool:
     """Whether :func:`fork_map` can run pieces side by side: ``fork`` exists, this process may use more
-    than one CPU, may have child processes (a daemonic process may not) and runs no thread pools of
-    JAX, PyTorch or TensorFlow (the peers' benchmarks), which a fork can leave deadlocked."""
+    than one CPU, may have child processes (a daemonic process may not) and has not started JAX (the
+    peers' benchmarks), whose thread pools a fork can leave deadlocked."""
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return (cpus > 1 and "fork" in multiprocessing.get_all_start_methods()
             and not multiprocessing.current_process().daemon

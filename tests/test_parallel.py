@@ -13,7 +13,7 @@ from soc_opt.parallel import can_fork, fork_map
 def forking():
     """Skip at run time (another test module may have started a thread pool since collection)."""
     if not can_fork():
-        pytest.skip("needs fork, two CPUs and no running JAX/PyTorch thread pools")
+        pytest.skip("needs fork, two CPUs and no started JAX backend")
 
 
 def test_results_are_those_of_running_in_turn_in_item_order(forking):
@@ -60,20 +60,15 @@ def test_a_child_that_dies_is_reported_with_its_exit_code(forking):
         fork_map(die, range(2))
 
 
-def test_runs_in_turn_once_a_thread_pool_library_is_live(monkeypatch):
+def test_runs_in_turn_once_jax_has_started_a_backend(monkeypatch):
     import sys
     import types
 
     xla = types.ModuleType("jax._src.xla_bridge")
     xla._backends = {}
     monkeypatch.setitem(sys.modules, "jax._src.xla_bridge", xla)
-    monkeypatch.delitem(sys.modules, "torch", raising=False)
-    monkeypatch.delitem(sys.modules, "tensorflow", raising=False)
-    started = can_fork()                                          # JAX imported, no backend: no threads yet
+    imported_only = can_fork()                                    # JAX imported, no backend: no threads yet
     xla._backends = {"cpu": object()}
     assert not can_fork()
     assert set(fork_map(lambda _: os.getpid(), range(3))) == {os.getpid()}
-    monkeypatch.setitem(sys.modules, "torch", types.ModuleType("torch"))
-    xla._backends = {}
-    assert not can_fork()
-    assert started == (len(os.sched_getaffinity(0)) > 1)
+    assert imported_only == (len(os.sched_getaffinity(0)) > 1)

@@ -393,8 +393,8 @@ class MujocoTask(TaskBase):
         ``rng`` up front (``noise=False``: both zero, the policy mean on the true state).
         ``workers > 1`` simulates contiguous blocks of samples in threads, one ``MjData``
         each (MuJoCo releases the GIL while stepping), or, for a policy acting on a filter (whose
-        steps are Python), in forked processes (:func:`soc_opt.parallel.fork_map`); results are
-        identical for any ``workers``.  ``x0``: another initial state in task coordinates (its joint
+        steps are Python), in forked processes (:func:`soc_opt.parallel.fork_map`; in one process
+        where it cannot fork); results are identical for any ``workers``.  ``x0``: another initial state in task coordinates (its joint
         components are used; default ``self.x0``).  ``a`` records the policy's action
         before MuJoCo clamps it to ``ctrlrange``.  Raises :class:`SimulationError`
         naming the sample and step on divergence.  A :class:`~soc_opt.noise.estimator.FilteredPolicy`
@@ -417,9 +417,11 @@ class MujocoTask(TaskBase):
         s = np.empty((M, T + 1, n))
         a = np.empty((M, T, m))
         workers = max(1, min(int(workers), M))
+        if filtered is not None and not can_fork():  # threads would only wait on the filter's Python
+            workers = 1
         if workers == 1:
             self._run_samples(range(M), K, offs, eps, x, s, a, x0, filtered)
-        elif filtered is not None and can_fork():  # the filter is Python: processes, not threads
+        elif filtered is not None:  # the filter is Python: processes, not threads
             blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
 
             def run_block(b):
