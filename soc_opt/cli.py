@@ -105,7 +105,44 @@ def _run_method(args, task, out: Path) -> int:
                + (f"; {res.message}" if res.message else "") + ")")
     _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=max(state.iteration - 1, 0))
     _print(get_method(args.method).finish(state, out))
+    _print(_final_evaluation(task, args.method, cfg, args.seed, state, out))
     return 0
+
+
+def _final_evaluation(task, method: str, cfg, seed: int, state, out: Path) -> str:
+    """The returned policy on fresh rollouts (docs/math.md §12.3), sampled and with its mean action,
+    under the task's sensor noise; ``final_policy.npz``, ``final_eval.npz`` and
+    ``final_eval_mean_action.npz`` in ``out``; one line saying what was evaluated."""
+    from .experiments.compare import evaluate_policy
+    from .experiments.run import headline_metric
+    from .experiments.rundir import atomic_write_bytes, npz_bytes
+    from .methods.registry import get_method
+    from .noise.aware import mean_action
+
+    meth = get_method(method)
+    policy = meth.final_policy(cfg, state)
+    samples = cfg.evaluation.samples or cfg.baseline.samples
+    ro = evaluate_policy(task, policy, samples, seed, cfg.baseline.workers, cfg.evaluation)
+    ro_mean = evaluate_policy(task, mean_action(policy), samples, seed, cfg.baseline.workers, cfg.evaluation)
+    atomic_write_bytes(out / "final_policy.npz", npz_bytes(**policy.to_dict()))
+    atomic_write_bytes(out / "final_eval.npz", npz_bytes(**ro.to_dict()))
+    atomic_write_bytes(out / "final_eval_mean_action.npz", npz_bytes(**ro_mean.to_dict()))
+
+    def score(r):
+        m = headline_metric(task.metrics(r))
+        txt = ", ".join(f"{k} {v:.4g}" for k, v in m.items())
+        return f"cost {float(np.mean(task.true_cost(r).sum(-1))):.4g}" + (f", {txt}" if txt else "")
+
+    acc = getattr(state, "accepted", None)
+    which = (f"the last accepted policy (iteration {acc.iteration})" if acc is not None and policy is acc.policy
+             else "the last iterate")
+    rho2 = float(getattr(task, "rho2", 0.0))
+    note = ""
+    if not meth.sample_based:
+        note = (f"; {method} plans on the noise-free model and its iterations are scored without sensor noise, "
+                f"this evaluation acts on the raw measurements (rho^2 = {rho2:g})")
+    return (f"final policy = {which}, {samples} fresh rollouts at rho^2 = {rho2:g}: sampled {score(ro)}; "
+            f"mean action {score(ro_mean)}{note} (final_eval*.npz)")
 
 
 def _load_run_config(args, method: str):

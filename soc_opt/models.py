@@ -154,6 +154,11 @@ class LinearGaussianPolicy:
     def with_cov(self, cov: np.ndarray) -> "LinearGaussianPolicy":
         return LinearGaussianPolicy(self.K, self.k, cov)
 
+    def mean_policy(self) -> "LinearGaussianPolicy":
+        """The deterministic policy ``a_k = K_k s_k + k_k`` (``Sigma = 0``): the policy's mean action,
+        what model-free peers report as their "deterministic" policy (docs/math.md §12.3)."""
+        return LinearGaussianPolicy(self.K, self.k, np.zeros_like(self.cov), allow_singular=True)
+
     @staticmethod
     def zeros(T: int, n: int, m: int, var: float = 1.0) -> "LinearGaussianPolicy":
         """A zero-mean policy with isotropic covariance ``var * I``."""

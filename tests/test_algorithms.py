@@ -120,9 +120,13 @@ def test_em_records_keep_the_metrics_columns_in_their_order():
     state = run_algorithm(task, "dpsoc-em", cfg, seed=0)
     em = next(r for r in state.history if r.phase == "em")
     keys = list(em.summary())
-    assert keys[keys.index("time_rollouts") + 1:] == [
-        "em_recursion", "surrogate_old", "surrogate_new", "loglik_old", "loglik_new",
-        "time_fit_augmented", "time_estep", "time_mstep"]
+    em_block = ["em_recursion", "surrogate_old", "surrogate_new", "loglik_old", "loglik_new",
+                "time_fit_augmented", "time_estep", "time_mstep"]
+    start = keys.index("time_rollouts") + 1
+    assert keys[start:start + len(em_block)] == em_block
+    # then the step-acceptance columns of the batch (docs/math.md §12), if any
+    assert set(keys[start + len(em_block):]) <= {"test_cost", "test_cost_se", "accept_threshold", "accepted",
+                                                 "accepted_iteration"}
     assert em.summary()["surrogate_new"] == em.em.surrogate_new
 
 

@@ -23,6 +23,7 @@ from ..methods.dpsoc_em import DPSOC_EM
 from ..methods.lqr_flm import LQR_FLM
 from ..methods.state import RunState
 from ..models import LinearGaussianPolicy, Rollouts
+from ..noise.aware import mean_action
 from . import report
 from .progress import Progress, as_progress
 from .run import fork_state, run_experiment
@@ -123,11 +124,12 @@ def _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, re
     per_seed = {m: {"cost": [], "state_spread": [], "action_spread": []} for m in METHODS}
     histories = {m: [] for m in METHODS}
     eval_ro = {m: [] for m in METHODS}
+    eval_mean = {m: [] for m in METHODS}
     seeds_bar = progress.bar(len(seeds), "seeds") if progress else None
     try:
         for seed in seeds:
             _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progress,
-                          per_seed, histories, eval_ro, restart)
+                          per_seed, histories, eval_ro, eval_mean, restart)
             if seeds_bar is not None:
                 final = {m: float(np.mean(per_seed[m]["cost"][-1])) for m in METHODS}
                 seeds_bar.advance(f"seed {seed}: final cost LQR-FLM {final[BASELINE.name]:.4g}, "
@@ -136,11 +138,11 @@ def _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, re
     finally:
         if seeds_bar is not None:
             seeds_bar.close()
-    return _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, task_name or task.name)
+    return _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean, task_name or task.name)
 
 
 def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progress, per_seed, histories, eval_ro,
-                  restart):
+                  eval_mean, restart):
     """Both methods on one seed (see :func:`compare`); appends to the per-method accumulators."""
     level = 1 if progress is not None and progress.mode == "bar" else 0
     sdir = out / f"seed_{seed}"
@@ -174,13 +176,25 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
         task, FORKED.name, cfg, seed, sdir / FORKED.name, task_name=task_name, progress=progress,
         start_state=fork_state(fork), bar_level=level, restart=restart,
     )
-    for meth, st in ((BASELINE.name, base), (FORKED.name, em)):
-        ro = evaluate_policy(task, st.policy, eval_samples, seed, workers, cfg.evaluation)
+    for method, st in ((BASELINE, base), (FORKED, em)):
+        meth = method.name
+        policy = method.final_policy(cfg, st)
+        ro = evaluate_policy(task, policy, eval_samples, seed, workers, cfg.evaluation)
+        ro_mean = evaluate_policy(task, mean_action(policy), eval_samples, seed, workers, cfg.evaluation)
         eval_ro[meth].append(ro)
+        eval_mean[meth].append(ro_mean)
         for k, v in spreads(task, ro).items():
             per_seed[meth][k].append(v)
         histories[meth].append(st.history)
         atomic_write_bytes(sdir / meth / "final_eval.npz", _npz(ro.to_dict()))
+        atomic_write_bytes(sdir / meth / "final_eval_mean_action.npz", _npz(ro_mean.to_dict()))
+
+
+def _acceptance_text(acc) -> str:
+    if not acc.enabled:
+        return "off (the paper as written: every step taken, the last KL step's policy returned)"
+    return (f"on (docs/math.md §12: kappa {acc.kappa:g}, eps {acc.eps:g}, shrink {acc.shrink:g}, ceiling {acc.ceiling:g}, "
+            f"{acc.cost} cost; the last accepted policy returned)")
 
 
 def _npz(arrays: dict) -> bytes:
@@ -191,7 +205,24 @@ def _npz(arrays: dict) -> bytes:
     return buf.getvalue()
 
 
-def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> dict:
+def final_vs_last(task, history, ro: Rollouts, acceptance) -> dict:
+    """The final policy's evaluation against the run's last sampled batch (true-state total costs).
+
+    ``worse`` applies the acceptance test (docs/math.md §12.1, ``acceptance``'s ``kappa`` and ``eps``)
+    to the final policy's fresh rollouts against the last sampled batch: a final policy flagged worse
+    is one the run's own last samples say it should not have returned.
+    """
+    last = [r for r in history if r.phase == "baseline"][-1]
+    c_last = np.asarray(last.cost, float)
+    c_fin = np.asarray(task.true_cost(ro).sum(-1), float)
+    se = float(np.hypot(c_last.std(ddof=1) / np.sqrt(c_last.size), c_fin.std(ddof=1) / np.sqrt(c_fin.size)))
+    limit = c_last.mean() + acceptance.kappa * se + acceptance.eps * abs(c_last.mean())
+    return {"last_iteration": int(last.iteration), "last_sampled_cost": float(c_last.mean()),
+            "final_cost": float(c_fin.mean()), "ratio": float(c_fin.mean() / c_last.mean()),
+            "worse": bool(c_fin.mean() > limit)}
+
+
+def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean, name) -> dict:
     # Cost per iteration: the baseline-phase records (one per iteration), samples pooled over seeds.
     costs = {}
     metric_hist = {}
@@ -225,14 +256,23 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> 
                 vals, out / "min_hinge.png", f"{name}: minimum hinge angle", "min hinge angle [rad]")
         elif key in ("min_distance",):
             figs[f"{key} per iteration"] = report.plot_metric(vals, out / f"{key}.png", f"{name}: {key}", key)
-    for key in first_metrics:
-        vals = {m: [] for m in METHODS}
+    metric_rows = []
+    for key in ["cost", *[k for k in first_metrics if k != "cost"]]:
+        row = [key]
         for m in METHODS:
-            for ro in eval_ro[m]:
-                vals[m].append(task.metrics(ro)[key])
-        extra_tables.setdefault(f"Task metrics of the final policies ({report.over_seeds(len(seeds))})", (
-            ["metric", "LQR-FLM", "DPSOC-EM"], []))[1].append(
-            [key] + [report.mean_std(vals[m]) for m in METHODS])
+            for ros in (eval_ro[m], eval_mean[m]):
+                row.append(report.mean_std([task.metrics(ro)[key] if key in first_metrics
+                                            else float(np.mean(task.true_cost(ro).sum(-1))) for ro in ros]))
+        metric_rows.append(row)
+    extra_tables[f"Task metrics of the final policies, sampled and mean action ({report.over_seeds(len(seeds))})"] = (
+        ["metric", "LQR-FLM sampled", "LQR-FLM mean action", "DPSOC-EM sampled", "DPSOC-EM mean action"], metric_rows)
+    fvl = {m: [final_vs_last(task, h, ro, cfg.baseline.acceptance) for h, ro in zip(histories[m], eval_ro[m])]
+           for m in METHODS}
+    extra_tables["Final policy against the run's last sampled iteration (true-state cost)"] = (
+        ["seed"] + [f"{m} {c}" for m in ("LQR-FLM", "DPSOC-EM") for c in ("last sampled", "final", "ratio")],
+        [[seed] + [x for m in METHODS for x in (f"{fvl[m][i]['last_sampled_cost']:.4g}", f"{fvl[m][i]['final_cost']:.4g}",
+                                                 f"{fvl[m][i]['ratio']:.3g}" + (" **worse**" if fvl[m][i]["worse"] else ""))]
+         for i, seed in enumerate(seeds)])
     em_rows = []
     for seed, hist in zip(seeds, histories[FORKED.name]):
         for r in hist:
@@ -255,16 +295,26 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, name) -> 
         "M-step": f"{cfg.em.method}, {cfg.em.variant}, objective {cfg.em.objective}, "
                   + ("entropy floor" if cfg.em.entropy_floor else f"covariance floor {cfg.em.cov_floor_scale} x current"),
         "sensor noise rho^2": getattr(task, "rho2", "n/a"),
+        "step acceptance": _acceptance_text(cfg.baseline.acceptance),
+        "final policies worse than their last sampled iteration": ", ".join(
+            f"{m} {sum(r['worse'] for r in fvl[m])}/{len(seeds)}" for m in METHODS),
     }
     notes = [
         "Costs are evaluated on the true simulator states; the controllers only see measured states.",
         "Both methods share their first i_switch iterations exactly (same seed, same RNG stream); "
         "final policies are evaluated on fresh rollouts with the same evaluation seed for both methods.",
-        "A claim 'held' when DPSOC-EM's mean over seeds is lower; the paired count per seed is shown too.",
+        "A claim 'held' when the 95% paired bootstrap interval of DPSOC-EM minus LQR-FLM over seeds lies below 0 "
+        "(signed-rank p-value and the count of seeds with DPSOC-EM lower shown too).",
+        "The final policy is the method's returned policy (with step acceptance: its last accepted policy); it is "
+        "evaluated sampled (with its exploration covariance) and with its mean action K s + k on the same evaluation seed.",
     ]
     md = report.write_markdown(out / "report.md", title=f"DPSOC-EM vs LQR-FLM on {name}", setup=setup,
                                claims=claims, figures=figs, extra_tables=extra_tables, notes=notes)
+    mean_metrics = {m: {k: [float(task.metrics(ro)[k]) for ro in eval_mean[m]] for k in first_metrics} for m in METHODS}
     summary = {"task": name, "seeds": list(seeds), "claims": claims, "per_seed": per_seed,
+               "metrics_sampled": {m: {k: [float(task.metrics(ro)[k]) for ro in eval_ro[m]] for k in first_metrics}
+                                   for m in METHODS},
+               "metrics_mean_action": mean_metrics, "final_vs_last": fvl,
                "report": str(md), "config": cfg.to_dict()}
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary

@@ -160,14 +160,43 @@ def plot_metric(values: dict, path: Path, title: str, ylabel: str) -> Path:
     return _save(fig, ax, path, title)
 
 
+def paired_test(baseline, dpsoc, confidence: float = 0.95, resamples: int = 9999, seed: int = 0) -> dict:
+    """Paired comparison over seeds of ``dpsoc - baseline`` (one value per seed each).
+
+    ``diff_mean``: the mean paired difference; ``ci_low, ci_high``: its percentile bootstrap interval
+    (``scipy.stats.bootstrap``, seeded: the same data give the same interval); ``p_signed_rank``: the
+    one-sided Wilcoxon signed-rank p-value for "DPSOC-EM lower" (``nan`` below 2 seeds or with all
+    differences zero).  ``verdict``: "lower" when the whole interval is below 0, "higher" when it is above,
+    "not shown" when it contains 0, "one seed" (no test) with a single seed.
+    """
+    from scipy import stats
+
+    d = np.asarray(dpsoc, float) - np.asarray(baseline, float)
+    out = {"diff_mean": float(d.mean()), "ci_low": float("nan"), "ci_high": float("nan"),
+           "p_signed_rank": float("nan"), "verdict": "one seed"}
+    if d.size < 2:
+        return out
+    if np.all(d == d[0]):  # a degenerate bootstrap distribution: the interval is the point
+        lo = hi = float(d[0])
+    else:
+        ci = stats.bootstrap((d,), np.mean, confidence_level=confidence, n_resamples=resamples,
+                             method="percentile", random_state=np.random.default_rng(seed)).confidence_interval
+        lo, hi = float(ci.low), float(ci.high)
+    if np.any(d != 0):
+        out["p_signed_rank"] = float(stats.wilcoxon(d, alternative="less").pvalue)
+    out.update(ci_low=lo, ci_high=hi, verdict="lower" if hi < 0 else "higher" if lo > 0 else "not shown")
+    return out
+
+
 def claims_table(per_seed: dict) -> list[dict]:
     """docs/math.md §9.5 claims from per-seed final-policy statistics.
 
     ``per_seed[method]`` is a dict of arrays over seeds: ``cost`` (mean total cost of the final
     policy), ``state_spread`` (mean over time of the std over samples of the end-effector points),
     ``action_spread`` (mean over time and joints of the std over samples of the actions).
-    A claim "DPSOC-EM lowers X" holds when the mean over seeds is lower; the number of seeds on
-    which it was lower (paired) is reported as well.
+    A claim "DPSOC-EM lowers X" is judged by a paired comparison over seeds (:func:`paired_test`):
+    it holds when the 95% bootstrap interval of the mean paired difference lies below 0; the
+    signed-rank p-value and the number of seeds on which DPSOC-EM was lower are reported as well.
     """
     rows = []
     names = {
@@ -178,12 +207,14 @@ def claims_table(per_seed: dict) -> list[dict]:
     b, e = per_seed["lqr-flm"], per_seed["dpsoc-em"]
     for key, label in names.items():
         xb, xe = np.asarray(b[key], float), np.asarray(e[key], float)
+        test = paired_test(xb, xe)
         rows.append({
             "claim": f"DPSOC-EM lowers the {label}",
             "baseline_mean": float(xb.mean()), "baseline_std": float(xb.std()),
             "dpsoc_mean": float(xe.mean()), "dpsoc_std": float(xe.std()),
             "seeds_lower": int(np.sum(xe < xb)), "seeds": int(len(xb)),
-            "held": bool(xe.mean() < xb.mean()),
+            **test,
+            "held": test["verdict"] == "lower",
         })
     return rows
 
@@ -211,7 +242,8 @@ def write_markdown(path: Path, *, title: str, setup: dict, claims: list[dict], f
     lines += [f"- **{k}**: {v}" for k, v in setup.items()]
     n_seeds = claims[0]["seeds"] if claims else 0
     lines += ["", f"## Claims (docs/math.md §9.5), final policies, {over_seeds(n_seeds)}", "",
-              "| claim | LQR-FLM | DPSOC-EM | seeds where DPSOC-EM lower | held |", "|---|---|---|---|---|"]
+              "| claim | LQR-FLM | DPSOC-EM | paired difference [95% CI] | signed-rank p | seeds where DPSOC-EM lower "
+              "| held |", "|---|---|---|---|---|---|---|"]
 
     def cell(mean, std, n):
         return f"{_fmt(mean)} (n = 1)" if n == 1 else f"{_fmt(mean)} ± {_fmt(std)}"
@@ -219,8 +251,8 @@ def write_markdown(path: Path, *, title: str, setup: dict, claims: list[dict], f
     for r in claims:
         lines.append(
             f"| {r['claim']} | {cell(r['baseline_mean'], r['baseline_std'], r['seeds'])} | "
-            f"{cell(r['dpsoc_mean'], r['dpsoc_std'], r['seeds'])} | {r['seeds_lower']}/{r['seeds']} | "
-            f"{'yes' if r['held'] else '**no**'} |"
+            f"{cell(r['dpsoc_mean'], r['dpsoc_std'], r['seeds'])} | {_diff_cell(r)} | {_fmt(r.get('p_signed_rank', float('nan')))} | "
+            f"{r['seeds_lower']}/{r['seeds']} | {'yes' if r['held'] else '**no** (' + r.get('verdict', '') + ')'} |"
         )
     for name, (header, rows) in (extra_tables or {}).items():
         lines += ["", f"## {name}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -232,6 +264,14 @@ def write_markdown(path: Path, *, title: str, setup: dict, claims: list[dict], f
         lines += ["## Notes", ""] + [f"- {n}" for n in notes]
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def _diff_cell(r: dict) -> str:
+    if "diff_mean" not in r:
+        return "n/a"
+    if r.get("verdict") == "one seed":
+        return f"{_fmt(r['diff_mean'])} (one seed)"
+    return f"{_fmt(r['diff_mean'])} [{_fmt(r['ci_low'])}, {_fmt(r['ci_high'])}]"
 
 
 def _cell(v) -> str:

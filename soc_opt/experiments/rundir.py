@@ -66,7 +66,7 @@ except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
 __all__ = ["RunDirectoryError", "CheckpointError", "LegacyCheckpointError", "RunDirectory", "lock_directory",
-           "differences", "atomic_write_bytes", "encode_checkpoint", "decode_checkpoint", "refuse_legacy",
+           "differences", "atomic_write_bytes", "npz_bytes", "encode_checkpoint", "decode_checkpoint", "refuse_legacy",
            "CHECKPOINT", "PREVIOUS_CHECKPOINT", "LEGACY_FILES", "LOCK"]
 
 CHECKPOINT = "checkpoint.npz"
@@ -77,7 +77,8 @@ LOCK = "lock"
 _TMP = ".tmp-"
 #: Files a run writes at the top of its directory (removed by ``RunDirectory.clear``).
 RUN_FILES = ("config.json", "task.json", "metrics.csv", "metrics.json", "costs.npz", "best_policy.npz",
-             CHECKPOINT, PREVIOUS_CHECKPOINT, *LEGACY_FILES[:2], "policy.npz", "final_eval.npz", "cost_per_iteration.png",
+             CHECKPOINT, PREVIOUS_CHECKPOINT, *LEGACY_FILES[:2], "policy.npz", "final_eval.npz",
+             "final_policy.npz", "final_eval_mean_action.npz", "cost_per_iteration.png",
              "ee_trajectories.png", "filmstrip.png")
 
 
@@ -136,10 +137,14 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         raise
 
 
-def _npz_bytes(**arrays) -> bytes:
+def npz_bytes(**arrays) -> bytes:
+    """The bytes of a compressed ``.npz`` holding ``arrays`` (for :func:`atomic_write_bytes`)."""
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     return buf.getvalue()
+
+
+_npz_bytes = npz_bytes
 
 
 def _jsonable(v):

@@ -59,7 +59,7 @@ def _schema() -> dict[str, type]:
     from ..noise.kinematic import filter as kinematic
 
     classes = [algorithms.RunState, algorithms.IterationRecord, algorithms.EMDiagnostics, algorithms.BestPolicy,
-               algorithms.PreviousStep, models.LinearGaussianPolicy, models.LinearGaussianDynamics,
+               algorithms.PreviousStep, algorithms.AcceptedPolicy, models.LinearGaussianPolicy, models.LinearGaussianDynamics,
                models.QuadraticCost, models.Rollouts, estimator.FilteredPolicy, estimator.KalmanFilter,
                step_size.LocalModel, mixture.MixturePrior, mixture.VBState, ilqg.ILQGState, ilqg.ILQGRecord,
                kinematic.KinematicFilter, kinematic.KinematicFilteredPolicy]

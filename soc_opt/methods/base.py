@@ -62,6 +62,9 @@ class Method(Protocol):
     def finished(self, cfg, state) -> bool:
         """Whether the run is over (iteration budget, convergence)."""
 
+    def final_policy(self, cfg, state) -> Any:
+        """The policy the run returns (docs/math.md §12.3), what ``compare`` and sweeps evaluate."""
+
     def progress_fields(self, record) -> dict[str, float]:
         """The numbers a progress bar shows next to the cost."""
 
@@ -97,6 +100,9 @@ class MethodBase(ABC):
 
     def finished(self, cfg, state) -> bool:
         return state.iteration >= self.total_iterations(cfg)
+
+    def final_policy(self, cfg, state):
+        return state.policy
 
     def progress_fields(self, record) -> dict[str, float]:
         return {}

@@ -21,7 +21,7 @@ from ..mstep.recipe import MStepRecipe
 from ..noise.aware import NoiseConfig
 from .ilqg import ILQGConfig
 
-__all__ = ["PaperScale", "PAPER", "LoopKLStepConfig", "LQRFLMConfig", "EMConfig", "EvalConfig", "DPSOCConfig",
+__all__ = ["PaperScale", "PAPER", "LoopKLStepConfig", "AcceptanceConfig", "LQRFLMConfig", "EMConfig", "EvalConfig", "DPSOCConfig",
            "with_paper_scale", "with_task_init_var"]
 
 
@@ -52,6 +52,46 @@ class LoopKLStepConfig(lqg.KLStepConfig):
 
 
 @dataclass(frozen=True)
+class AcceptanceConfig(Config):
+    """Step acceptance of the sample-based methods (docs/math.md §12), ``[baseline.acceptance]``.
+
+    enabled:  judge every sampled policy against the last accepted one and return the last accepted
+              policy (default).  ``false`` is the paper as written, bit for bit: every step is taken
+              and the policy of the last KL step (never sampled) is returned.
+    kappa:    standard errors of the cost difference that sampling noise may explain (2.0).
+    eps:      relative margin on the accepted cost ``|C_a|`` (0.02).  A policy is accepted iff
+              ``C_i <= C_a + kappa sqrt(se_i^2 + se_a^2) + eps |C_a|``.
+    shrink:   on a rejection the next step is taken around the last accepted policy with its
+              multiplier times ``shrink`` (0.1, the GPS rule's ``factor_min``), floored at ``kl.mult_min``.
+    cost:     the cost the test reads: "measured" (default; the total cost of the measured states,
+              which is all a learner on a real robot observes) or "true" (the simulator's true states,
+              what the run records; identical without sensor noise).
+    ceiling:  after a rejection the multiplier is kept below ``ceiling`` times the multiplier of the
+              rejected step until a step at that size is accepted (0.5; 1.0 turns it off), so that the
+              step-size rule does not grow straight back to the size that just failed.
+    """
+
+    enabled: bool = True
+    kappa: float = 2.0
+    eps: float = 0.02
+    shrink: float = 0.1
+    cost: Literal["measured", "true"] = "measured"
+    ceiling: float = 0.5
+
+    _constraints = {
+        "kappa": [Interval(0)],
+        "eps": [Interval(0)],
+        "shrink": [Interval(0, 1, "neither")],
+        "cost": [Options(("measured", "true"))],
+        "ceiling": [Interval(0, 1, "right")],
+    }
+
+
+#: The acceptance table of a run recorded before acceptance existed: those runs took every step.
+AS_WRITTEN = AcceptanceConfig(enabled=False)
+
+
+@dataclass(frozen=True)
 class LQRFLMConfig(Config):
     """LQR-FLM baseline ("iLQG" in the paper), docs/math.md §7.
 
@@ -73,6 +113,8 @@ class LQRFLMConfig(Config):
                  :class:`LoopKLStepConfig` (dual solved to ``kl_rtol = 1e-6``).
     noise:       noise-aware variants (docs/math.md §10: corrected fit, estimator in the loop); the
                  defaults are the paper's method (:class:`soc_opt.noise.aware.NoiseConfig`).
+    acceptance:  step acceptance (docs/math.md §12, :class:`AcceptanceConfig`); ``enabled = false``
+                 is the paper as written.
     """
 
     iterations: int = PAPER.iterations
@@ -86,7 +128,9 @@ class LQRFLMConfig(Config):
     fit: fit.FitConfig = field(default_factory=fit.FitConfig)
     kl: LoopKLStepConfig = field(default_factory=LoopKLStepConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
+    acceptance: AcceptanceConfig = field(default_factory=AcceptanceConfig)
 
+    _implied_when_absent = {"baseline.acceptance": (AS_WRITTEN.to_dict(), {})}
     _constraints = {
         "iterations": [Interval(1)],
         "samples": [Interval(2)],  # dynamics fitting needs 2 rollouts

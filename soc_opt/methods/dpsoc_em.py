@@ -23,8 +23,8 @@ from ..models import LinearGaussianPolicy, Rollouts
 from ..noise.estimator import FilteredPolicy
 from ..noise.strategy import Estimates, NoiseStrategy, resolve
 from .config import DPSOCConfig
-from .lqr_flm import LQRFLM, lqr_flm_iteration
-from .state import EMDiagnostics, RunState, improved, record, state_rng
+from .lqr_flm import LQRFLM, acceptance_cost, acceptance_threshold, fit_batch, lqr_flm_iteration, sample
+from .state import AcceptedPolicy, EMDiagnostics, PreviousStep, RunState, improved, record, state_rng
 
 if TYPE_CHECKING:
     from ..tasks import Task
@@ -82,31 +82,59 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | Filte
 
 
 def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
-    """One DPSOC-EM outer iteration: the EM phase when ``iteration == i_switch``, then LQR-FLM."""
+    """One DPSOC-EM outer iteration: the EM phase when ``iteration == i_switch``, then LQR-FLM.
+
+    With step acceptance (docs/math.md §12) the EM phase starts from an accepted policy: the first
+    recursion's batch is the acceptance test of the policy it samples; if that policy is rejected,
+    the iteration is an ordinary rejected LQR-FLM iteration and the EM phase runs at the next
+    iteration.  The EM policy is then judged like any other step, on the samples it produced.
+    """
     noise = resolve(task, cfg.baseline.noise)
-    if state.iteration == cfg.i_switch and not state.em_done:
+    if state.iteration >= cfg.i_switch and not state.em_done:
         rng = state_rng(state)
         policy = state.policy
         prior = state.prior
         history = state.history
         best = state.best
         previous = state.last_rollouts
+        accepted = state.accepted
+        acc_cfg = cfg.baseline.acceptance
+        first = None
+        if acc_cfg.enabled:
+            first = sample(task, cfg.baseline, state, rng, noise)
+            c_s, se_s = acceptance_cost(acc_cfg, record(state.iteration, "em", task, first[0]))
+            threshold = acceptance_threshold(acc_cfg, se_s, accepted)
+            if not c_s <= threshold:  # the policy to start EM from is rejected: an ordinary rejected step
+                return lqr_flm_iteration(task, cfg.baseline, dataclasses.replace(state, rng_state=rng.bit_generator.state),
+                                         noise=noise, batch=first)
         for r in range(cfg.em.n_em):
-            t0 = time.perf_counter()
-            rollouts = task.rollouts(policy, cfg.baseline.samples, rng, workers=cfg.baseline.workers)
-            timings = {"rollouts": time.perf_counter() - t0}
+            if r == 0 and first is not None:
+                rollouts, timings = first
+            else:
+                t0 = time.perf_counter()
+                rollouts = task.rollouts(policy, cfg.baseline.samples, rng, workers=cfg.baseline.workers)
+                timings = {"rollouts": time.perf_counter() - t0}
             est = noise.estimate(prior, rollouts, cfg.baseline.fit, policy, rng, previous=previous)
             timings.update(est.timings)
             prior = est.prior
+            extra = {}
+            if r == 0 and first is not None:
+                # p_s is accepted; a rejected EM policy is replaced by an LQR-FLM step around p_s
+                b = fit_batch(task, cfg.baseline, state, rollouts, timings, rng, noise, estimates=est)
+                gains = noise.gains(policy)
+                accepted = AcceptedPolicy(policy, c_s, se_s, state.iteration, PreviousStep(b.local, gains),
+                                          b.wrap(gains), float(state.mult))
+                extra = {"test_cost": c_s, "test_cost_se": se_s, "accept_threshold": threshold, "accepted": 1.0,
+                         "accepted_iteration": float(state.iteration)}
             new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r, estimates=est, noise=noise)
-            rec = record(state.iteration, "em", task, rollouts, timings=timings, em=diag)
+            rec = record(state.iteration, "em", task, rollouts, timings=timings, em=diag, extra=extra)
             history = history + (rec,)
             best = improved(best, float(np.mean(rec.cost)), policy, state.iteration)
             policy = new
             previous = rollouts  # the batch the new policy's estimator was learned from
         state = dataclasses.replace(
             state, policy=policy, prior=prior, rng_state=rng.bit_generator.state,
-            history=history, best=best, em_done=True, prev=None, last_rollouts=previous,
+            history=history, best=best, em_done=True, prev=None, last_rollouts=previous, accepted=accepted,
         )
         # The EM policy is the KL reference (and the sampling policy) of this iteration.
         return lqr_flm_iteration(task, cfg.baseline, state, reference=policy, noise=noise)

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from ..learning.fit import MixturePrior
     from ..lqg import LocalModel
 
-__all__ = ["BestPolicy", "PreviousStep", "EMDiagnostics", "IterationRecord", "RunState", "state_rng",
+__all__ = ["BestPolicy", "PreviousStep", "AcceptedPolicy", "EMDiagnostics", "IterationRecord", "RunState", "state_rng",
            "improved", "record"]
 
 
@@ -40,6 +40,29 @@ class PreviousStep(NamedTuple):
     model: LocalModel  # fitted dynamics, cost expansion and initial distribution (innovation form
     #                        with the estimator)
     reference: LinearGaussianPolicy  # the KL reference of that step (its gains, on xhat with the estimator)
+
+
+class AcceptedPolicy(NamedTuple):
+    """The last accepted policy ``p_a`` of a run with step acceptance (docs/math.md §12).
+
+    policy:    ``p_a``, the policy a run returns (plain or with its filter).
+    cost_mean: ``C_a``, the mean total cost of its own samples (the cost the test reads).
+    cost_se:   ``se_a``, the standard error of that mean.
+    iteration: the (0-based) iteration in which it was sampled.
+    step:      the KL step taken around it: the local model fitted on its samples and that step's
+               reference; a rejected successor is replaced by a step on this same model.
+    child:     the policy that step produced (a retry keeps its filter, built from ``p_a``'s batch,
+               and replaces its gains).
+    mult:      the multiplier of the step taken around it.
+    """
+
+    policy: LinearGaussianPolicy | FilteredPolicy
+    cost_mean: float
+    cost_se: float
+    iteration: int
+    step: PreviousStep
+    child: LinearGaussianPolicy | FilteredPolicy
+    mult: float
 
 
 @dataclass(frozen=True)
@@ -101,8 +124,8 @@ class IterationRecord:
             "mult": self.mult,
             **{f"metric_{k}": v for k, v in self.metrics.items()},
             **{f"time_{k}": v for k, v in self.timings.items()},
-            **self.extra,
             **(self.em.summary() if self.em is not None else {}),
+            **self.extra,
         }
 
 
@@ -119,7 +142,10 @@ class RunState:
     prev:          the previous KL step, for the step adaptation.
     best:          the best policy sampled so far.
     em_done:       whether the DPSOC-EM phase has run.
-    last_rollouts: the rollouts of the last iteration.
+    last_rollouts: the rollouts of the last iteration (with acceptance: of the last accepted one's
+                   batch after a rejection, the batch the sampled policy's estimator comes from).
+    accepted:      the last accepted policy (step acceptance, docs/math.md §12; None without).
+    mult_ceiling:  upper bound on the multiplier after a rejection (None: ``kl.mult_max`` only).
     """
 
     iteration: int
@@ -132,6 +158,8 @@ class RunState:
     best: BestPolicy | None = None
     em_done: bool = False
     last_rollouts: Rollouts | None = None
+    accepted: AcceptedPolicy | None = None
+    mult_ceiling: float | None = None
 
 
 

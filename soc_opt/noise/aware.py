@@ -74,6 +74,8 @@ __all__ = [
     "NoiseModel",
     "noise_model",
     "gains",
+    "with_gains",
+    "mean_action",
     "sampler_noise_action_cov",
     "pool_moments",
     "pool_noise_action_cov",
@@ -237,6 +239,20 @@ def gains(policy) -> LinearGaussianPolicy:
     if isinstance(policy, LinearGaussianPolicy):
         return policy
     raise TypeError(f"policy must be a LinearGaussianPolicy or a FilteredPolicy, got {type(policy).__name__}")
+
+
+def with_gains(policy, new: LinearGaussianPolicy):
+    """``policy`` with its linear-Gaussian part replaced by ``new`` (its filter, if any, kept)."""
+    if isinstance(policy, FilteredPolicy):
+        return dataclasses.replace(policy, policy=new)
+    if isinstance(policy, LinearGaussianPolicy):
+        return new
+    raise TypeError(f"policy must be a LinearGaussianPolicy or a FilteredPolicy, got {type(policy).__name__}")
+
+
+def mean_action(policy):
+    """``policy`` acting with its mean action (``Sigma = 0``; its filter, if any, kept)."""
+    return with_gains(policy, gains(policy).mean_policy())
 
 
 def sampler_noise_action_cov(policy, R) -> np.ndarray:

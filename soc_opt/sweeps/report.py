@@ -36,7 +36,7 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 from ..experiments.report import COLORS, LABELS  # noqa: E402
 from .spec import RESULT, SweepSpec, describe, read_json, setting_table  # noqa: E402
 
-__all__ = ["write_report", "aggregate", "versus_key", "QUANTITIES"]
+__all__ = ["write_report", "aggregate", "claims_rows", "versus_key", "QUANTITIES"]
 
 QUANTITIES = ("final_cost", "state_spread", "action_spread", "best_cost")
 
@@ -44,7 +44,38 @@ QUANTITIES = ("final_cost", "state_spread", "action_spread", "best_cost")
 def _flat_result(res: dict) -> dict:
     row = {q: res.get(q) for q in QUANTITIES}
     row.update({f"metric_{k}": v for k, v in (res.get("metrics") or {}).items()})
+    if "final_cost_mean_action" in res:  # the same final policy with its mean action (docs/math.md §12.3)
+        row["final_cost_mean_action"] = res["final_cost_mean_action"]
+        row.update({f"mean_action_{k}": v for k, v in (res.get("metrics_mean_action") or {}).items()})
+    for k in ("rejected_steps", "final_vs_last_ratio", "final_vs_last_worse"):
+        if k in res:
+            row[k] = float(res[k])
     return row
+
+
+def claims_rows(spec: SweepSpec, results: dict[str, dict]) -> list[dict]:
+    """The paper's claims (DPSOC-EM against LQR-FLM, docs/math.md §9.5) per task and setting, paired
+    over the seeds both methods finished (:func:`soc_opt.experiments.report.claims_table`)."""
+    from ..experiments.report import claims_table
+
+    rows = []
+    if not {"lqr-flm", "dpsoc-em"} <= set(spec.methods):
+        return rows
+    for task in spec.tasks:
+        for s in spec.settings:
+            by = {m: {t.seed: results[t.id] for t in spec.trials
+                      if (t.task_label, t.setting, t.method) == (task, s.name, m) and t.id in results}
+                  for m in ("lqr-flm", "dpsoc-em")}
+            seeds = sorted(set(by["lqr-flm"]) & set(by["dpsoc-em"]))
+            if not seeds:
+                continue
+            per_seed = {m: {q: [by[m][sd][q] for sd in seeds] for q in ("final_cost", "state_spread", "action_spread")}
+                        for m in by}
+            per_seed = {m: {"cost": v["final_cost"], "state_spread": v["state_spread"],
+                            "action_spread": v["action_spread"]} for m, v in per_seed.items()}
+            for r in claims_table(per_seed):
+                rows.append({"task": task, "setting": s.name, **r})
+    return rows
 
 
 def aggregate(spec: SweepSpec, results: dict[str, dict]) -> list[dict]:
@@ -241,6 +272,20 @@ def write_report(spec: SweepSpec, out: str | Path, status: dict[str, dict]) -> P
                     _plot_versus(task, spec, trows, vkey, out / f"versus_{vkey}_{task}.png") if vkey else None):
             if fig is not None:
                 lines += ["", f"![{fig.stem}]({fig.name})"]
+    claims = claims_rows(spec, results)
+    if claims:
+        _write_csv(out / "claims.csv", claims)
+        lines += ["", "## Claims: DPSOC-EM against LQR-FLM, paired over seeds", "",
+                  "A claim holds when the 95% paired bootstrap interval of the mean difference (DPSOC-EM minus "
+                  "LQR-FLM) lies below 0.", "",
+                  "| task | setting | claim | LQR-FLM | DPSOC-EM | difference [95% CI] | signed-rank p | lower on | held |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in claims:
+            lines.append(f"| {r['task']} | {r['setting']} | {r['claim'].replace('DPSOC-EM lowers the ', '')} | "
+                         f"{_fmt(r['baseline_mean'])} ± {_fmt(r['baseline_std'])} | {_fmt(r['dpsoc_mean'])} ± "
+                         f"{_fmt(r['dpsoc_std'])} | {_fmt(r['diff_mean'])} [{_fmt(r['ci_low'])}, {_fmt(r['ci_high'])}] | "
+                         f"{_fmt(r['p_signed_rank'])} | {r['seeds_lower']}/{r['seeds']} | "
+                         f"{'yes' if r['held'] else 'no (' + r['verdict'] + ')'} |")
     failed = [r for r in trial_rows if r["state"] == "failed"]
     if failed:
         lines += ["", "## Failed trials", "", "| trial | error | traceback |", "|---|---|---|"]

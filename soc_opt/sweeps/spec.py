@@ -484,10 +484,16 @@ def check_finite(state: RunState) -> None:
 
 def _result(spec: TrialSpec, task, state: RunState, trial_dir: Path) -> dict:
     from ..experiments.compare import evaluate_policy as _evaluate
+    from ..experiments.compare import final_vs_last as _final_vs_last
     from ..experiments.compare import spreads as _spreads
+    from ..methods.registry import get_method
+    from ..noise.aware import mean_action
 
-    ro = _evaluate(task, state.policy, spec.eval_samples, spec.seed, spec.config.baseline.workers)
+    policy = get_method(spec.method).final_policy(spec.config, state)
+    ro = _evaluate(task, policy, spec.eval_samples, spec.seed, spec.config.baseline.workers)
+    ro_mean = _evaluate(task, mean_action(policy), spec.eval_samples, spec.seed, spec.config.baseline.workers)
     np.savez_compressed(trial_dir / "final_eval.npz", **ro.to_dict())
+    np.savez_compressed(trial_dir / "final_eval_mean_action.npz", **ro_mean.to_dict())
     final = _spreads(task, ro)
     if not math.isfinite(final["cost"]):
         raise TrialDiverged("diverging simulation: non-finite cost of the final policy")
@@ -497,6 +503,11 @@ def _result(spec: TrialSpec, task, state: RunState, trial_dir: Path) -> dict:
         "state_spread": final["state_spread"],
         "action_spread": final["action_spread"],
         "metrics": {k: float(v) for k, v in task.metrics(ro).items()},
+        "final_cost_mean_action": float(np.mean(task.true_cost(ro_mean).sum(-1))),
+        "metrics_mean_action": {k: float(v) for k, v in task.metrics(ro_mean).items()},
+        "rejected_steps": int(sum(1 for r in state.history if r.extra.get("accepted") == 0.0)),
+        **{f"final_vs_last_{k}": v for k, v in
+           _final_vs_last(task, state.history, ro, spec.config.baseline.acceptance).items()},
         "best_cost": float(state.best[0]) if state.best else float("nan"),
         "best_iteration": int(state.best[2]) if state.best else -1,
         "iterations": state.iteration,

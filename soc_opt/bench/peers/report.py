@@ -31,7 +31,8 @@ __all__ = ["soc_curves", "sweep_curves", "rl_curves", "rl_table", "main"]
 METRIC = {"peg": "success_rate", "door": "min_hinge"}
 SOC_LABEL = {"paper": "{m}", "noiseaware": "{m} noise-aware"}
 #: the noise sweeps' settings (problems/sweeps/noise_*.toml) shown beside RL, and their labels
-SWEEP_LABEL = {"paper": "{m}", "noise-aware": "{m} noise-aware", "kinematic": "{m} kinematic"}
+SWEEP_LABEL = {"paper": "{m}", "noise-aware": "{m} noise-aware", "kinematic": "{m} kinematic",
+               "paper-as-written": "{m} (as written)", "kinematic-as-written": "{m} kinematic (as written)"}
 METHODS = {"lqr-flm": "LQR-FLM", "dpsoc-em": "DPSOC-EM"}
 
 
@@ -57,10 +58,16 @@ def soc_curves(root: Path, samples: int = 20, T: int = 100) -> dict:
     return out
 
 
-def _curve(per_seed: list[list[dict]], task: str, samples: int, T: int, eval_cost) -> dict:
+def _curve(per_seed: list[list[dict]], task: str, samples: int, T: int, eval_cost, results=None) -> dict:
+    """``results``: the trials' ``result.json`` (sweeps), for the final policy's evaluation sampled and
+    with its mean action (docs/math.md §12.3)."""
     n_it = min(len(r) for r in per_seed)
+    res = [r for r in (results or []) if "metrics_mean_action" in r]
     return {
         "eval_cost": eval_cost,
+        "eval_metric": [r["metrics"][METRIC[task]] for r in res] if res else None,
+        "eval_metric_mean_action": [r["metrics_mean_action"][METRIC[task]] for r in res] if res else None,
+        "eval_cost_mean_action": [r["final_cost_mean_action"] for r in res] if res else None,
         "steps": (np.arange(n_it) + 1) * samples * T,
         "seeds": {m: np.array([[float(r[i][f"metric_{m}"]) for i in range(n_it)] for r in per_seed])
                   for m in (METRIC[task], "cost")},
@@ -81,16 +88,17 @@ def sweep_curves(root: Path, rho2s=(0.0, 0.1), samples: int = 20, T: int = 100) 
             if setting not in SWEEP_LABEL or float(rho) not in rho2s:
                 continue
             for method, name in METHODS.items():
-                per_seed, costs = [], []
+                per_seed, costs, results = [], [], []
                 for sd in sorted(d.glob(f"{method}/seed_*"), key=lambda p: int(p.name.split("_")[1])):
                     if not (sd / "result.json").exists():
                         continue
                     with open(sd / "metrics.csv") as fh:
                         per_seed.append(list(csv.DictReader(fh)))
-                    costs.append(json.loads((sd / "result.json").read_text())["final_cost"])
+                    results.append(json.loads((sd / "result.json").read_text()))
+                    costs.append(results[-1]["final_cost"])
                 if per_seed:
                     key = (SWEEP_LABEL[setting].format(m=name), task, float(rho))
-                    out[key] = _curve(per_seed, task, samples, T, costs)
+                    out[key] = _curve(per_seed, task, samples, T, costs, results)
     return out
 
 
@@ -176,15 +184,20 @@ def _fmt_s90(v) -> str:
 
 def rl_table(soc: dict, rl: dict) -> list[dict]:
     """Rows: method, task, rho2, env steps, seeds; the task metric (success rate / min hinge) and
-    the true-state cost of the last 20 sampled episodes (mean ± std over seeds); for RL also of
-    the deterministic policy on 20 fresh episodes; steps to 90% peg success; wall time per run."""
+    the true-state cost of the last 20 sampled episodes (mean ± std over seeds); the final policy on
+    fresh episodes, sampled (soc_opt: with its exploration covariance) and with its mean action
+    (stable-baselines3: ``deterministic=True``; soc_opt: ``K s + k``), so that like is compared with
+    like; steps to 90% peg success; wall time per run."""
     rows = []
     for (label, task, rho2), c in sorted(soc.items(), key=lambda kv: (kv[0][1], kv[0][2], kv[0][0])):
         m = METRIC[task]
         rows.append({"method": label, "task": task, "rho2": rho2, "env_steps": int(c["steps"][-1]),
                      "seeds": c["seeds"][m].shape[0], "metric_last20": _ms(c["seeds"][m][:, -1]),
-                     "cost_last20": _ms(c["seeds"]["cost"][:, -1]), "metric_eval": "",
-                     "cost_eval": _ms(c["eval_cost"]) if c.get("eval_cost") else "",
+                     "cost_last20": _ms(c["seeds"]["cost"][:, -1]),
+                     "metric_eval_sampled": _ms(c["eval_metric"]) if c.get("eval_metric") else "",
+                     "cost_eval_sampled": _ms(c["eval_cost"]) if c.get("eval_cost") else "",
+                     "metric_eval_mean_action": _ms(c["eval_metric_mean_action"]) if c.get("eval_metric_mean_action") else "",
+                     "cost_eval_mean_action": _ms(c["eval_cost_mean_action"]) if c.get("eval_cost_mean_action") else "",
                      "steps_to_90": _fmt_s90(_s90_soc(c)) if task == "peg" else "", "wall_s": ""})
     for (label, task, rho2, budget), c in sorted(rl.items(), key=lambda kv: (kv[0][1], kv[0][2], kv[0][3], kv[0][0])):
         m = METRIC[task]
@@ -192,7 +205,8 @@ def rl_table(soc: dict, rl: dict) -> list[dict]:
             f"{budget:,} planned; reached {', '.join(f'{x:,}' for x in c['reached'])}"
         rows.append({"method": label, "task": task, "rho2": rho2, "env_steps": steps, "seeds": c["n_seeds"],
                      "metric_last20": _ms(c["last20"][m]), "cost_last20": _ms(c["last20"]["cost"]),
-                     "metric_eval": _ms(c["final"][m]), "cost_eval": _ms(c["final"]["cost"]),
+                     "metric_eval_sampled": "", "cost_eval_sampled": "",
+                     "metric_eval_mean_action": _ms(c["final"][m]), "cost_eval_mean_action": _ms(c["final"]["cost"]),
                      "steps_to_90": _fmt_s90(c["steps_to_90"]) if task == "peg" else "",
                      "wall_s": _ms(c["wall_s"]).split(".")[0] if np.isfinite(c["wall_s"]).any() else "cut"})
     return rows
