@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from soc_opt.experiments.run import load_run_config, run_experiment
+from soc_opt.methods.registry import get_method
 from soc_opt.noise.aware import NoiseConfig, gains
 from soc_opt.noise.kinematic import loop
 from soc_opt.tasks import load_task
@@ -37,8 +38,8 @@ from soc_opt.tasks import load_task
 _learn = loop.learn
 
 
-def _true_state_learn(task, rollouts, sampler, cfg):
-    smoothed, filt, diag = _learn(task, rollouts, sampler, cfg)
+def _true_state_learn(task, rollouts, sampler, cfg, previous=None):
+    smoothed, filt, diag = _learn(task, rollouts, sampler, cfg, previous)
     cost = np.asarray(task.cost(rollouts.x, rollouts.a))
     return dataclasses.replace(rollouts, s=rollouts.x, cost=cost, y=np.exp(-task.y_scale * cost)), filt, diag
 
@@ -74,7 +75,8 @@ def run_one(task_name: str, variant: str, seed: int, rho2: float) -> dict:
         st = run_experiment(learner, "lqr-flm", cfg, seed, None)
     finally:
         loop.learn = _learn
-    pol = gains(st.policy) if variant == "oracle state" else st.policy
+    final = get_method("lqr-flm").final_policy(cfg, st)  # the returned policy (docs/math.md §12.3)
+    pol = gains(final) if variant == "oracle state" else final
     ro = (twin if variant == "oracle state" else eval_task).rollouts(pol, 20, np.random.default_rng(10000 + seed))
     return {"task": task_name, "variant": variant, "seed": seed, **task.metrics(ro), "wall_time": time.perf_counter() - t0}
 

@@ -207,8 +207,12 @@ def _cmd_compare(args) -> int:
     summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_progress(args),
                       restart=args.restart)
     _print("")
-    _print(_table([{k: r[k] for k in ("claim", "baseline_mean", "dpsoc_mean", "seeds_lower", "held")}
+    _print(_table([{k: r[k] for k in ("claim", "baseline_mean", "dpsoc_mean", "diff_mean", "ci_low", "ci_high",
+                                      "seeds_lower", "verdict", "held")}
                    for r in summary["claims"]]))
+    worse = {m: sum(r["worse"] for r in rows) for m, rows in summary["final_vs_last"].items()}
+    _print("final policies worse than their run's last sampled iteration: "
+           + ", ".join(f"{m} {n}/{len(seeds)}" for m, n in worse.items()))
     _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=cfg.baseline.iterations - 1)
     _print(f"\nreport: {summary['report']}  (total time {time.perf_counter() - t0:.0f}s)")
     return 0

@@ -1,5 +1,6 @@
 """Tests for soc_opt/cli.py: configuration errors are caught before any simulation."""
 
+import numpy as np
 import pytest
 
 from soc_opt.cli import main
@@ -108,6 +109,30 @@ def test_lqr_flm_accepts_a_config_file_with_one_iteration(tmp_path, capsys):
     assert main(["run", "linear2d", "--method", "lqr-flm", "--config", str(p), "--out", str(tmp_path / "o")]) == 0
     assert main(["run", "linear2d", "--method", "dpsoc-em", "--config", str(p), "--out", str(tmp_path / "e")]) == 2
     assert "i_switch" in _one_error_line(capsys.readouterr().err)
+
+
+def test_run_ends_with_the_returned_policy_scored_sampled_and_with_its_mean_action(tmp_path, capsys):
+    """docs/math.md §12.3: ``soc-opt run`` evaluates what the method returns (the last accepted policy)
+    on fresh rollouts, sampled and with its mean action; iLQG says it was scored without noise."""
+    from soc_opt.experiments.rundir import decode_checkpoint
+    from soc_opt.models import LinearGaussianPolicy
+
+    p = tmp_path / "c.toml"
+    p.write_text("[baseline]\niterations = 3\nsamples = 4\n[ilqg]\niterations = 2\n")
+    out = tmp_path / "o"
+    assert main(["run", "linear2d", "--method", "lqr-flm", "--config", str(p), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    line = next(ln for ln in text.splitlines() if ln.startswith("final policy = "))
+    state = decode_checkpoint(out / "checkpoint.npz")
+    assert f"the last accepted policy (iteration {state.accepted.iteration})" in line
+    assert "sampled cost" in line and "mean action cost" in line
+    saved = LinearGaussianPolicy.load(out / "final_policy.npz")
+    np.testing.assert_array_equal(saved.K, state.accepted.policy.K)
+    with np.load(out / "final_eval_mean_action.npz") as f:
+        assert f["a"].shape[0] == 4
+    assert main(["run", "linear2d", "--method", "ilqg", "--config", str(p), "--out", str(tmp_path / "i")]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("final policy = "))
+    assert "scored without sensor noise" in line
 
 
 def test_ilqg_writes_a_resumable_run_directory_and_reads_the_shared_config(tmp_path, capsys):

@@ -21,6 +21,7 @@ import pytest
 from soc_opt.algorithms import IterationRecord, RunState
 from soc_opt.cli import main
 from soc_opt.experiments.run import run_experiment
+from soc_opt.experiments.rundir import decode_checkpoint
 from soc_opt.linalg import single_thread_blas
 from soc_opt.sweeps.runner import ProgressBoard, run_sweep
 from soc_opt.sweeps.spec import SweepError, TrialDiverged, check_finite, load_sweep, sweep_from_dict
@@ -327,6 +328,45 @@ def test_sweep_report_holds_mean_and_std_over_seeds(reference):
         assert float(r["final_cost_std"]) == pytest.approx(np.std(vals), rel=1e-12)
     md = (out / "report.md").read_text()
     assert "| default | dpsoc-em | 2 |" in md and "final_linear2d.png" in md
+
+
+def test_sweep_trials_score_the_returned_policy_sampled_and_with_its_mean_action(reference):
+    """docs/math.md §12.3: the final evaluation is of the method's returned policy (the last accepted
+    one), on fresh rollouts, with its exploration covariance and with its mean action K s + k."""
+    from soc_opt.experiments.compare import evaluate_policy
+    from soc_opt.methods.registry import get_method
+    from soc_opt.noise.aware import mean_action
+
+    spec, out, _, _ = reference
+    t = spec.trials[0]
+    res = json.loads((out / t.relpath / "result.json").read_text())
+    state = decode_checkpoint(out / t.relpath / "checkpoint.npz")
+    task = load_task(t.task, overrides=t.task_overrides)
+    policy = get_method(t.method).final_policy(t.config, state)
+    assert policy is state.accepted.policy
+    with single_thread_blas():
+        ro = evaluate_policy(task, mean_action(policy), t.eval_samples, t.seed)
+    assert res["final_cost_mean_action"] == pytest.approx(float(np.mean(task.true_cost(ro).sum(-1))), rel=1e-9)
+    assert set(res["metrics_mean_action"]) == set(res["metrics"])
+    assert {"final_vs_last_worse", "final_vs_last_ratio", "rejected_steps"} <= set(res)
+
+
+def test_sweep_report_judges_the_claims_paired_over_seeds(reference):
+    from soc_opt.experiments.report import paired_test
+
+    spec, out, _, _ = reference
+    md = (out / "report.md").read_text()
+    assert "## Claims: DPSOC-EM against LQR-FLM, paired over seeds" in md
+    with open(out / "claims.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 3
+    res = {(t.method, t.seed): json.loads((out / t.relpath / "result.json").read_text()) for t in spec.trials}
+    cost = paired_test([res["lqr-flm", s]["final_cost"] for s in (0, 1)], [res["dpsoc-em", s]["final_cost"] for s in (0, 1)])
+    row = next(r for r in rows if "cost" in r["claim"])
+    assert float(row["diff_mean"]) == pytest.approx(cost["diff_mean"], rel=1e-12)
+    assert row["verdict"] == cost["verdict"] and (row["held"] == "True") == (cost["verdict"] == "lower")
+    with open(out / "trials.csv") as f:
+        assert "final_cost_mean_action" in next(csv.DictReader(f))
 
 
 def test_a_trial_to_run_records_its_whole_spec_and_a_finished_one_keeps_its_record(tmp_path):

@@ -69,6 +69,10 @@ class AcceptanceConfig(Config):
     ceiling:  after a rejection the multiplier is kept below ``ceiling`` times the multiplier of the
               rejected step until a step at that size is accepted (0.5; 1.0 turns it off), so that the
               step-size rule does not grow straight back to the size that just failed.
+    hold_when_improved: after an accepted step whose samples improved on the last accepted policy by
+              more than ``kappa`` standard errors, the multiplier is not lowered by the GPS rule (whose
+              predicted and actual improvements come from fitted models, unreliable under sensor
+              noise); off by default.
     """
 
     enabled: bool = True
@@ -77,6 +81,7 @@ class AcceptanceConfig(Config):
     shrink: float = 0.1
     cost: Literal["measured", "true"] = "measured"
     ceiling: float = 0.5
+    hold_when_improved: bool = False
 
     _constraints = {
         "kappa": [Interval(0)],

@@ -193,6 +193,9 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
         mult = state.mult
         if cfg.adapt_multiplier and state.prev is not None:
             mult = lqg.adapt_multiplier(mult, predicted, actual, cfg.kl)
+            if (acc_cfg.hold_when_improved and acc is not None
+                    and c_i < acc.cost_mean - acc_cfg.kappa * float(np.hypot(se_i, acc.cost_se))):
+                mult = max(mult, state.mult)  # the samples show a clear improvement: do not shrink
         if ceiling is not None:
             if state.mult >= ceiling * (1.0 - 1e-12):
                 ceiling = None  # a step at the ceiling was accepted: the rule may grow again
