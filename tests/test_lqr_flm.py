@@ -180,3 +180,31 @@ def test_paired_test_judges_by_the_interval_not_the_mean():
     r = paired_test(base, base + 1.0)
     assert r["verdict"] == "higher"
     assert paired_test([1.0], [0.5])["verdict"] == "one seed"
+
+
+def test_a_run_with_rejections_resumed_from_its_checkpoint_equals_the_uninterrupted_one(task, tmp_path):
+    """The accepted policy, its step and the multiplier's ceiling are part of the checkpoint: a run
+    interrupted after a rejection and resumed in the same directory ends with the same numbers."""
+    from soc_opt.experiments.run import run_experiment
+
+    cfg = _cfg("lqr-flm", iterations=7)
+    cfg = cfg.replace(baseline=cfg.baseline.replace(acceptance=cfg.baseline.acceptance.replace(kappa=0.0, eps=0.0)))
+    full = run_method(get_method("lqr-flm"), task, cfg, 4)
+    rejected = [r.iteration for r in full.history if r.extra["accepted"] == 0.0]
+    assert rejected, "the strict test (kappa = eps = 0) should reject a step on linear2d"
+
+    class Stop(Exception):
+        pass
+
+    def stop_after(st):
+        if st.iteration == rejected[0] + 1:
+            raise Stop
+
+    with pytest.raises(Stop):
+        run_experiment(task, "lqr-flm", cfg, 4, tmp_path / "run", on_iteration=stop_after)
+    resumed = run_experiment(task, "lqr-flm", cfg, 4, tmp_path / "run")
+    assert [r.extra["accepted"] for r in resumed.history] == [r.extra["accepted"] for r in full.history]
+    for a, b in zip(resumed.history, full.history):
+        np.testing.assert_array_equal(a.cost, b.cost)
+    np.testing.assert_array_equal(resumed.accepted.policy.K, full.accepted.policy.K)
+    assert resumed.mult_ceiling == full.mult_ceiling and resumed.mult == full.mult
