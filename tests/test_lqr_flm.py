@@ -208,3 +208,27 @@ def test_a_run_with_rejections_resumed_from_its_checkpoint_equals_the_uninterrup
         np.testing.assert_array_equal(a.cost, b.cost)
     np.testing.assert_array_equal(resumed.accepted.policy.K, full.accepted.policy.K)
     assert resumed.mult_ceiling == full.mult_ceiling and resumed.mult == full.mult
+
+
+def test_a_retry_below_the_dual_s_resolution_samples_the_accepted_policy_again(task, monkeypatch):
+    """Rejections shrink the budget; when the dual cannot reach it (KL at eta_max above the budget) the
+    retry is the zero step: the accepted policy's own gains, sampled again, not a crash."""
+    real = lqg.kl_step
+    calls = []
+
+    def kl_step(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:  # the retry after the rejected p_2
+            raise lqg.SolverError("KL budget nu=0.005 not reachable: KL(eta_max=1e+16) = 4.1e-01")
+        res = real(*args, **kwargs)
+        if len(calls) == 2:
+            res = res._replace(policy=LinearGaussianPolicy(res.policy.K, res.policy.k + 200.0, res.policy.cov))
+        return res
+
+    monkeypatch.setattr(lqg, "kl_step", kl_step)
+    cfg = _cfg("lqr-flm", iterations=4)
+    state = run_method(get_method("lqr-flm"), task, cfg, 0)
+    rec = {r.iteration: r for r in state.history}
+    assert rec[2].extra["accepted"] == 0.0 and rec[2].extra["zero_step"] == 1.0 and rec[2].kl == 0.0
+    assert rec[3].extra["accepted"] == 1.0 and rec[3].extra["accepted_iteration"] == 3.0
+    assert np.mean(rec[3].cost) < 2.0 * np.mean(rec[1].cost)

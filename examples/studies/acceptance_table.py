@@ -68,7 +68,8 @@ def rows(roots: list[str]) -> list[dict]:
                            "final worse than best sampled": int(col["worse_best"].sum())}
                     if task.name == "door":
                         row["seeds engaged (< -0.1 rad)"] = int((col["metric"] < -0.1).sum())
-                        row["seeds <= -0.95"] = int((col["metric"] <= -0.95).sum())
+                        row["seeds <= -0.95 (sampled / mean action)"] = (f"{int((col['metric'] <= -0.95).sum())} / "
+                                                                          f"{int((col['metric_mean'] <= -0.95).sum())}")
                     out.append(row)
     return out
 

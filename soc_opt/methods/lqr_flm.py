@@ -211,8 +211,16 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
     t0 = time.perf_counter()
     nu = _budget(cfg, task.T, mult)
     model = step.model
-    res = lqg.kl_step(model.dynamics, model.cost, step.reference, nu, model.mu0, model.P0,
-                      method=cfg.kl_method, config=cfg.kl)
+    floor = False
+    try:
+        res = lqg.kl_step(model.dynamics, model.cost, step.reference, nu, model.mu0, model.P0,
+                          method=cfg.kl_method, config=cfg.kl)
+    except lqg.SolverError as e:
+        if "not reachable" not in str(e) or accept:
+            raise
+        # repeated rejections shrank the budget below what the dual can resolve (KL at eta_max above it):
+        # the limit of a vanishing step is the accepted policy itself, sampled again next iteration
+        res, floor = _stay(step.reference), True
     timings["lqg"] = time.perf_counter() - t0
     if accept:
         new_policy = b.wrap(res.policy)
@@ -226,7 +234,8 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
                               extra={"eta_mean": float(np.mean(res.eta)), "predicted_cost": float(res.expected_cost),
                                      "predicted_improvement": predicted, "actual_improvement": actual,
                                      "test_cost": c_i, "test_cost_se": se_i, "accept_threshold": threshold,
-                                     "accepted": float(accept), "accepted_iteration": float(acc.iteration)})
+                                     "accepted": float(accept), "accepted_iteration": float(acc.iteration),
+                                     **({"zero_step": 1.0} if floor else {})})
     return dataclasses.replace(
         state,
         iteration=state.iteration + 1,
@@ -241,6 +250,18 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
         accepted=acc,
         mult_ceiling=ceiling,
     )
+
+
+class _Stay(NamedTuple):
+    policy: LinearGaussianPolicy
+    kl: float = 0.0
+    eta: float = float("inf")
+    expected_cost: float = float("nan")
+
+
+def _stay(reference: LinearGaussianPolicy) -> _Stay:
+    """The zero step: the reference itself (KL 0), what a KL step tends to as its budget vanishes."""
+    return _Stay(reference)
 
 
 def final_policy(cfg: LQRFLMConfig, state: RunState):
