@@ -159,6 +159,33 @@ def test_sweep_curves_read_a_noise_sweeps_trials_per_setting_method_and_rho2(tmp
     assert c["eval_cost"] == [1.5, 2.5]
 
 
+def test_peers_table_scores_soc_opt_sampled_and_with_its_mean_action_beside_sb3_deterministic(tmp_path):
+    """Like with like (docs/math.md §12.3): soc_opt rows carry the final policy's metric sampled and
+    with its mean action (from the sweeps' result.json); an RL row's deterministic score is its
+    mean-action column, its sampled column stays empty."""
+    import json
+
+    from soc_opt.bench.peers.report import rl_table, sweep_curves
+
+    for seed, (samp, mean) in enumerate([(0.8, 0.9), (0.6, 1.0)]):
+        d = tmp_path / "trials" / "peg" / "kinematic,rho2=0.1" / "lqr-flm" / f"seed_{seed}"
+        d.mkdir(parents=True)
+        (d / "metrics.csv").write_text("iteration,metric_success_rate,metric_cost\n0,0.5,3\n1,0.7,2\n")
+        (d / "result.json").write_text(json.dumps({
+            "final_cost": 2.0 + seed, "metrics": {"success_rate": samp}, "final_cost_mean_action": 1.0 + seed,
+            "metrics_mean_action": {"success_rate": mean}}))
+    soc = sweep_curves(tmp_path)
+    rl = {("PPO default", "peg", 0.1, 1000): {
+        "reached": [1000], "n_seeds": 1, "last20": {"success_rate": [0.2], "cost": [9.0]},
+        "final": {"success_rate": [0.4], "cost": [8.0]}, "steps_to_90": [None], "wall_s": np.array([1.0])}}
+    rows = rl_table(soc, rl)
+    mine = next(r for r in rows if r["method"] == "LQR-FLM kinematic")
+    assert mine["metric_eval_sampled"] == "0.70 ± 0.10" and mine["metric_eval_mean_action"] == "0.95 ± 0.05"
+    assert mine["cost_eval_mean_action"] == "1.50 ± 0.50"
+    ppo = next(r for r in rows if r["method"] == "PPO default")
+    assert ppo["metric_eval_sampled"] == "" and ppo["metric_eval_mean_action"] == "0.40"
+
+
 # ------------------------------------------------------------------ with the peers installed
 
 

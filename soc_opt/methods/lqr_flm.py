@@ -216,10 +216,11 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
         res = lqg.kl_step(model.dynamics, model.cost, step.reference, nu, model.mu0, model.P0,
                           method=cfg.kl_method, config=cfg.kl)
     except lqg.SolverError as e:
-        if "not reachable" not in str(e) or accept:
+        if "not reachable" not in str(e):
             raise
-        # repeated rejections shrank the budget below what the dual can resolve (KL at eta_max above it):
-        # the limit of a vanishing step is the accepted policy itself, sampled again next iteration
+        # the multiplier (shrunk by rejections or by the GPS rule) asks for a budget below what the dual
+        # resolves (KL at eta_max above it): the limit of a vanishing step is the reference itself, the
+        # accepted policy, sampled again next iteration
         res, floor = _stay(step.reference), True
     timings["lqg"] = time.perf_counter() - t0
     if accept:
