@@ -117,6 +117,7 @@ def _final_evaluation(task, method: str, cfg, seed: int, state, out: Path) -> st
     from .experiments.run import headline_metric
     from .experiments.rundir import atomic_write_bytes, npz_bytes
     from .methods.registry import get_method
+    from .models import LinearGaussianPolicy
     from .noise.aware import mean_action
 
     meth = get_method(method)
@@ -141,6 +142,13 @@ def _final_evaluation(task, method: str, cfg, seed: int, state, out: Path) -> st
     if not meth.sample_based:
         note = (f"; {method} plans on the noise-free model and its iterations are scored without sensor noise, "
                 f"this evaluation acts on the raw measurements (rho^2 = {rho2:g})")
+        u = getattr(state, "u", None)
+        if u is not None:  # the nominal actions without feedback: what sensor noise cannot reach
+            T, m = u.shape
+            open_loop = LinearGaussianPolicy(np.zeros((T, m, task.n)), u, np.zeros((T, m, m)), allow_singular=True)
+            ro_open = evaluate_policy(task, open_loop, samples, seed, cfg.baseline.workers, cfg.evaluation)
+            atomic_write_bytes(out / "final_eval_open_loop.npz", npz_bytes(**ro_open.to_dict()))
+            note += f"; its nominal actions open loop: {score(ro_open)}"
     return (f"final policy = {which}, {samples} fresh rollouts at rho^2 = {rho2:g}: sampled {score(ro)}; "
             f"mean action {score(ro_mean)}{note} (final_eval*.npz)")
 

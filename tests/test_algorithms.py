@@ -182,3 +182,27 @@ def test_every_run_config_knob_round_trips_through_toml_tables():
     back = DPSOCConfig.from_dict(cfg.to_dict())
     assert back == cfg
     assert back.em.mstep.solver == "SCS" and back.evaluation.seed_offset == 10_000
+
+
+def test_ilqg_warm_start_begins_at_the_policy_s_noise_free_mean_actions(tmp_path):
+    """``[ilqg] init_policy``: the first iterate is the open-loop rollout of the policy's mean action."""
+    from soc_opt.config import ConfigError
+    from soc_opt.methods.ilqg import ILQGConfig, initial_ilqg_state, warm_start_actions
+    from soc_opt.models import LinearGaussianPolicy
+
+    task = load_task("linear2d", overrides={"T": 12})
+    pol = task.initial_policy(1.0)
+    pol = LinearGaussianPolicy(pol.K, pol.k + 0.3, pol.cov)
+    path = tmp_path / "p.npz"
+    pol.save(path)
+    cfg = ILQGConfig(init_policy=str(path))
+    u = warm_start_actions(task, cfg.init_policy)
+    ro = task.rollouts(pol.mean_policy(), 1, np.random.default_rng(0), noise=False)
+    np.testing.assert_array_equal(u, ro.a[0])
+    st = initial_ilqg_state(task, cfg, u)
+    np.testing.assert_allclose(st.x, ro.x[0], rtol=1e-12, atol=1e-12)
+    with pytest.raises(ConfigError, match="init_policy: no such file"):
+        ILQGConfig(init_policy=str(tmp_path / "missing.npz"))
+    other = load_task("linear2d", overrides={"T": 7})
+    with pytest.raises(ConfigError, match="needs"):
+        warm_start_actions(other, str(path))

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Literal
 
 import numpy as np
@@ -31,7 +32,8 @@ from .state import BestPolicy
 if TYPE_CHECKING:
     from ..tasks import Task
 
-__all__ = ["ILQGConfig", "ILQGRecord", "ILQGState", "check_task", "initial_ilqg_state", "ilqg_iteration",
+__all__ = ["ILQGConfig", "ILQGRecord", "ILQGState", "check_task", "initial_ilqg_state", "warm_start_actions",
+           "ilqg_iteration",
            "run_ilqg", "ilqg", "ILQG", "ILQG_METHOD"]
 
 
@@ -48,6 +50,10 @@ class ILQGConfig(Config):
     alphas:      backtracking line-search step sizes, tried in order.
     tol:         stop when the relative cost decrease is below ``tol``.
     policy_var:  covariance of the returned (initialiser) policy.
+    init_policy: path of a policy ``.npz`` (e.g. a learned run's ``final_policy.npz``) whose mean action,
+                 run once without noise from the task's start, gives the initial actions (default: zero
+                 actions).  A warm start: iLQG then refines that trajectory on the known model.  The file
+                 is read when the run starts (its actions are in the checkpoint from then on).
     """
 
     iterations: int = 20
@@ -58,6 +64,7 @@ class ILQGConfig(Config):
     alphas: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.03, 0.01)
     tol: float = 1e-4
     policy_var: float = 1.0
+    init_policy: str | None = None
 
     _constraints = {
         "iterations": [Interval(1)],
@@ -74,6 +81,11 @@ class ILQGConfig(Config):
             raise config_error("mu_max", f"must be >= mu_init, got {self.mu_max!r}")
         if not self.alphas or not all(a > 0 for a in self.alphas):
             raise config_error("alphas", f"must be non-empty and positive, got {self.alphas!r}")
+        if self.init_policy is not None:
+            if not isinstance(self.init_policy, str) or not self.init_policy:
+                raise config_error("init_policy", f"expected the path of a policy .npz file, got {self.init_policy!r}")
+            if not Path(self.init_policy).is_file():
+                raise config_error("init_policy", f"no such file: {self.init_policy!r}")
 
 
 @dataclass(frozen=True)
@@ -189,6 +201,22 @@ def initial_ilqg_state(task: Task, cfg: ILQGConfig = ILQGConfig(), u_init: np.nd
     x, u, J, ro = _simulate(task, K, u)
     return ILQGState(iteration=0, x=x, u=u, K=K, J=J, mu=cfg.mu_init, costs=(J,),
                      policy=_policy(K, x, u, cfg), last_rollouts=ro)
+
+
+def warm_start_actions(task: Task, path: str | None) -> np.ndarray | None:
+    """``(T, m)`` initial actions from the policy file ``path`` (:attr:`ILQGConfig.init_policy`): its mean
+    action ``K s + k`` run once without noise from the task's start; ``None`` without a file."""
+    if path is None:
+        return None
+    try:
+        pol = LinearGaussianPolicy.load(path, allow_singular=True)
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"init_policy: {path!r} is not a readable policy file ({e})") from None
+    if (pol.T, pol.m, pol.n) != (task.T, task.m, task.n):
+        raise ConfigError(f"init_policy: {path!r} has (T, m, n) = {(pol.T, pol.m, pol.n)}, the task "
+                          f"{task.name!r} needs {(task.T, task.m, task.n)}")
+    ro = task.rollouts(pol.mean_policy(), 1, np.random.default_rng(0), noise=False)
+    return np.asarray(ro.a[0])
 
 
 def _line_search(task, cfg, x, u, J, Knew, d):
@@ -322,7 +350,7 @@ class ILQG(MethodBase):
         return cfg.ilqg.iterations
 
     def initial_state(self, task: Task, cfg, seed: int) -> ILQGState:
-        return initial_ilqg_state(task, cfg.ilqg)
+        return initial_ilqg_state(task, cfg.ilqg, warm_start_actions(task, cfg.ilqg.init_policy))
 
     def iterate(self, task: Task, cfg, state: ILQGState) -> ILQGState:
         return ilqg_iteration(task, cfg.ilqg, state)
