@@ -216,9 +216,9 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
         res = lqg.kl_step(model.dynamics, model.cost, step.reference, nu, model.mu0, model.P0,
                           method=cfg.kl_method, config=cfg.kl)
     except lqg.SolverError as e:
-        if "not reachable" not in str(e):
-            raise
-        # the multiplier (shrunk by rejections or by the GPS rule) asks for a budget below what the dual
+        if "not reachable" not in str(e) or not mult < 1.0:
+            raise  # at the base budget or above, an unreachable budget is a failure (e.g. a diverged fit)
+        # the multiplier, shrunk by rejections or by the GPS rule, asks for a budget below what the dual
         # resolves (KL at eta_max above it): the limit of a vanishing step is the reference itself, the
         # accepted policy, sampled again next iteration
         res, floor = _stay(step.reference), True
