@@ -232,3 +232,11 @@ def test_a_retry_below_the_dual_s_resolution_samples_the_accepted_policy_again(t
     assert rec[2].extra["accepted"] == 0.0 and rec[2].extra["zero_step"] == 1.0 and rec[2].kl == 0.0
     assert rec[3].extra["accepted"] == 1.0 and rec[3].extra["accepted_iteration"] == 3.0
     assert np.mean(rec[3].cost) < 2.0 * np.mean(rec[1].cost)
+
+
+def test_paired_test_shows_nothing_with_too_few_seeds_for_the_signed_rank_test():
+    """3 seeds all lower: the percentile bootstrap interval excludes 0, but the signed-rank test
+    cannot reach 5% (p = 1/8): not shown."""
+    r = paired_test([10.0, 11.0, 12.0], [9.0, 9.5, 10.0])
+    assert r["ci_high"] < 0 and r["p_signed_rank"] == pytest.approx(0.125)
+    assert r["verdict"] == "not shown"

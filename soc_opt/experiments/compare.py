@@ -304,7 +304,7 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean
         "Both methods share their first i_switch iterations exactly (same seed, same RNG stream); "
         "final policies are evaluated on fresh rollouts with the same evaluation seed for both methods.",
         "A claim 'held' when the 95% paired bootstrap interval of DPSOC-EM minus LQR-FLM over seeds lies below 0 "
-        "(signed-rank p-value and the count of seeds with DPSOC-EM lower shown too).",
+        "and the one-sided signed-rank test agrees at 5% (p shown; it cannot reach 5% below 5 seeds).",
         "The final policy is the method's returned policy (with step acceptance: its last accepted policy); it is "
         "evaluated sampled (with its exploration covariance) and with its mean action K s + k on the same evaluation seed.",
     ]
