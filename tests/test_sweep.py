@@ -195,6 +195,23 @@ def test_the_noise_sweep_files_cross_six_variants_with_four_noise_levels(task):
         assert t.task_overrides["rho2"] in (0.0, 0.001, 0.01, 0.1) and t.config.baseline.iterations == 14
 
 
+@pytest.mark.parametrize("name, settings, rho2", [
+    ("acceptance_free", ("paper", "paper-as-written"), 0.0),
+    ("acceptance_noise", ("paper", "paper-as-written", "kinematic", "kinematic-as-written", "kinematic-var4"), 0.1)])
+def test_the_acceptance_sweeps_pair_each_setting_with_the_paper_as_written(name, settings, rho2):
+    """Issue 30's sweeps: door and peg, seeds 100-109 (not used for tuning), paper scale; a setting named
+    ``*-as-written`` turns step acceptance off, every other keeps it on (docs/results/acceptance.md)."""
+    spec = load_sweep(os.path.join(os.path.dirname(__file__), "..", "problems", "sweeps", f"{name}.toml"))
+    assert tuple(s.group for s in spec.settings) == settings
+    assert len(spec.trials) == 2 * len(settings) * 2 * 10 and set(spec.seeds) == set(range(100, 110))
+    for t in spec.trials:
+        group = t.setting.split(",")[0]
+        assert t.config.baseline.acceptance.enabled == (not group.endswith("as-written"))
+        assert t.config.baseline.noise.estimator == ("kinematic" if group.startswith("kinematic") else "none")
+        assert t.config.baseline.init_var == (4.0 if group == "kinematic-var4" else 1.0)
+        assert t.task_overrides["rho2"] == rho2 and (t.config.baseline.iterations, t.config.baseline.samples) == (14, 20)
+
+
 def test_non_finite_sampled_cost_is_a_diverging_trial():
     def state(cost):
         rec = IterationRecord(iteration=2, phase="baseline", cost=np.array(cost), cost_measured=np.array(cost),
