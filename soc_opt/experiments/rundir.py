@@ -51,6 +51,7 @@ import os
 import shutil
 import socket
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -230,11 +231,18 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def _holder(path: Path) -> str:
-    try:
-        text = path.read_text().split()
-    except OSError:
-        text = []
+def _holder(path: Path, wait: float = 0.0) -> str:
+    """The lock holder as written in the lock file.  ``wait``: seconds to keep reading while the file is
+    still empty (a holder between taking the lock and writing its pid)."""
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            text = path.read_text().split()
+        except OSError:
+            text = []
+        if text or time.monotonic() >= deadline:
+            break
+        time.sleep(0.01)
     if not text:
         return "another process"
     host = f" on {text[1]}" if len(text) > 1 else ""
@@ -261,7 +269,7 @@ def lock_directory(path: str | Path) -> Iterator[Path]:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise RunDirectoryError(
-                f"run directory {str(path)!r} is in use by {_holder(lp)} (lock file {str(lp)!r}); "
+                f"run directory {str(path)!r} is in use by {_holder(lp, wait=1.0)} (lock file {str(lp)!r}); "
                 "wait for that run to finish or use another --out"
             ) from None
         os.ftruncate(fd, 0)
