@@ -20,14 +20,14 @@ import numpy as np
 
 from ..methods.config import DPSOCConfig, EvalConfig, with_task_init_var
 from ..methods.dpsoc_em import DPSOC_EM
-from ..methods.lqr_flm import LQR_FLM
+from ..methods.lqr_flm import LQR_FLM, acceptance_limit
 from ..methods.state import RunState
 from ..models import LinearGaussianPolicy, Rollouts
 from ..noise.aware import mean_action
 from . import report
 from .progress import Progress, as_progress
 from .run import fork_state, run_experiment
-from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory, refuse_legacy
+from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory, npz_bytes, refuse_legacy
 
 if TYPE_CHECKING:
     from ..tasks import Task
@@ -186,8 +186,8 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
         for k, v in spreads(task, ro).items():
             per_seed[meth][k].append(v)
         histories[meth].append(st.history)
-        atomic_write_bytes(sdir / meth / "final_eval.npz", _npz(ro.to_dict()))
-        atomic_write_bytes(sdir / meth / "final_eval_mean_action.npz", _npz(ro_mean.to_dict()))
+        atomic_write_bytes(sdir / meth / "final_eval.npz", npz_bytes(**ro.to_dict()))
+        atomic_write_bytes(sdir / meth / "final_eval_mean_action.npz", npz_bytes(**ro_mean.to_dict()))
 
 
 def _acceptance_text(acc) -> str:
@@ -196,13 +196,6 @@ def _acceptance_text(acc) -> str:
     return (f"on (docs/math.md §12: kappa {acc.kappa:g}, eps {acc.eps:g}, shrink {acc.shrink:g}, ceiling {acc.ceiling:g}, "
             f"{acc.cost} cost; the last accepted policy returned)")
 
-
-def _npz(arrays: dict) -> bytes:
-    import io
-
-    buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    return buf.getvalue()
 
 
 def final_vs_last(task, history, ro: Rollouts, acceptance) -> dict:
@@ -215,11 +208,16 @@ def final_vs_last(task, history, ro: Rollouts, acceptance) -> dict:
     last = [r for r in history if r.phase == "baseline"][-1]
     c_last = np.asarray(last.cost, float)
     c_fin = np.asarray(task.true_cost(ro).sum(-1), float)
-    se = float(np.hypot(c_last.std(ddof=1) / np.sqrt(c_last.size), c_fin.std(ddof=1) / np.sqrt(c_fin.size)))
-    limit = c_last.mean() + acceptance.kappa * se + acceptance.eps * abs(c_last.mean())
+    limit = acceptance_limit(acceptance, float(c_last.mean()), float(c_last.std(ddof=1) / np.sqrt(c_last.size)),
+                             float(c_fin.std(ddof=1) / np.sqrt(c_fin.size)))
     return {"last_iteration": int(last.iteration), "last_sampled_cost": float(c_last.mean()),
             "final_cost": float(c_fin.mean()), "ratio": float(c_fin.mean() / c_last.mean()),
             "worse": bool(c_fin.mean() > limit)}
+
+
+def _by_metric(final_metrics: dict, kind: str, keys) -> dict:
+    """``{method: {metric: [value per seed]}}`` of one kind ("sampled" or "mean") of final evaluation."""
+    return {m: {k: [float(r[k]) for r in final_metrics[m, kind]] for k in keys} for m in METHODS}
 
 
 def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean, name) -> dict:
@@ -256,14 +254,13 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean
                 vals, out / "min_hinge.png", f"{name}: minimum hinge angle", "min hinge angle [rad]")
         elif key in ("min_distance",):
             figs[f"{key} per iteration"] = report.plot_metric(vals, out / f"{key}.png", f"{name}: {key}", key)
+    # the final policies' task metrics (and true cost), sampled and with the mean action, computed once
+    final_metrics = {(m, kind): [{**task.metrics(ro), "cost": float(np.mean(task.true_cost(ro).sum(-1)))} for ro in ros]
+                     for m in METHODS for kind, ros in (("sampled", eval_ro[m]), ("mean", eval_mean[m]))}
     metric_rows = []
     for key in ["cost", *[k for k in first_metrics if k != "cost"]]:
-        row = [key]
-        for m in METHODS:
-            for ros in (eval_ro[m], eval_mean[m]):
-                row.append(report.mean_std([task.metrics(ro)[key] if key in first_metrics
-                                            else float(np.mean(task.true_cost(ro).sum(-1))) for ro in ros]))
-        metric_rows.append(row)
+        metric_rows.append([key] + [report.mean_std([r[key] for r in final_metrics[m, kind]])
+                                    for m in METHODS for kind in ("sampled", "mean")])
     extra_tables[f"Task metrics of the final policies, sampled and mean action ({report.over_seeds(len(seeds))})"] = (
         ["metric", "LQR-FLM sampled", "LQR-FLM mean action", "DPSOC-EM sampled", "DPSOC-EM mean action"], metric_rows)
     fvl = {m: [final_vs_last(task, h, ro, cfg.baseline.acceptance) for h, ro in zip(histories[m], eval_ro[m])]
@@ -310,11 +307,10 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean
     ]
     md = report.write_markdown(out / "report.md", title=f"DPSOC-EM vs LQR-FLM on {name}", setup=setup,
                                claims=claims, figures=figs, extra_tables=extra_tables, notes=notes)
-    mean_metrics = {m: {k: [float(task.metrics(ro)[k]) for ro in eval_mean[m]] for k in first_metrics} for m in METHODS}
     summary = {"task": name, "seeds": list(seeds), "claims": claims, "per_seed": per_seed,
-               "metrics_sampled": {m: {k: [float(task.metrics(ro)[k]) for ro in eval_ro[m]] for k in first_metrics}
-                                   for m in METHODS},
-               "metrics_mean_action": mean_metrics, "final_vs_last": fvl,
+               "metrics_sampled": _by_metric(final_metrics, "sampled", first_metrics),
+               "metrics_mean_action": _by_metric(final_metrics, "mean", first_metrics),
+               "final_vs_last": fvl,
                "report": str(md), "config": cfg.to_dict()}
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary

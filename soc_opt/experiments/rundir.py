@@ -145,8 +145,6 @@ def npz_bytes(**arrays) -> bytes:
     return buf.getvalue()
 
 
-_npz_bytes = npz_bytes
-
 
 def _jsonable(v):
     if isinstance(v, (np.floating, np.integer, np.bool_)):
@@ -480,7 +478,7 @@ class RunDirectory:
 
     def save_policy(self, iteration: int, policy) -> None:
         """``policies/iter_XXX.npz``: the policy sampled in iteration ``XXX`` (after ``XXX`` iterations)."""
-        atomic_write_bytes(self.path / "policies" / f"iter_{iteration:03d}.npz", _npz_bytes(**policy.to_dict()))
+        atomic_write_bytes(self.path / "policies" / f"iter_{iteration:03d}.npz", npz_bytes(**policy.to_dict()))
 
     def save(self, state) -> None:
         """Write the iteration's files, then the checkpoint (atomically, last; the previous one kept).
@@ -492,7 +490,7 @@ class RunDirectory:
         self.save_policy(it, state.policy)
         if state.last_rollouts is not None:
             atomic_write_bytes(self.path / "samples" / f"iter_{it - 1:03d}.npz",
-                               _npz_bytes(**state.last_rollouts.to_dict()))
+                               npz_bytes(**state.last_rollouts.to_dict()))
         rows = [r.summary() for r in state.history]
         atomic_write_bytes(self.path / "metrics.json", json.dumps(
             [{k: _jsonable(v) for k, v in r.items()} for r in rows], indent=1).encode())
@@ -503,14 +501,14 @@ class RunDirectory:
         w.writerows(rows)
         atomic_write_bytes(self.path / "metrics.csv", buf.getvalue().encode())
         costs = [r.cost for r in state.history]
-        atomic_write_bytes(self.path / "costs.npz", _npz_bytes(
+        atomic_write_bytes(self.path / "costs.npz", npz_bytes(
             iteration=np.array([r.iteration for r in state.history]),
             phase=np.array([r.phase for r in state.history]),
             **{f"cost_{i:03d}": np.asarray(c, float) for i, c in enumerate(costs)},
         ))
         best = state.best
         if best is not None:
-            atomic_write_bytes(self.path / "best_policy.npz", _npz_bytes(
+            atomic_write_bytes(self.path / "best_policy.npz", npz_bytes(
                 **best.policy.to_dict(), mean_cost=best.mean_cost, iteration=best.iteration))
         self._keep_previous_checkpoint()
         atomic_write_bytes(self.path / CHECKPOINT, encode_checkpoint(state))

@@ -101,8 +101,9 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
         acc_cfg = cfg.baseline.acceptance
         first = None
         if acc_cfg.enabled:
-            first = sample(task, cfg.baseline, state, rng, noise)
-            c_s, se_s = acceptance_cost(acc_cfg, record(state.iteration, "em", task, first[0]))
+            first = sample(task, cfg.baseline, state, rng)
+            first_rec = record(state.iteration, "em", task, first[0])
+            c_s, se_s = acceptance_cost(acc_cfg, first_rec)
             threshold = acceptance_threshold(acc_cfg, se_s, accepted)
             if not c_s <= threshold:  # the policy to start EM from is rejected: an ordinary rejected step
                 return lqr_flm_iteration(task, cfg.baseline, dataclasses.replace(state, rng_state=rng.bit_generator.state),
@@ -127,7 +128,10 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
                 extra = {"test_cost": c_s, "test_cost_se": se_s, "accept_threshold": threshold, "accepted": 1.0,
                          "accepted_iteration": float(state.iteration)}
             new, diag = em_update(task, cfg, policy, rollouts, prior, rng, recursion=r, estimates=est, noise=noise)
-            rec = record(state.iteration, "em", task, rollouts, timings=timings, em=diag, extra=extra)
+            if r == 0 and first is not None:  # the batch's costs and metrics are already in first_rec
+                rec = dataclasses.replace(first_rec, timings=timings, em=diag, extra=extra)
+            else:
+                rec = record(state.iteration, "em", task, rollouts, timings=timings, em=diag, extra=extra)
             history = history + (rec,)
             best = improved(best, float(np.mean(rec.cost)), policy, state.iteration)
             policy = new

@@ -35,7 +35,8 @@ from .state import AcceptedPolicy, IterationRecord, PreviousStep, RunState, impr
 if TYPE_CHECKING:
     from ..tasks import Task
 
-__all__ = ["initial_state", "lqr_flm_iteration", "accepted_iteration", "acceptance_threshold", "acceptance_cost",
+__all__ = ["initial_state", "lqr_flm_iteration", "accepted_iteration", "acceptance_limit", "acceptance_threshold",
+           "acceptance_cost",
            "final_policy", "sample", "fit_batch", "Batch", "LQRFLM", "LQR_FLM"]
 
 
@@ -71,8 +72,7 @@ class Batch(NamedTuple):
     timings: dict
 
 
-def sample(task: Task, cfg: LQRFLMConfig, state: RunState, rng: np.random.Generator,
-           noise: NoiseStrategy) -> tuple[Rollouts, dict]:
+def sample(task: Task, cfg: LQRFLMConfig, state: RunState, rng: np.random.Generator) -> tuple[Rollouts, dict]:
     """Step 1: ``cfg.samples`` rollouts of ``state.policy`` and their wall time."""
     t0 = time.perf_counter()
     rollouts = task.rollouts(state.policy, cfg.samples, rng, workers=cfg.workers)
@@ -113,7 +113,7 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     """
     noise = resolve(task, cfg.noise) if noise is None else noise
     rng = state_rng(state)
-    rollouts, timings = sample(task, cfg, state, rng, noise) if batch is None else batch
+    rollouts, timings = sample(task, cfg, state, rng) if batch is None else batch
     b = fit_batch(task, cfg, state, rollouts, timings, rng, noise)
     ref = noise.gains(state.policy if reference is None else reference)
     if cfg.acceptance.enabled:
@@ -159,12 +159,17 @@ def acceptance_cost(cfg: AcceptanceConfig, rec: IterationRecord) -> tuple[float,
     return float(np.mean(c)), float(np.std(c, ddof=1) / np.sqrt(c.size)) if c.size > 1 else float("inf")
 
 
+def acceptance_limit(cfg: AcceptanceConfig, c_a: float, se_a: float, se: float) -> float:
+    """The largest mean cost a batch with standard error ``se`` may have against a reference batch of
+    mean ``c_a`` and standard error ``se_a`` (§12.1): ``c_a + kappa sqrt(se^2 + se_a^2) + eps |c_a|``."""
+    return c_a + cfg.kappa * float(np.hypot(se, se_a)) + cfg.eps * abs(c_a)
+
+
 def acceptance_threshold(cfg: AcceptanceConfig, se: float, accepted: AcceptedPolicy | None) -> float:
-    """The largest mean cost a batch with standard error ``se`` may have and be accepted (§12.1):
-    ``C_a + kappa sqrt(se^2 + se_a^2) + eps |C_a|`` (``inf`` before any policy is accepted)."""
+    """:func:`acceptance_limit` against the last accepted policy (``inf`` before any is accepted)."""
     if accepted is None:
         return float("inf")
-    return accepted.cost_mean + cfg.kappa * float(np.hypot(se, accepted.cost_se)) + cfg.eps * abs(accepted.cost_mean)
+    return acceptance_limit(cfg, accepted.cost_mean, accepted.cost_se, se)
 
 
 def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch, ref: LinearGaussianPolicy,
@@ -215,24 +220,25 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
     try:
         res = lqg.kl_step(model.dynamics, model.cost, step.reference, nu, model.mu0, model.P0,
                           method=cfg.kl_method, config=cfg.kl)
+        gains, kl, eta_mean, predicted_cost = res.policy, float(np.sum(res.kl)), float(np.mean(res.eta)), float(res.expected_cost)
     except lqg.SolverError as e:
         if "not reachable" not in str(e) or not mult < 1.0:
             raise  # at the base budget or above, an unreachable budget is a failure (e.g. a diverged fit)
         # the multiplier, shrunk by rejections or by the GPS rule, asks for a budget below what the dual
         # resolves (KL at eta_max above it): the limit of a vanishing step is the reference itself, the
         # accepted policy, sampled again next iteration
-        res, floor = _stay(step.reference), True
+        gains, kl, eta_mean, predicted_cost, floor = step.reference, 0.0, float("inf"), float("nan"), True
     timings["lqg"] = time.perf_counter() - t0
     if accept:
-        new_policy = b.wrap(res.policy)
+        new_policy = b.wrap(gains)
         acc = AcceptedPolicy(state.policy, c_i, se_i, state.iteration, step, new_policy, float(mult))
         last = b.rollouts
     else:
-        new_policy = noise_aware.with_gains(acc.child, res.policy)
+        new_policy = noise_aware.with_gains(acc.child, gains)
         last = state.last_rollouts  # the batch the new policy's estimator was learned from
 
-    rec = dataclasses.replace(rec0, kl=float(np.sum(res.kl)), nu=float(np.sum(nu)), mult=float(mult), timings=timings,
-                              extra={"eta_mean": float(np.mean(res.eta)), "predicted_cost": float(res.expected_cost),
+    rec = dataclasses.replace(rec0, kl=kl, nu=float(np.sum(nu)), mult=float(mult), timings=timings,
+                              extra={"eta_mean": eta_mean, "predicted_cost": predicted_cost,
                                      "predicted_improvement": predicted, "actual_improvement": actual,
                                      "test_cost": c_i, "test_cost_se": se_i, "accept_threshold": threshold,
                                      "accepted": float(accept), "accepted_iteration": float(acc.iteration),
@@ -251,18 +257,6 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
         accepted=acc,
         mult_ceiling=ceiling,
     )
-
-
-class _Stay(NamedTuple):
-    policy: LinearGaussianPolicy
-    kl: float = 0.0
-    eta: float = float("inf")
-    expected_cost: float = float("nan")
-
-
-def _stay(reference: LinearGaussianPolicy) -> _Stay:
-    """The zero step: the reference itself (KL 0), what a KL step tends to as its budget vanishes."""
-    return _Stay(reference)
 
 
 def final_policy(cfg: LQRFLMConfig, state: RunState):
