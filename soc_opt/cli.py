@@ -161,7 +161,8 @@ def _load_run_config(args, method: str):
     try:
         return load_run_config(args.task, args.config, paper=args.paper, method=method,
                                overrides={"iterations": args.iterations, "samples": args.samples,
-                                          "workers": args.workers, "i_switch": args.i_switch})
+                                          "workers": args.workers, "i_switch": args.i_switch,
+                                          "as_written": True if args.as_written else None})
     except ConfigError as e:
         if str(e).startswith("i_switch"):
             default = EXPERIMENTS / f"{Path(args.task).stem}.toml"
@@ -411,6 +412,9 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--workers", type=int, help="parallel rollout workers")
         sp.add_argument("--i-switch", dest="i_switch", type=int,
                         help="override i_switch: the DPSOC-EM iteration after which the EM phase runs")
+        sp.add_argument("--as-written", dest="as_written", action="store_true",
+                        help="the paper's methods as written: no step acceptance, the last KL step's policy returned "
+                             "(docs/math.md §12; [baseline.acceptance] enabled = false)")
         sp.add_argument("--out", help="run directory (resumes if it holds a checkpoint)")
         sp.add_argument("--restart", action="store_true",
                         help="discard the run(s) already in --out and start from scratch")

@@ -344,3 +344,18 @@ def test_non_positive_linear_mass_or_tau_is_named_with_file_key_and_value(tmp_pa
     line = _one_error_line(capsys.readouterr().err)
     assert str(p) in line and f"linear.{key}: must be positive, got {value}" in line
     assert not (tmp_path / "o").exists()
+
+
+def test_as_written_turns_step_acceptance_off_and_does_not_apply_to_ilqg(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "o"
+    args = ["run", "linear2d", "--method", "lqr-flm", "--iterations", "2", "--samples", "4", "--out", str(out)]
+    assert main(args + ["--as-written"]) == 0
+    cfg = json.loads((out / "config.json").read_text())["config"]
+    assert cfg["baseline"]["acceptance"]["enabled"] is False
+    rows = json.loads((out / "metrics.json").read_text())
+    assert all("accepted" not in r for r in rows)
+    capsys.readouterr()
+    assert main(["run", "linear2d", "--method", "ilqg", "--as-written", "--out", str(tmp_path / "i")]) == 2
+    assert "--as-written does not apply to --method ilqg" in capsys.readouterr().err

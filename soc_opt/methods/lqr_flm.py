@@ -284,6 +284,9 @@ class LQRFLM(MethodBase):
     def apply_overrides(self, cfg, values: dict, paper: bool):
         if paper:
             cfg = with_paper_scale(cfg)
+        values = dict(values)
+        if values.pop("as_written", False):  # --as-written: the paper's step rule (docs/math.md §12)
+            values["acceptance"] = cfg.baseline.acceptance.replace(enabled=False)
         base = {k: v for k, v in values.items() if k not in _TOP_LEVEL}
         top = {k: v for k, v in values.items() if k in _TOP_LEVEL}
         return cfg.replace(baseline=cfg.baseline.replace(**base) if base else cfg.baseline, **top)
