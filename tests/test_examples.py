@@ -17,7 +17,7 @@ def test_example_runs(name, capsys):
         assert "status optimal" in out
 
 
-@pytest.mark.parametrize("path", sorted(EXAMPLES.glob("*.py")), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", sorted(EXAMPLES.rglob("*.py")), ids=lambda p: str(p.relative_to(EXAMPLES)))
 def test_examples_import_only_public_names(path):
     """Examples are user code: they use the public API, no ``_private`` names of soc_opt modules."""
     import ast
@@ -31,13 +31,13 @@ def test_examples_import_only_public_names(path):
 
 
 def test_noise_sweep_table_gives_mean_interval_and_per_seed_values(tmp_path):
-    """examples/noise_sweep_table.py: one row per (variant, rho^2, method), t-interval of the seeds' mean."""
+    """examples/studies/noise_sweep_table.py: one row per (variant, rho^2, method), t-interval of the seeds' mean."""
     import csv
 
     import numpy as np
     from scipy import stats
 
-    mod = runpy.run_path(str(EXAMPLES / "noise_sweep_table.py"))
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_sweep_table.py"))
     vals = [0.9, 0.5, 0.7]
     path = tmp_path / "trials.csv"
     with open(path, "w", newline="") as f:
@@ -58,7 +58,7 @@ def test_noise_sweep_table_gives_mean_interval_and_per_seed_values(tmp_path):
 def test_noise_sweep_claims_count_the_seeds_where_dpsoc_em_is_lower(tmp_path):
     import csv
 
-    mod = runpy.run_path(str(EXAMPLES / "noise_sweep_table.py"))
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_sweep_table.py"))
     path = tmp_path / "trials.csv"
     cols = ["task", "setting", "method", "seed", "state", "final_cost", "state_spread", "action_spread", "metric_success_rate"]
     with open(path, "w", newline="") as f:
@@ -85,7 +85,7 @@ def test_noise_sweep_claims_count_the_seeds_where_dpsoc_em_is_lower(tmp_path):
 
 
 def test_filter_noise_example_rebuilds_the_filter_around_the_scaled_acceleration_noise():
-    """examples/noise_kinematic_filter_noise.py: factor 1 gives the learned filter back; factor 2 doubles
+    """examples/studies/noise_kinematic_filter_noise.py: factor 1 gives the learned filter back; factor 2 doubles
     the velocity block of the transition noise (``dt^2 S``) and changes the gains."""
     import numpy as np
 
@@ -95,7 +95,7 @@ def test_filter_noise_example_rebuilds_the_filter_around_the_scaled_acceleration
     from soc_opt.noise.kinematic.model import KinematicModel
     from soc_opt.tasks import load_task
 
-    mod = runpy.run_path(str(EXAMPLES / "noise_kinematic_filter_noise.py"))
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_kinematic_filter_noise.py"))
     task = load_task("peg", overrides={"rho2": 0.1, "T": 20})
     km, pol = KinematicModel(task), task.initial_policy(0.5)
     _, filt, _ = loop.learn(task, task.rollouts(pol, 5, np.random.default_rng(0)), pol, KinematicConfig())
@@ -110,7 +110,7 @@ def test_filter_noise_example_rebuilds_the_filter_around_the_scaled_acceleration
 
 
 def test_final_modes_oracle_map_is_the_m_step_on_the_true_states_and_estimates_them_better(tmp_path):
-    """examples/noise_kinematic_final_modes.py --oracle-map: the policy keeps its gains; its filter's map is
+    """examples/studies/noise_kinematic_final_modes.py --oracle-map: the policy keeps its gains; its filter's map is
     the M-step on the last batch's true states; on that batch its estimates of the joint angles are
     closer to the truth than those of the filter learned from the measurements."""
     import numpy as np
@@ -122,7 +122,7 @@ def test_final_modes_oracle_map_is_the_m_step_on_the_true_states_and_estimates_t
     from soc_opt.noise.kinematic.smoother import smooth
     from soc_opt.tasks import load_task
 
-    mod = runpy.run_path(str(EXAMPLES / "noise_kinematic_final_modes.py"))
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_kinematic_final_modes.py"))
     task = load_task("peg", overrides={"rho2": 0.1, "T": 30})
     km, pol = KinematicModel(task), task.initial_policy(0.5)
     batch = task.rollouts(pol, 8, np.random.default_rng(0))

@@ -5,7 +5,7 @@ The second argument after the seed is a JSON table of ``[baseline.noise.kinemati
 one thread.  The estimator uses the robot's kinematics (not masses, inertia or damping).
 
 Usage:
-    python examples/noise_kinematic_run.py peg lqr-flm 3 '{"kl_model": "innovation"}'
+    python examples/studies/noise_kinematic_run.py peg lqr-flm 3 '{"kl_model": "innovation"}'
 """
 
 from __future__ import annotations

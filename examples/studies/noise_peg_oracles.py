@@ -17,8 +17,8 @@ BLAS runs on one thread (as in a sweep's Ray workers): 14 sampled iterations amp
 rounding differences, so threaded BLAS gives other, equally valid, numbers.
 
 Usage:
-    python examples/noise_peg_oracles.py --seeds 0 1 2 --out runs/noise_peg_oracles.md
-    python examples/noise_peg_oracles.py --task door --seeds 0 1 2
+    python examples/studies/noise_peg_oracles.py --seeds 0 1 2 --out runs/noise_peg_oracles.md
+    python examples/studies/noise_peg_oracles.py --task door --seeds 0 1 2
 """
 
 from __future__ import annotations

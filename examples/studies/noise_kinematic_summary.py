@@ -5,7 +5,7 @@ Reads ``seed_*/<method>/final_eval.npz`` (the 20 evaluation rollouts of each fin
 scores them with the task's metric (peg: success rate; door: mean minimum hinge angle).
 
 Usage:
-    python examples/noise_kinematic_summary.py runs/peg_kinematic --task peg --rho2 0.1
+    python examples/studies/noise_kinematic_summary.py runs/peg_kinematic --task peg --rho2 0.1
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ and run the rest of the schedule with one change, then evaluate the final policy
 - ``halve-sigma``: no EM at all; the policy's covariance is halved at the switch (what the
   default covariance floor does to ``Sigma``), then LQR-FLM continues.
 
-Usage: .venv/bin/python examples/ablation_em.py runs/paper-peg peg --seeds 0 1 2
+Usage: .venv/bin/python examples/studies/ablation_em.py runs/paper-peg peg --seeds 0 1 2
 Writes ``ablation.json`` and ``ablation.md`` into the compare directory.
 """
 

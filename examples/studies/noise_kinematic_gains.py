@@ -13,7 +13,7 @@ inertia or damping), which the paper's learner does not assume.
 Usage (the weak seed of docs/results/noise/kinematic.md (b)):
     soc-opt run peg --paper --seed 3 --method lqr-flm \\
         --config docs/results/noise/peg_kinematic_nominal.toml --out runs/peg_kin_s3
-    python examples/noise_kinematic_gains.py runs/peg_kin_s3 --iterations 6 9 12
+    python examples/studies/noise_kinematic_gains.py runs/peg_kin_s3 --iterations 6 9 12
 """
 
 from __future__ import annotations

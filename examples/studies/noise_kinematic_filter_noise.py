@@ -7,7 +7,7 @@ its model more, a larger one the measurements.  Diagnostics, not a method.  The 
 robot's kinematics (not its masses, inertia or damping).
 
 Usage:
-    python examples/noise_kinematic_filter_noise.py "runs/sweep-noise_peg10/trials/peg/kinematic,rho2=0.1" \\
+    python examples/studies/noise_kinematic_filter_noise.py "runs/sweep-noise_peg10/trials/peg/kinematic,rho2=0.1" \\
         --scales 1 0.5 0.25 2
 """
 

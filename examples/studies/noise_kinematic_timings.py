@@ -2,7 +2,7 @@
 (``metrics.json``: ``time_rollouts``, ``time_estimator``, ``time_fit``, ``time_lqg`` per iteration).
 
 Usage:
-    python examples/noise_kinematic_timings.py runs/peg_kinematic
+    python examples/studies/noise_kinematic_timings.py runs/peg_kinematic
 """
 
 from __future__ import annotations

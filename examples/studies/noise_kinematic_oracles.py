@@ -15,7 +15,7 @@ then estimates the true joint angles and point positions of those rollouts with
 Every estimator is fitted on the same rollouts it is scored on.  RMS errors against the true state.
 
 Usage:
-    python examples/noise_kinematic_oracles.py runs/peg_kinematic/seed_0/lqr-flm/policies/iter_014.npz \
+    python examples/studies/noise_kinematic_oracles.py runs/peg_kinematic/seed_0/lqr-flm/policies/iter_014.npz \
         --out docs/results/noise/peg_kinematic_offline.md
 """
 

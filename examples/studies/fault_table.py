@@ -1,7 +1,7 @@
 """The fault table of docs/results/faults.md: runs interrupted with SIGINT or SIGKILL, each resumed
 in a fresh process with the same command, compared with the uninterrupted run.
 
-    python examples/fault_table.py OUT [--task peg] [--methods lqr-flm dpsoc-em ilqg]
+    python examples/studies/fault_table.py OUT [--task peg] [--methods lqr-flm dpsoc-em ilqg]
                                    [--after 1 4 5 8 12] [--random 6] [--seed 0] [--signals SIGINT SIGKILL]
 
 Every run is ``soc-opt run TASK --method M --out DIR`` (``--paper`` for the sample-based methods)
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _cmd(task, method, out):

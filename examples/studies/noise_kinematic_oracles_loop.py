@@ -16,7 +16,7 @@ Both oracles are diagnostics, not methods.  The estimator uses the robot's kinem
 masses, inertia or damping), which the paper's learner does not assume.
 
 Usage:
-    python examples/noise_kinematic_oracles_loop.py --task door --seeds 0 1 --out runs/door_kin_oracles.md
+    python examples/studies/noise_kinematic_oracles_loop.py --task door --seeds 0 1 --out runs/door_kin_oracles.md
 """
 
 from __future__ import annotations

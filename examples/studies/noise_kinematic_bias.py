@@ -10,7 +10,7 @@ the smoothed states (what the learner sees) beside its cost on the true states. 
 method.  The estimator uses the robot's kinematics (not its masses, inertia or damping).
 
 Usage:
-    python examples/noise_kinematic_bias.py "runs/sweep-noise_peg10/trials/peg/kinematic-warm,rho2=0.1" \\
+    python examples/studies/noise_kinematic_bias.py "runs/sweep-noise_peg10/trials/peg/kinematic-warm,rho2=0.1" \\
         --method lqr-flm --iteration 13 --em-iters 2 10
 """
 

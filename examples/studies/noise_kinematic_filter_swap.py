@@ -17,7 +17,7 @@ Diagnostics, not a method.  The estimator uses the robot's kinematics (not its m
 damping).
 
 Usage:
-    python examples/noise_kinematic_filter_swap.py "runs/sweep-noise_door10/trials/door/kinematic-r4,rho2=0.1" \\
+    python examples/studies/noise_kinematic_filter_swap.py "runs/sweep-noise_door10/trials/door/kinematic-r4,rho2=0.1" \\
         --task door --method lqr-flm --cases 3:1 8:2 --extra '{"prior_strength": 60}' '{"segments": 25}'
 """
 

@@ -9,9 +9,9 @@ system with the policy's own filter, or with ``xhat = s`` for a policy acting on
 ratio to the exact LQG optimum (``task_reference``: 7,473.39 at ``rho2 = 0.1``).
 
 Usage:
-    python examples/noise_linear2d.py                     # paper and kalman+ssm_em, 5 seeds, 10 iterations
-    python examples/noise_linear2d.py --variants kalman+none none+ssm_em kalman+moments --methods lqr-flm
-    python examples/noise_linear2d.py --samples 30 --out results.md
+    python examples/studies/noise_linear2d.py                     # paper and kalman+ssm_em, 5 seeds, 10 iterations
+    python examples/studies/noise_linear2d.py --variants kalman+none none+ssm_em kalman+moments --methods lqr-flm
+    python examples/studies/noise_linear2d.py --samples 30 --out results.md
 
 Prints a markdown report (and writes it to ``--out`` with the raw numbers next to it as JSON).
 """
@@ -119,7 +119,7 @@ def main() -> None:
 
 def report(args, cfg, lqg_cost, rows, elapsed) -> str:
     b = cfg.baseline
-    cmd = (f"python examples/noise_linear2d.py --seeds {' '.join(map(str, args.seeds))} --iterations {args.iterations}"
+    cmd = (f"python examples/studies/noise_linear2d.py --seeds {' '.join(map(str, args.seeds))} --iterations {args.iterations}"
            f"{f' --samples {args.samples}' if args.samples else ''} --rho2 {args.rho2:g} "
            f"--variants {' '.join(args.variants)} --methods {' '.join(args.methods)}")
     lines = [

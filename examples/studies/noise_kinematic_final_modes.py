@@ -11,7 +11,7 @@ learning apart from what the measurements and the model class allow.  Diagnostic
 The estimator uses the robot's kinematics (not its masses, inertia or damping).
 
 Usage:
-    python examples/noise_kinematic_final_modes.py "runs/sweep-noise_peg10/trials/peg/kinematic,rho2=0.1" \\
+    python examples/studies/noise_kinematic_final_modes.py "runs/sweep-noise_peg10/trials/peg/kinematic,rho2=0.1" \\
         --method lqr-flm --seeds 0 3 6 8
 """
 

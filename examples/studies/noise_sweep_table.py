@@ -12,8 +12,8 @@ LQR-FLM in that cell, per seed: final cost, state spread and action spread, mean
 and the seeds on which DPSOC-EM is lower.
 
 Usage:
-    python examples/noise_sweep_table.py runs/sweep-noise_peg/trials.csv
-    python examples/noise_sweep_table.py runs/sweep-noise_peg/trials.csv --claims kinematic 0.1
+    python examples/studies/noise_sweep_table.py runs/sweep-noise_peg/trials.csv
+    python examples/studies/noise_sweep_table.py runs/sweep-noise_peg/trials.csv --claims kinematic 0.1
 """
 
 from __future__ import annotations

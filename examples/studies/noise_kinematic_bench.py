@@ -4,7 +4,7 @@ filter's gains, and the whole `loop.learn` call.  Process (CPU) time, single-thr
 ``--repeat``: on a shared machine wall time mostly measures the other jobs.
 
 Usage:
-    python examples/noise_kinematic_bench.py runs/peg_kinematic/seed_0/lqr-flm/samples/iter_010.npz
+    python examples/studies/noise_kinematic_bench.py runs/peg_kinematic/seed_0/lqr-flm/samples/iter_010.npz
 """
 
 from __future__ import annotations

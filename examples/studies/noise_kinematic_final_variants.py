@@ -16,7 +16,7 @@ Diagnostics, not methods: every variant changes the final policy after learning.
 uses the robot's kinematics (not its masses, inertia or damping).
 
 Usage:
-    python examples/noise_kinematic_final_variants.py "runs/sweep-noise_peg10/trials/peg/kinematic,rho2=0.1" \\
+    python examples/studies/noise_kinematic_final_variants.py "runs/sweep-noise_peg10/trials/peg/kinematic,rho2=0.1" \\
         --em '{}' '{"em_iters": 6}' --pool 1 2 --update-iters 1 3 --cov-scales 1 0.5 0.1
 """
 
