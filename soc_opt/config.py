@@ -29,7 +29,8 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-__all__ = ["Config", "ConfigError", "Interval", "Options", "config_error", "read_toml", "check_finite", "IMPLIED_WHEN_ABSENT"]
+__all__ = ["Config", "ConfigError", "Interval", "Options", "config_error", "read_toml", "check_finite", "IMPLIED_WHEN_ABSENT",
+           "check_depth", "MAX_DEPTH", "MAX_TOML_BYTES"]
 
 C = TypeVar("C", bound="Config")
 
@@ -267,10 +268,41 @@ def read_toml(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {str(path)!r} does not exist")
+    if path.stat().st_size > MAX_TOML_BYTES:
+        raise ConfigError(f"config file {str(path)!r} holds {path.stat().st_size} bytes, more than a configuration "
+                          f"may ({MAX_TOML_BYTES})")
     try:
-        return tomllib.loads(path.read_text())
+        return check_depth(tomllib.loads(path.read_text()), f"config file {str(path)!r}")
+    except RecursionError:
+        raise ConfigError(f"config file {str(path)!r}: nested more than {MAX_DEPTH} levels deep") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"config file {str(path)!r} is not UTF-8 text: {e}") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from e
+
+
+#: Largest TOML file read (a configuration, task or sweep file): 16 MiB.
+MAX_TOML_BYTES = 16 << 20
+#: Deepest nesting of lists and tables accepted in a JSON or TOML file soc_opt reads.
+MAX_DEPTH = 64
+
+
+def check_depth(value: Any, name: str, limit: int = MAX_DEPTH) -> Any:
+    """``value`` (parsed JSON or TOML) if its lists and tables nest at most ``limit`` deep, else a
+    :class:`ConfigError` naming ``name`` (walked without recursion)."""
+    stack = [(value, 1)]
+    while stack:
+        v, d = stack.pop()
+        if isinstance(v, dict):
+            items = v.values()
+        elif isinstance(v, list):
+            items = v
+        else:
+            continue
+        if d > limit:
+            raise ConfigError(f"{name}: nested more than {limit} levels deep; not a file soc_opt reads")
+        stack.extend((x, d + 1) for x in items)
+    return value
 
 
 #: Dotted key suffix -> ``(value, when)``: the value implied by the key's absence from a recorded

@@ -120,9 +120,10 @@ def test_a_finished_run_opens_in_a_directory_without_write_permission(finished, 
             p.chmod(p.stat().st_mode | 0o200)
 
 
-def test_an_option_whose_default_changed_behaviour_is_compared_when_absent_from_the_record():
-    """A key missing from an old record is an option added later and is ignored, unless its default
-    changed what such a run did (``IMPLIED_WHEN_ABSENT``): then the record implies the old value."""
+def test_a_key_absent_from_the_record_is_a_difference_unless_its_absence_is_declared():
+    """A key missing from a record is a difference (issue 31: a cut-down config.json must not match any
+    configuration), except an option declared in ``IMPLIED_WHEN_ABSENT``: its absence implies its old value,
+    and with its section not in use it implies nothing."""
     from soc_opt.config import IMPLIED_WHEN_ABSENT
     from soc_opt.experiments.rundir import differences
     from soc_opt.noise.aware import NoiseConfig
@@ -135,12 +136,13 @@ def test_an_option_whose_default_changed_behaviour_is_compared_when_absent_from_
     diffs = differences(old, new)
     gains = [d for d in diffs if d.startswith("baseline.noise.kinematic.gains")]
     assert gains == ["baseline.noise.kinematic.gains: (unset: 'nominal' when recorded) -> 'online'"]
-    assert not any("w_floor" in d for d in diffs)            # an added option with a neutral default
-    # the same record against a configuration with the implied values: no difference
+    assert [d for d in diffs if "w_floor" in d] == [
+        f"baseline.noise.kinematic.w_floor: (not recorded) -> {new['baseline']['noise']['kinematic']['w_floor']}"]
+    # the same record against a configuration with the implied values: only the undeclared key differs
     same = {"baseline": {"noise": NoiseConfig.from_dict(
         {"estimator": "kinematic", "kinematic": {"gains": "nominal", "fit_moments": "means"}}).to_dict()}}
-    assert differences(old, same) == []
-    # with another estimator the kinematic section is not in use: its absent keys imply nothing
+    assert [d.split(":")[0] for d in differences(old, same)] == ["baseline.noise.kinematic.w_floor"]
+    # with another estimator the kinematic section is not in use: its declared keys imply nothing
     paper_new = {"baseline": {"noise": NoiseConfig().to_dict()}}
     paper_old = {"baseline": {"noise": dict(paper_new["baseline"]["noise"], kinematic=old["baseline"]["noise"]["kinematic"])}}
-    assert differences(paper_old, paper_new) == []
+    assert [d.split(":")[0] for d in differences(paper_old, paper_new)] == ["baseline.noise.kinematic.w_floor"]

@@ -100,6 +100,7 @@ def test_a_crafted_fork_state_is_never_loaded_by_soc_opt_compare(tmp_path, capsy
     marker = tmp_path / "marker"
     out = tmp_path / "cmp"
     (out / "seed_0").mkdir(parents=True)
+    (out / "compare.json").write_text('{"format": "soc_opt compare"}')  # a compare directory
     (out / "seed_0" / "fork_state.pkl").write_bytes(pickle.dumps(Payload(marker)))
     cmp_args = ["compare", "linear2d", "--seeds", "1", "--iterations", "2", "--samples", "4", "--i-switch", "1",
                 "--progress", "lines", "--out", str(out)]

@@ -399,7 +399,7 @@ def test_a_trial_to_run_records_its_whole_spec_and_a_finished_one_keeps_its_reco
         rec = read_json(d / "trial.json")
         del rec["config"]["baseline"]["noise"]["kinematic"]["gains"]  # as written before the option existed
         write_json(d / "trial.json", rec)
-    write_json(done / "result.json", {"status": "done"})
+    write_json(done / "result.json", {"status": "done", "final_cost": 1.0, "state_spread": 0.1, "action_spread": 0.2})
     states = prepare_out(spec, tmp_path)
     assert sorted(states.values()) == ["done", "pending"]
     assert "gains" not in read_json(done / "trial.json")["config"]["baseline"]["noise"]["kinematic"]

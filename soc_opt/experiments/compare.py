@@ -12,12 +12,15 @@ method's run directory checks its contract (:mod:`soc_opt.experiments.rundir`).
 
 from __future__ import annotations
 
-import json
+import os
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from .. import files
+from ..config import ConfigError
 from ..methods.config import DPSOCConfig, EvalConfig, with_task_init_var
 from ..methods.dpsoc_em import DPSOC_EM
 from ..methods.lqr_flm import LQR_FLM, acceptance_limit
@@ -27,7 +30,17 @@ from ..noise.aware import mean_action
 from . import report
 from .progress import Progress, as_progress
 from .run import fork_state, run_experiment
-from .rundir import CheckpointError, atomic_write_bytes, decode_checkpoint, encode_checkpoint, lock_directory, npz_bytes, refuse_legacy
+from .rundir import (
+    CheckpointError,
+    RunDirectoryError,
+    decode_checkpoint,
+    encode_checkpoint,
+    lock_directory,
+    npz_bytes,
+    refuse_legacy,
+    run_record,
+    unowned_entries,
+)
 
 if TYPE_CHECKING:
     from ..tasks import Task
@@ -114,8 +127,41 @@ def compare(
     cfg = with_task_init_var(cfg, task)  # the task's init_var unless the configuration sets one
     progress = as_progress(progress)
     out = Path(out)
-    with lock_directory(out):
+    check_compare_dir(out)  # before the lock file is created
+    with lock_directory(out, what="compare directory"):
+        check_compare_dir(out)
+        files.write_json(out / COMPARE_FILE, {"format": COMPARE_FORMAT, "task": task_name or task.name,
+                                              "seeds": list(seeds)}, anchor=out, indent=1)
         return _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, restart)
+
+
+#: ``compare.json``: what marks a folder as a compare directory.
+COMPARE_FILE, COMPARE_FORMAT = "compare.json", "soc_opt compare"
+_SEED_DIR = re.compile(r"seed_\d+")
+
+
+def check_compare_dir(out: Path) -> None:
+    """Refuse (:class:`~soc_opt.experiments.rundir.RunDirectoryError`) an ``out`` that is neither new, empty
+    nor a compare directory (its ``compare.json``; one written before it: ``seed_N`` folders holding run
+    directories): a comparison writes into no folder of the user's, and ``--restart`` removes only its files."""
+    if os.path.lexists(out) and not out.is_dir():
+        raise RunDirectoryError(f"--out {str(out)!r} exists and is not a folder; use another --out")
+    try:
+        rec = files.read_json_file(out / COMPARE_FILE) if os.path.lexists(out / COMPARE_FILE) else None
+    except (OSError, ConfigError):
+        rec = None
+    if isinstance(rec, dict) and rec.get("format") == COMPARE_FORMAT:
+        return
+    foreign = unowned_entries(out)
+    seeds = [n for n in foreign if _SEED_DIR.fullmatch(n) and (out / n).is_dir() and not (out / n).is_symlink()]
+    if seeds and all(run_record(out / n / m) is not None for n in seeds for m in METHODS if (out / n / m).exists()) \
+            and any(run_record(out / n / m) is not None for n in seeds for m in METHODS):
+        return  # a compare directory from before compare.json
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise RunDirectoryError(
+            f"--out {str(out)!r} is not a compare directory (no compare.json) and not empty ({shown}); a comparison "
+            "writes only into a new or empty folder or its own directory: use another --out")
 
 
 def _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, restart) -> dict:
@@ -146,22 +192,22 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
     """Both methods on one seed (see :func:`compare`); appends to the per-method accumulators."""
     level = 1 if progress is not None and progress.mode == "bar" else 0
     sdir = out / f"seed_{seed}"
-    sdir.mkdir(exist_ok=True)
+    files.make_dirs(sdir, anchor=out)
     fork_path = sdir / "fork_state.npz"  # a checkpoint (soc_opt.experiments.statefile): data only
     if restart:
         for p in (fork_path, sdir / "fork_state.pkl"):
-            p.unlink(missing_ok=True)
+            files.remove(p, anchor=out)
     refuse_legacy(sdir, ("fork_state.pkl",))
 
     def keep_fork(st: RunState, _p=fork_path):
-        if st.iteration == cfg.i_switch and not _p.exists():
-            atomic_write_bytes(_p, encode_checkpoint(st))
+        if st.iteration == cfg.i_switch and not os.path.lexists(_p):
+            files.write_bytes(_p, encode_checkpoint(st), anchor=out)
 
     # Baseline, with a copy of its state kept at i_switch for DPSOC-EM to start from.
     base = run_experiment(task, BASELINE.name, cfg, seed, sdir / BASELINE.name, task_name=task_name,
-                          progress=progress, on_iteration=keep_fork, bar_level=level, restart=restart)
+                          progress=progress, on_iteration=keep_fork, bar_level=level, restart=restart, anchor=out)
     try:
-        fork = decode_checkpoint(fork_path) if fork_path.exists() else None
+        fork = decode_checkpoint(fork_path) if os.path.lexists(fork_path) else None
     except CheckpointError:
         fork = None  # damaged: it is recomputed below
     if fork is None or fork.iteration != cfg.i_switch:
@@ -170,11 +216,11 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
         st = BASELINE.initial_state(task, cfg, seed)
         while st.iteration < cfg.i_switch:
             st = BASELINE.iterate(task, cfg, st)
-        atomic_write_bytes(fork_path, encode_checkpoint(st))
+        files.write_bytes(fork_path, encode_checkpoint(st), anchor=out)
         fork = st
     em = run_experiment(
         task, FORKED.name, cfg, seed, sdir / FORKED.name, task_name=task_name, progress=progress,
-        start_state=fork_state(fork), bar_level=level, restart=restart,
+        start_state=fork_state(fork), bar_level=level, restart=restart, anchor=out,
     )
     for method, st in ((BASELINE, base), (FORKED, em)):
         meth = method.name
@@ -186,8 +232,8 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
         for k, v in spreads(task, ro).items():
             per_seed[meth][k].append(v)
         histories[meth].append(st.history)
-        atomic_write_bytes(sdir / meth / "final_eval.npz", npz_bytes(**ro.to_dict()))
-        atomic_write_bytes(sdir / meth / "final_eval_mean_action.npz", npz_bytes(**ro_mean.to_dict()))
+        files.write_bytes(sdir / meth / "final_eval.npz", npz_bytes(**ro.to_dict()), anchor=out)
+        files.write_bytes(sdir / meth / "final_eval_mean_action.npz", npz_bytes(**ro_mean.to_dict()), anchor=out)
 
 
 def _acceptance_text(acc) -> str:
@@ -312,5 +358,5 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean
                "metrics_mean_action": _by_metric(final_metrics, "mean", first_metrics),
                "final_vs_last": fvl,
                "report": str(md), "config": cfg.to_dict()}
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
+    files.write_json(out / "summary.json", summary, anchor=out, indent=1, default=float)
     return summary

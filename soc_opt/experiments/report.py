@@ -27,6 +27,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from .. import files  # noqa: E402
+
 __all__ = ["plot_costs", "plot_ee", "plot_actions", "plot_metric", "claims_table", "write_markdown", "format_table",
            "mean_std", "over_seeds"]
 
@@ -48,7 +50,7 @@ def _save(fig, ax, path: Path, title: str, dpi: int = 120) -> Path:
     ax.set_title(title)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
+    files.save_figure(fig, path, dpi=dpi)
     plt.close(fig)
     return path
 
@@ -106,7 +108,7 @@ def plot_ee(points: dict, dt: float, path: Path, title: str, point_names=None, t
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(title + " (mean ± std over samples; dashed baseline, solid DPSOC-EM)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -140,7 +142,7 @@ def plot_actions(actions: dict, path: Path, title: str, names: list[str] | None 
     axes[0].legend(loc="upper left", fontsize=8, framealpha=0.9)
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    files.save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path
 
@@ -270,7 +272,7 @@ def write_markdown(path: Path, *, title: str, setup: dict, claims: list[dict], f
         lines += [f"### {caption}", "", f"![{caption}]({Path(fig).name})", ""]
     if notes:
         lines += ["## Notes", ""] + [f"- {n}" for n in notes]
-    path.write_text("\n".join(lines) + "\n")
+    files.write_text(path, "\n".join(lines) + "\n")
     return path
 
 

@@ -147,6 +147,8 @@ def run_experiment(
     bar_level: int = 0,
     restart: bool = False,
     previous_checkpoint: bool = False,
+    anchor: str | Path | None = None,
+    owned: tuple[str, ...] = (),
 ):
     """Run one method on one task and seed, writing every iteration to ``out`` (resumable).
 
@@ -156,7 +158,10 @@ def run_experiment(
     validated before ``out`` is touched.  With ``out``, the run holds the directory's lock, checks
     its contract and resumes from its checkpoint (:mod:`soc_opt.experiments.rundir`); ``restart`` discards a
     previous run's files first; ``previous_checkpoint`` resumes from the checkpoint before the last
-    (after a damaged one).  ``start_state`` (no checkpoint yet) starts from a given state, e.g. a
+    (after a damaged one).  ``out`` must be new, empty or a run directory (:meth:`RunDirectory.check_owned`;
+    ``owned``: other names the caller put there, e.g. a sweep's ``trial.json``); ``anchor``: the folder above
+    ``out`` the caller owns (a compare or sweep directory), below which no link is followed
+    (:mod:`soc_opt.files`).  ``start_state`` (no checkpoint yet) starts from a given state, e.g. a
     fork of the baseline.  An exception during an iteration leaves the finished iterations saved;
     the run directory's path is added to it as a note.
 
@@ -170,17 +175,21 @@ def run_experiment(
     if out is None:
         return _run(task, method, cfg, seed, None, start_state, on_iteration, prog, bar_level, None)
     if not restart and not previous_checkpoint:
-        finished = finished_run(task, method, cfg, seed, out, task_name=task_name)
+        finished = finished_run(task, method, cfg, seed, out, task_name=task_name, anchor=anchor)
         if finished is not None:  # read only: no lock, no file written
             if prog:
                 prog.message(f"{method} run in {out} already finished ({finished.iteration} iterations)")
             return finished
-    rd, meta, done = RunDirectory(out), _meta(task, method, cfg, seed, task_name), _done(method, cfg)
+    rd, meta, done = RunDirectory(out, anchor=anchor), _meta(task, method, cfg, seed, task_name), _done(method, cfg)
+    rd.check_owned(owned)  # before the lock file is created
     with rd.lock():
+        rd.check_owned(owned)
         if restart:
             rd.clear()
         rd.prepare(meta, _task_record(task, task_name), contract=_contract)
         saved = rd.load_checkpoint(previous=previous_checkpoint)
+        if saved is not None:
+            check_state(saved, task, method, cfg, str(rd.path / ("checkpoint.prev.npz" if previous_checkpoint else CHECKPOINT)))
         state = start_state
         if saved is None:
             state = _initial_state(task, method, cfg, seed) if state is None else state
@@ -231,7 +240,7 @@ def _done(method: str, cfg: DPSOCConfig) -> Callable[[object], bool]:
 
 
 def finished_run(task: Task, method: str, cfg: DPSOCConfig, seed: int, out: str | Path, *,
-                 task_name: str | None = None):
+                 task_name: str | None = None, anchor: str | Path | None = None):
     """The final state of the finished run of this method, task, seed and configuration in ``out``,
     or None (no such directory, not finished, or a damaged last checkpoint).  Reads only: no lock,
     nothing written (works on a read-only file system); a different run in ``out`` raises
@@ -239,13 +248,42 @@ def finished_run(task: Task, method: str, cfg: DPSOCConfig, seed: int, out: str 
     if not Path(out).is_dir():
         return None
     cfg = with_task_init_var(cfg, task)  # compared as run_experiment records it
-    return RunDirectory(out).finished(_meta(task, method, cfg, seed, task_name), _task_record(task, task_name),
-                                      _contract, _done(method, cfg))
+    state = RunDirectory(out, anchor=anchor).finished(_meta(task, method, cfg, seed, task_name),
+                                                      _task_record(task, task_name), _contract, _done(method, cfg))
+    return None if state is None else check_state(state, task, method, cfg, str(Path(out) / CHECKPOINT))
 
 
 def _initial_state(task: Task, method: str, cfg: DPSOCConfig, seed: int):
     """The state a fresh run starts from (the method's own ``initial_state``)."""
     return get_method(method).initial_state(task, cfg, seed)
+
+
+def check_state(state, task: Task, method: str, cfg: DPSOCConfig, where: str):
+    """A state read from a checkpoint checked against the run it is to continue: its iteration count within
+    ``0 .. total_iterations``, its RNG state one numpy accepts, its policy's arrays finite and shaped for the task;
+    :class:`CheckpointError` naming ``where`` otherwise.  Returns ``state``."""
+    total = get_method(method).total_iterations(cfg)
+    it = getattr(state, "iteration", None)
+    if type(it) is not int or not 0 <= it <= total:
+        raise CheckpointError(f"{where}: iteration {it!r} is outside 0..{total} (the configured iterations); "
+                              "not a checkpoint of this run: rerun with --restart")
+    rng_state = getattr(state, "rng_state", None)
+    if rng_state is not None:
+        try:
+            np.random.default_rng().bit_generator.state = rng_state
+        except (TypeError, ValueError, KeyError) as e:
+            raise CheckpointError(f"{where}: rng_state is not a numpy generator state ({e}); rerun with --restart") from None
+    policy = getattr(state, "policy", None)
+    lin = getattr(policy, "policy", policy)
+    T, m = getattr(task, "T", None), getattr(task, "m", None)
+    for name, shape in (("K", (T, m)), ("k", (T, m)), ("cov", (T, m, m))):
+        a = getattr(lin, name, None)
+        if not isinstance(a, np.ndarray) or a.dtype.kind != "f" or tuple(a.shape[:len(shape)]) != shape \
+                or not np.all(np.isfinite(a)):
+            got = f"shape {a.shape}, dtype {a.dtype}" if isinstance(a, np.ndarray) else type(a).__name__
+            raise CheckpointError(f"{where}: policy.{name} ({got}) is not a finite float array of the task's "
+                                  f"shape {shape + ('...',) if name == 'K' else shape}; rerun with --restart")
+    return state
 
 
 def _run(task, method, cfg, seed, rd: RunDirectory | None, state, user_callback, prog, bar_level, tb):

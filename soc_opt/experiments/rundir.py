@@ -48,9 +48,9 @@ import csv
 import io
 import json
 import os
-import shutil
+import re
 import socket
-import tempfile
+import stat
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,8 +58,9 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from .. import files
 from ..config import IMPLIED_WHEN_ABSENT, ConfigError
-from .statefile import StateFileError, decode_state, encode_state, peek_state
+from .statefile import MAX_STATE_BYTES, MAX_TREE_BYTES, StateFileError, decode_state, encode_state, peek_state
 
 try:  # POSIX advisory locks; elsewhere a pid check stands in (see _PidLock)
     import fcntl
@@ -75,7 +76,12 @@ PREVIOUS_CHECKPOINT = "checkpoint.prev.npz"
 #: Pickle files of soc_opt before issue 18 (refused; ``soc-opt convert-checkpoint --trust``).
 LEGACY_FILES = ("checkpoint.pkl", "checkpoint.prev.pkl", "fork_state.pkl")
 LOCK = "lock"
-_TMP = ".tmp-"
+_TMP = files.TMP_MARK
+#: ``config.json``'s ``format``: what marks a folder as a run directory (module docstring, "Ownership").
+RUN_FORMAT = "soc_opt run"
+#: Largest checkpoint file read: the state's budget (arrays and views) plus its structure.
+MAX_CHECKPOINT_BYTES = 2 * MAX_STATE_BYTES + MAX_TREE_BYTES
+_ITER_FILE = r"iter_\d{3,}\.npz"
 #: Files a run writes at the top of its directory (removed by ``RunDirectory.clear``).
 RUN_FILES = ("config.json", "task.json", "metrics.csv", "metrics.json", "costs.npz", "best_policy.npz",
              CHECKPOINT, PREVIOUS_CHECKPOINT, *LEGACY_FILES[:2], "policy.npz", "final_eval.npz",
@@ -108,34 +114,9 @@ def refuse_legacy(directory: Path, names=LEGACY_FILES[:2]) -> None:
             "delete the .pkl files or rerun with --restart")
 
 
-def _umask() -> int:
-    """The process's umask, read without changing it where ``/proc`` tells it."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("Umask:"):
-                return int(line.split()[1], 8)
-    except (OSError, ValueError):
-        pass
-    mask = os.umask(0o022)  # elsewhere: read by setting (restored at once)
-    os.umask(mask)
-    return mask
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to a temporary file next to ``path``, flush it to disk, rename it to ``path``."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}{_TMP}")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fchmod(f.fileno(), 0o666 & ~_umask())  # mkstemp creates 0600
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+def atomic_write_bytes(path: Path, data: bytes, anchor: Path | None = None) -> None:
+    """Write ``data`` to ``path`` atomically, following no link below ``anchor`` (:func:`soc_opt.files.write_bytes`)."""
+    files.write_bytes(path, data, anchor=anchor)
 
 
 def npz_bytes(**arrays) -> bytes:
@@ -160,27 +141,28 @@ def _short(v: Any) -> str:
 
 
 _NOTHING = object()
+_UNUSED = object()
 
 
 def _implied(key: str, grandparent: Any):
     """The value :data:`soc_opt.config.IMPLIED_WHEN_ABSENT` gives a recorded key ``key`` (a dotted path) by
-    its absence, or ``_NOTHING`` (also when its condition, on the ``grandparent`` table holding the key's
-    section, does not hold: the section is not in use)."""
+    its absence, ``_UNUSED`` when its condition, on the ``grandparent`` table holding the key's section, does
+    not hold (the section is not in use), or ``_NOTHING`` (a key the table does not declare)."""
     for suffix, (value, when) in IMPLIED_WHEN_ABSENT.items():
         if key == suffix or key.endswith("." + suffix):
             gp = grandparent if isinstance(grandparent, dict) else {}
-            return value if all(gp.get(k) == v for k, v in when.items()) else _NOTHING
+            return value if all(gp.get(k) == v for k, v in when.items()) else _UNUSED
     return _NOTHING
 
 
 def differences(old: Any, new: Any, prefix: str = "", _parent: Any = None) -> list[str]:
-    """``"key: old -> new"`` for every setting recorded in ``old`` whose value differs in ``new``.
+    """``"key: old -> new"`` for every setting whose value differs between the record ``old`` and ``new``.
 
-    Keys only in ``new`` are options added by a later version of soc_opt after the run was started;
-    they do not make the run a different one, unless the option's default changed what such a run
-    does: those (:data:`soc_opt.config.IMPLIED_WHEN_ABSENT`, e.g. ``kinematic.gains``, absent meaning
-    ``"nominal"`` when ``estimator = "kinematic"``) are compared with the value their absence implies.  Lists of tables are compared
-    entry by entry.
+    The full resolved configurations are compared: a key missing on either side is a difference, not a
+    match (issue 31), except a key only in ``new`` that :data:`soc_opt.config.IMPLIED_WHEN_ABSENT` declares
+    (an option added after runs were recorded, e.g. ``kinematic.gains``, absent meaning ``"nominal"`` when
+    ``estimator = "kinematic"``): it is compared with the value its absence implies.  Lists of tables are
+    compared entry by entry.
     """
     if isinstance(old, dict) and isinstance(new, dict):
         out = []
@@ -190,7 +172,11 @@ def differences(old: Any, new: Any, prefix: str = "", _parent: Any = None) -> li
         for k in sorted(new.keys() - old.keys()):
             key = f"{prefix}.{k}" if prefix else str(k)
             implied = _implied(key, _parent)
-            if implied is not _NOTHING and new[k] != implied:
+            if implied is _UNUSED:
+                continue
+            if implied is _NOTHING:
+                out.append(f"{key}: (not recorded) -> {_short(new[k])}")
+            elif new[k] != implied:
                 out.append(f"{key}: (unset: {_short(implied)} when recorded) -> {_short(new[k])}")
         return out
     if (isinstance(old, list) and isinstance(new, list) and len(old) == len(new)
@@ -202,8 +188,7 @@ def differences(old: Any, new: Any, prefix: str = "", _parent: Any = None) -> li
 def _task_settings(record: dict) -> dict:
     """The compared part of a ``task.json``: the resolved task configuration and its condition."""
     out = dict(record.get("config", {}))
-    if "condition" in record:
-        out["condition"] = record["condition"]
+    out["condition"] = record.get("condition", 0)  # a task built in code records none: condition 0
     return out
 
 
@@ -235,8 +220,8 @@ def _holder(path: Path, wait: float = 0.0) -> str:
     deadline = time.monotonic() + wait
     while True:
         try:
-            text = path.read_text().split()
-        except OSError:
+            text = files.read_bytes(path, 4096, what="lock file").decode(errors="replace").split()
+        except (OSError, ConfigError):
             text = []
         if text or time.monotonic() >= deadline:
             break
@@ -248,27 +233,29 @@ def _holder(path: Path, wait: float = 0.0) -> str:
 
 
 @contextlib.contextmanager
-def lock_directory(path: str | Path) -> Iterator[Path]:
+def lock_directory(path: str | Path, anchor: str | Path | None = None, what: str = "run directory") -> Iterator[Path]:
     """Hold the exclusive lock of the directory ``path`` (created if needed) for the ``with`` block.
 
     Raises :class:`RunDirectoryError` naming the holder if another live process holds it.  A lock
-    file whose holder is gone is stale and taken over (module docstring, "Lock").
+    file whose holder is gone is stale and taken over (module docstring, "Lock").  The lock file is
+    opened without following a link (:func:`soc_opt.files.open_lock`); ``anchor``: the folder above
+    ``path`` below which no link is followed; ``what`` names the directory in messages.
     """
     path = Path(path)
-    path.mkdir(parents=True, exist_ok=True)
     lp = path / LOCK
+    files.make_dirs(path, anchor=path if anchor is None else anchor)
     if fcntl is None:  # pragma: no cover - Windows
         with _pid_lock(lp):
             yield lp
         return
-    fd = os.open(lp, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = files.open_lock(lp, anchor=anchor)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise RunDirectoryError(
-                f"run directory {str(path)!r} is in use by {_holder(lp, wait=1.0)} (lock file {str(lp)!r}); "
-                "wait for that run to finish or use another --out"
+                f"{what} {str(path)!r} is in use by {_holder(lp, wait=1.0)} (lock file {str(lp)!r}); "
+                "wait for it to finish or use another --out"
             ) from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
@@ -312,34 +299,104 @@ def decode_checkpoint(path: Path):
     if path.suffix == ".pkl":
         refuse_legacy(path.parent, (path.name,))
     try:
-        return decode_state(path.read_bytes(), path.name)
-    except StateFileError as e:
+        return decode_state(files.read_bytes(path, MAX_CHECKPOINT_BYTES, what="checkpoint"), path.name)
+    except (StateFileError, files.UnsafePathError) as e:
         raise CheckpointError(str(e)) from None
 
 
 def peek_checkpoint(path: Path) -> dict:
     """The top-level scalars (``iteration``, ...) of a verified checkpoint, rebuilding nothing."""
     try:
-        return peek_state(Path(path).read_bytes(), Path(path).name)
-    except StateFileError as e:
+        return peek_state(files.read_bytes(path, MAX_CHECKPOINT_BYTES, what="checkpoint"), Path(path).name)
+    except (StateFileError, files.UnsafePathError) as e:
         raise CheckpointError(str(e)) from None
+
+
+def run_record(path: Path) -> dict | None:
+    """The ``config.json`` of the run directory ``path``, or None when ``path`` is not one.
+
+    A run directory's ``config.json`` is a JSON table with ``format = "soc_opt run"`` (written since
+    issue 31), or, written before, with the keys ``method`` (a string), ``seed`` and ``config`` (a table)."""
+    p = Path(path) / "config.json"
+    if not os.path.lexists(p):
+        return None
+    try:
+        meta = files.read_json_file(p, limit=files.MAX_JSON_BYTES)
+    except (OSError, ConfigError):
+        return None
+    if not isinstance(meta, dict):
+        return None
+    if meta.get("format") == RUN_FORMAT:
+        return meta
+    legacy = isinstance(meta.get("method"), str) and "seed" in meta and isinstance(meta.get("config"), dict)
+    return meta if legacy and "format" not in meta else None
+
+
+#: Entries a folder may hold and still count as empty: what a run leaves before its config.json.
+_EMPTY_OK = {LOCK, "policies", "samples"}
+
+
+def unowned_entries(path: Path, owned=()) -> list[str]:
+    """Entries of the folder ``path`` that no run of soc_opt put there (``[]`` for a new or empty
+    folder, or one holding only a released lock, empty ``policies/`` / ``samples/`` and ``owned``)."""
+    path = Path(path)
+    if not os.path.lexists(path):
+        return []
+    out = []
+    for name in sorted(os.listdir(path)):
+        p = path / name
+        if name in owned or name.startswith(".") and _TMP in name:
+            continue
+        if name == LOCK and p.is_file() and not p.is_symlink() and p.stat().st_size <= 256:
+            continue
+        if name in _EMPTY_OK and p.is_dir() and not p.is_symlink() and not any(
+                n for n in os.listdir(p) if not (n.startswith(".") and _TMP in n)):
+            continue
+        out.append(name)
+    return out
 
 
 @dataclass(frozen=True)
 class RunDirectory:
-    """Files of one run (module docstring)."""
+    """Files of one run (module docstring).  ``anchor``: the folder the caller owns above ``path``
+    (a compare or sweep directory; default ``path``), below which no link is followed."""
 
     path: Path
+    anchor: Path | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "path", Path(self.path))
+        object.__setattr__(self, "anchor", self.path if self.anchor is None else Path(self.anchor))
+
+    def _write(self, name: str, data: bytes) -> None:
+        files.write_bytes(self.path / name, data, anchor=self.anchor)
 
     def lock(self):
         """Context manager holding the directory's lock (:func:`lock_directory`)."""
-        return lock_directory(self.path)
+        return lock_directory(self.path, anchor=self.anchor)
+
+    def check_owned(self, owned=()) -> None:
+        """Refuse (:class:`RunDirectoryError`) a folder that is neither new, empty nor a run directory:
+        soc_opt writes no run into a folder of the user's (module docstring, "Ownership").  ``owned``:
+        names the caller put there itself (a sweep trial's ``trial.json``)."""
+        p = self.path
+        if os.path.lexists(p) and not p.is_dir():
+            raise RunDirectoryError(f"--out {str(p)!r} exists and is not a folder; use another --out")
+        if self.anchor != p and p.is_symlink():
+            raise RunDirectoryError(f"{str(p)!r} is a symbolic link; soc_opt writes only inside "
+                                    f"{str(self.anchor)!r} and follows no link there: remove it or use another --out")
+        if run_record(p) is not None:
+            return
+        foreign = unowned_entries(p, owned)
+        if foreign:
+            shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+            raise RunDirectoryError(
+                f"--out {str(p)!r} is not a soc_opt run directory (no config.json of a run) and not empty ({shown}); "
+                "soc_opt writes a run only into a new or empty folder or a run directory, and --restart "
+                "removes only a run's own files: use another --out")
 
     def has_checkpoint(self) -> bool:
-        return (self.path / CHECKPOINT).exists() or (self.path / PREVIOUS_CHECKPOINT).exists()
+        return os.path.lexists(self.path / CHECKPOINT) or os.path.lexists(self.path / PREVIOUS_CHECKPOINT)
 
     def prepare(self, meta: dict, task: dict | None = None,
                 contract: Callable[[dict], dict] | None = None) -> None:
@@ -352,24 +409,27 @@ class RunDirectory:
         """
         refuse_legacy(self.path)
         for sub in ("policies", "samples"):
-            (self.path / sub).mkdir(parents=True, exist_ok=True)
+            files.make_dirs(self.path / sub, anchor=self.anchor)
         self._remove_temporaries()
-        meta = json.loads(json.dumps(meta))
+        meta = {"format": RUN_FORMAT, **json.loads(json.dumps(meta))}
         meta_path, task_path = self.path / "config.json", self.path / "task.json"
-        if self.has_checkpoint() and meta_path.exists():
+        if self.has_checkpoint() and os.path.lexists(meta_path):
             self.check_contract(meta, task, contract)
-            if task is not None and not task_path.exists():  # a directory from before task.json
-                atomic_write_bytes(task_path, json.dumps(task, indent=2, sort_keys=True).encode())
+            if task is not None and not os.path.lexists(task_path):  # a directory from before task.json
+                self._write("task.json", json.dumps(task, indent=2, sort_keys=True).encode())
             return
-        atomic_write_bytes(meta_path, json.dumps(meta, indent=2, sort_keys=True).encode())
+        self._write("config.json", json.dumps(meta, indent=2, sort_keys=True).encode())
         if task is not None:
-            atomic_write_bytes(task_path, json.dumps(task, indent=2, sort_keys=True).encode())
+            self._write("task.json", json.dumps(task, indent=2, sort_keys=True).encode())
+
+    def _read_json(self, name: str):
+        return files.read_json_file(self.path / name)
 
     def recorded_meta(self) -> dict:
         """The content of the directory's ``config.json`` (``{}`` when absent or unreadable)."""
         try:
-            meta = json.loads((self.path / "config.json").read_text())
-        except (OSError, ValueError):
+            meta = self._read_json("config.json")
+        except (OSError, ConfigError):
             return {}
         return meta if isinstance(meta, dict) else {}
 
@@ -382,9 +442,9 @@ class RunDirectory:
         contract = contract or (lambda m: m)
         task_path = self.path / "task.json"
         try:
-            old_meta = json.loads((self.path / "config.json").read_text())
-            old_task = json.loads(task_path.read_text()) if task is not None and task_path.exists() else None
-        except (OSError, ValueError) as e:
+            old_meta = self._read_json("config.json")
+            old_task = self._read_json("task.json") if task is not None and os.path.lexists(task_path) else None
+        except (OSError, ConfigError) as e:
             raise RunDirectoryError(f"run directory {str(self.path)!r}: config.json or task.json cannot be read "
                                     f"({e}); use another --out, or --restart to discard that run") from None
         if not isinstance(old_meta, dict) or not (old_task is None or isinstance(old_task, dict)):
@@ -414,8 +474,9 @@ class RunDirectory:
         (``is_done(state)``): the caller then takes the lock and resumes or reports."""
         main = self.path / CHECKPOINT
         refuse_legacy(self.path)
-        if not main.exists() or not (self.path / "config.json").exists():
+        if not os.path.lexists(main) or not os.path.lexists(self.path / "config.json"):
             return None
+        self.check_owned()
         self.check_contract(meta, task, contract)
         try:
             state = decode_checkpoint(main)
@@ -425,19 +486,17 @@ class RunDirectory:
 
     def _remove_temporaries(self) -> None:
         """Temporary files of writes interrupted by a kill (never renamed into place)."""
-        for d in (self.path, self.path / "policies", self.path / "samples"):
-            for p in d.glob(f".*{_TMP}*"):
-                with contextlib.suppress(OSError):
-                    p.unlink()
+        for sub in ("", "policies", "samples"):
+            files.remove_matching(self.path / sub, rf"\..*{re.escape(_TMP)}.*", anchor=self.anchor)
 
     def clear(self) -> None:
-        """Remove the files of a previous run (``--restart``); other files are left alone."""
+        """Remove the files of a previous run (``--restart``): only the names a run writes, in a run
+        directory (:meth:`check_owned`), never following a link; other files are left alone."""
+        self.check_owned()
         for name in RUN_FILES:
-            with contextlib.suppress(FileNotFoundError):
-                (self.path / name).unlink()
+            files.remove(self.path / name, anchor=self.anchor)
         for sub in ("policies", "samples"):
-            for p in (self.path / sub).glob("iter_*.npz"):
-                p.unlink()
+            files.remove_matching(self.path / sub, _ITER_FILE, anchor=self.anchor)
         self._remove_temporaries()
 
     def load_checkpoint(self, previous: bool = False):
@@ -449,7 +508,7 @@ class RunDirectory:
         refuse_legacy(self.path)
         main, prev = self.path / CHECKPOINT, self.path / PREVIOUS_CHECKPOINT
         if previous:
-            if not prev.exists():
+            if not os.path.lexists(prev):
                 raise CheckpointError(f"run directory {str(self.path)!r} has no previous checkpoint; "
                                       "rerun without --previous-checkpoint, or with --restart")
             try:
@@ -457,8 +516,8 @@ class RunDirectory:
             except CheckpointError as e:
                 raise CheckpointError(f"run directory {str(self.path)!r}: {e}; rerun with --restart to "
                                       "start from scratch") from e
-        if not main.exists():
-            return decode_checkpoint(prev) if prev.exists() else None
+        if not os.path.lexists(main):
+            return decode_checkpoint(prev) if os.path.lexists(prev) else None
         try:
             return decode_checkpoint(main)
         except CheckpointError as e:
@@ -467,7 +526,7 @@ class RunDirectory:
     def _previous_hint(self) -> str:
         prev = self.path / PREVIOUS_CHECKPOINT
         try:  # verifies the checksum and reads the iteration count; rebuilds no state
-            done = peek_checkpoint(prev).get("iteration") if prev.exists() else None
+            done = peek_checkpoint(prev).get("iteration") if os.path.lexists(prev) else None
         except CheckpointError:
             done = None
         if done is None:
@@ -476,9 +535,13 @@ class RunDirectory:
                 "iterations done; later iterations are recomputed identically), or with --restart to "
                 "start from scratch")
 
+    def write_file(self, name: str, data: bytes) -> None:
+        """Write ``data`` to the file ``name`` (a path relative to the directory), atomically and inside it."""
+        self._write(name, data)
+
     def save_policy(self, iteration: int, policy) -> None:
         """``policies/iter_XXX.npz``: the policy sampled in iteration ``XXX`` (after ``XXX`` iterations)."""
-        atomic_write_bytes(self.path / "policies" / f"iter_{iteration:03d}.npz", npz_bytes(**policy.to_dict()))
+        self._write(f"policies/iter_{iteration:03d}.npz", npz_bytes(**policy.to_dict()))
 
     def save(self, state) -> None:
         """Write the iteration's files, then the checkpoint (atomically, last; the previous one kept).
@@ -489,39 +552,43 @@ class RunDirectory:
         it = state.iteration
         self.save_policy(it, state.policy)
         if state.last_rollouts is not None:
-            atomic_write_bytes(self.path / "samples" / f"iter_{it - 1:03d}.npz",
-                               npz_bytes(**state.last_rollouts.to_dict()))
+            self._write(f"samples/iter_{it - 1:03d}.npz", npz_bytes(**state.last_rollouts.to_dict()))
         rows = [r.summary() for r in state.history]
-        atomic_write_bytes(self.path / "metrics.json", json.dumps(
-            [{k: _jsonable(v) for k, v in r.items()} for r in rows], indent=1).encode())
+        self._write("metrics.json", json.dumps([{k: _jsonable(v) for k, v in r.items()} for r in rows], indent=1).encode())
         keys = list(dict.fromkeys(k for r in rows for k in r))
         buf = io.StringIO()
         w = csv.DictWriter(buf, fieldnames=keys, lineterminator="\r\n")
         w.writeheader()
         w.writerows(rows)
-        atomic_write_bytes(self.path / "metrics.csv", buf.getvalue().encode())
+        self._write("metrics.csv", buf.getvalue().encode())
         costs = [r.cost for r in state.history]
-        atomic_write_bytes(self.path / "costs.npz", npz_bytes(
+        self._write("costs.npz", npz_bytes(
             iteration=np.array([r.iteration for r in state.history]),
             phase=np.array([r.phase for r in state.history]),
             **{f"cost_{i:03d}": np.asarray(c, float) for i, c in enumerate(costs)},
         ))
         best = state.best
         if best is not None:
-            atomic_write_bytes(self.path / "best_policy.npz", npz_bytes(
-                **best.policy.to_dict(), mean_cost=best.mean_cost, iteration=best.iteration))
+            self._write("best_policy.npz", npz_bytes(**best.policy.to_dict(), mean_cost=best.mean_cost,
+                                                     iteration=best.iteration))
         self._keep_previous_checkpoint()
-        atomic_write_bytes(self.path / CHECKPOINT, encode_checkpoint(state))
+        self._write(CHECKPOINT, encode_checkpoint(state))
 
     def _keep_previous_checkpoint(self) -> None:
+        """``checkpoint.npz`` becomes ``checkpoint.prev.npz`` (a hard link of the regular file, renamed into
+        place; a copy where the file system has no hard links; nothing when it is not a regular file)."""
         main = self.path / CHECKPOINT
-        if not main.exists():
+        try:
+            st = os.lstat(main)
+        except FileNotFoundError:
+            return
+        if not stat.S_ISREG(st.st_mode):
             return
         tmp = self.path / f".{PREVIOUS_CHECKPOINT}{_TMP}{os.getpid()}"
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+        files.remove(tmp, anchor=self.anchor)
         try:
-            os.link(main, tmp)
+            os.link(main, tmp, follow_symlinks=False)
+            os.replace(tmp, self.path / PREVIOUS_CHECKPOINT)
         except OSError:  # no hard links on this file system
-            shutil.copyfile(main, tmp)
-        os.replace(tmp, self.path / PREVIOUS_CHECKPOINT)
+            files.remove(tmp, anchor=self.anchor)
+            self._write(PREVIOUS_CHECKPOINT, files.read_bytes(main, MAX_CHECKPOINT_BYTES, what="checkpoint"))

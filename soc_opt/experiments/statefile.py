@@ -32,10 +32,16 @@ import dataclasses
 import hashlib
 import io
 import json
+import types
+import typing
 import zipfile
+import zlib
 from typing import Any
 
 import numpy as np
+
+from ..config import ConfigError
+from ..files import load_json
 
 __all__ = ["StateFileError", "schema", "FORMAT", "VERSION", "encode_state", "decode_state", "peek_state"]
 
@@ -162,34 +168,128 @@ def encode_state(state: Any) -> bytes:
 # ----------------------------------------------------------------------------- decoding
 
 
+#: Largest state read back: its arrays' buffers and its arrays as views (each budget separately), 1 GiB.
+MAX_STATE_BYTES = 1 << 30
+#: Largest structure (``__tree__``) read back: 64 MiB.
+MAX_TREE_BYTES = 64 << 20
+#: Largest dimension or stride accepted in a layout (far beyond any array that fits in memory).
+_MAX_INT = 1 << 48
+_NPY_HEADER = 4096  # bytes allowed for a member's .npy header
+
+
+def _member_bytes(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int, name: str, what: str) -> tuple[np.dtype, int, bytes]:
+    """``(dtype, length, data bytes)`` of one ``.npy`` member, refused before inflating it when the
+    archive declares more than ``limit`` bytes of data (inflation stops at the declared size)."""
+    if info.file_size > limit + _NPY_HEADER:
+        raise StateFileError(f"{name}: entry {info.filename!r} declares {info.file_size} bytes, more than {what} "
+                             f"needs ({limit} bytes); not a state file soc_opt wrote")
+    with zf.open(info) as f:
+        raw = f.read(info.file_size + 1)
+    f = io.BytesIO(raw)
+    try:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"npy format version {version}")
+    except ValueError as e:
+        raise StateFileError(f"{name}: entry {info.filename!r} is not a numpy array ({e})") from None
+    if dtype.hasobject or dtype.kind not in _KINDS or len(shape) != 1 or fortran:
+        raise StateFileError(f"{name}: unexpected entry {info.filename!r} (dtype {dtype}, shape {shape})")
+    data = raw[f.tell():]
+    if len(data) != shape[0] * dtype.itemsize:
+        raise StateFileError(f"{name}: entry {info.filename!r} is truncated or damaged ({len(data)} bytes for "
+                             f"{shape[0]} values of {dtype})")
+    return dtype, shape[0], data
+
+
+def _needs(node, needs: dict, logical: list, name: str) -> None:
+    """For every array reference of the tree: the bytes its buffer must hold (``needs[key]``), and the
+    elements of all views (``logical[0]``, then ``(key, elements)`` per view); layouts are checked to be
+    lists of bounded non-negative integers.
+    Walked without recursion (the tree's depth is bounded when it is parsed)."""
+    stack = [node]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, list):
+            stack.extend(v)
+            continue
+        if not isinstance(v, dict):
+            continue
+        if v.get("$") in ("array", "scalar") and isinstance(v.get("key"), str):
+            shape, strides = v.get("shape"), v.get("strides")
+            for what, lst in (("shape", shape), ("strides", strides)):
+                if not isinstance(lst, list) or len(lst) > 32 or not all(type(x) is int and 0 <= x < _MAX_INT for x in lst):
+                    raise StateFileError(f"{name}: array {v['key']!r} has an invalid {what} {str(lst)[:60]}")
+            size = 1
+            for n in shape:
+                size *= n
+            span = 0 if size == 0 else sum((n - 1) * s for n, s in zip(shape, strides))
+            needs[v["key"]] = max(needs.get(v["key"], 0), span)
+            logical[0] += size
+            logical.append((v["key"], size))
+            if logical[0] > MAX_STATE_BYTES:  # counted in elements here; bytes below
+                raise StateFileError(f"{name}: its arrays hold more than {MAX_STATE_BYTES} elements; not a state "
+                                     "file soc_opt wrote")
+            continue
+        stack.extend(v.values())
+
+
 def _read(data: bytes, name: str) -> tuple[dict, dict]:
-    """Verified ``(tree, arrays)`` of a state file's bytes."""
+    """Verified ``(tree, arrays)`` of a state file's bytes.
+
+    Bounded: the structure is read first (at most :data:`MAX_TREE_BYTES`, nesting at most
+    :data:`soc_opt.config.MAX_DEPTH`); each array member is inflated only after its declared size is
+    checked against what the structure's views need (and the whole against :data:`MAX_STATE_BYTES`),
+    and the checksum is verified before any view is built.
+    """
     if not data:
         raise StateFileError(f"{name} is empty")
     try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as f:
-            members = {k: f[k] for k in f.files}
-    except (zipfile.BadZipFile, EOFError, OSError) as e:
+        zf = zipfile.ZipFile(io.BytesIO(data))
+        infos = zf.infolist()
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
         raise StateFileError(f"{name} is truncated or damaged ({type(e).__name__}: {e})") from None
-    except ValueError as e:  # allow_pickle=False refusing an object array, or a bad .npy header
-        raise StateFileError(f"{name} holds something other than numeric arrays ({e})") from None
-    except Exception as e:
-        raise StateFileError(f"{name} is not a state file ({type(e).__name__}: {e})") from None
-    if _TREE not in members or _SUM not in members:
-        raise StateFileError(f"{name} is not a soc_opt state file (no {_TREE} / {_SUM} entry)")
-    tree_a, sum_a = members.pop(_TREE), members.pop(_SUM)
-    for k, a in members.items():
-        if not (k[:1] == "a" and k[1:].isdigit()) or a.dtype.kind not in _KINDS or a.ndim != 1:
-            raise StateFileError(f"{name}: unexpected entry {k!r} (dtype {a.dtype}, shape {a.shape})")
-    if tree_a.dtype != np.uint8 or sum_a.dtype != np.uint8 or tree_a.ndim != 1:
-        raise StateFileError(f"{name}: {_TREE} and {_SUM} must be uint8 byte strings")
-    tree_b = tree_a.tobytes()
-    if _digest(tree_b, members).encode() != sum_a.tobytes():
+    with zf:
+        by_key = {}
+        for info in infos:
+            key = info.filename[:-4] if info.filename.endswith(".npy") else None
+            ok = key in (_TREE, _SUM) or (key is not None and key[:1] == "a" and key[1:].isdigit() and len(key) < 12)
+            if not ok or key in by_key:
+                raise StateFileError(f"{name}: unexpected entry {info.filename!r}" + (" (twice)" if ok else ""))
+            by_key[key] = info
+        if _TREE not in by_key or _SUM not in by_key:
+            raise StateFileError(f"{name} is not a soc_opt state file (no {_TREE} / {_SUM} entry)")
+        try:
+            dt_t, _, tree_b = _member_bytes(zf, by_key.pop(_TREE), MAX_TREE_BYTES, name, "a structure")
+            dt_s, _, sum_b = _member_bytes(zf, by_key.pop(_SUM), 64, name, "a checksum")
+            if dt_t != np.uint8 or dt_s != np.uint8:
+                raise StateFileError(f"{name}: {_TREE} and {_SUM} must be uint8 byte strings")
+            try:
+                tree = load_json(tree_b, f"{name} ({_TREE})")
+            except ConfigError as e:
+                raise StateFileError(str(e)) from None
+            needs: dict[str, int] = {}
+            logical = [0]
+            _needs(tree, needs, logical, name)
+            members, total = {}, 0
+            for key, info in sorted(by_key.items(), key=lambda kv: int(kv[0][1:])):
+                dtype, length, raw = _member_bytes(zf, info, min(needs.get(key, 0) + 16, MAX_STATE_BYTES), name,
+                                                   "the arrays referring to it")
+                total += len(raw)
+                if total > MAX_STATE_BYTES:
+                    raise StateFileError(f"{name}: its arrays hold more than {MAX_STATE_BYTES} bytes")
+                members[key] = np.frombuffer(bytearray(raw), dtype)
+        except (zipfile.BadZipFile, EOFError, OSError, zlib.error, NotImplementedError) as e:
+            raise StateFileError(f"{name} is truncated or damaged ({type(e).__name__}: {e})") from None
+    view_bytes = sum(size * members[key].itemsize for key, size in logical[1:] if key in members)
+    if view_bytes > MAX_STATE_BYTES:  # e.g. a zero-stride view expanding a small buffer
+        raise StateFileError(f"{name}: its arrays span {view_bytes} bytes as views, more than {MAX_STATE_BYTES}; "
+                             "not a state file soc_opt wrote")
+    if _digest(tree_b, members).encode() != sum_b:
         raise StateFileError(f"{name} is truncated or damaged (checksum mismatch)")
-    try:
-        tree = json.loads(tree_b.decode())
-    except (UnicodeDecodeError, ValueError) as e:
-        raise StateFileError(f"{name}: its structure is not valid JSON ({e})") from None
     if not isinstance(tree, dict) or tree.get("format") != FORMAT or "state" not in tree:
         raise StateFileError(f"{name} is not a soc_opt state file")
     if tree.get("version") != VERSION:
@@ -265,7 +365,9 @@ def _decode_object(v: dict, arrays: dict, where: str):
         missing = [f for f in names if f not in values and f not in cls._field_defaults]
         if missing:
             raise _bad(where, f"{name} lacks field {missing[0]!r}")
-        return cls(**values)
+        obj = cls(**values)
+        _check_fields(obj, cls, where)
+        return obj
     obj = object.__new__(cls)  # field by field, as stored: no validation that could copy or reorder arrays
     for f in dataclasses.fields(cls):
         if f.name in values:
@@ -277,7 +379,68 @@ def _decode_object(v: dict, arrays: dict, where: str):
         else:
             raise _bad(where, f"{name} lacks field {f.name!r}")
         object.__setattr__(obj, f.name, val)
+    _check_fields(obj, cls, where)
     return obj
+
+
+_HINTS: dict[type, dict] = {}
+#: Types whose float fields are records of what happened (may be NaN or infinite); elsewhere floats are finite.
+_RECORDS = ("IterationRecord", "EMDiagnostics", "ILQGRecord")
+
+
+def _hints(cls) -> dict:
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls, localns=dict(schema()))
+    return _HINTS[cls]
+
+
+def _conforms(value, hint, finite: bool) -> bool:
+    """Whether a decoded ``value`` is of the annotated type ``hint`` (floats finite when ``finite``)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is typing.Any:
+        return True
+    if hint is type(None):
+        return value is None
+    if origin in (typing.Union, types.UnionType):
+        return any(_conforms(value, a, finite) for a in args)
+    if origin is typing.Literal:
+        return type(value) is str and value in args
+    if hint is bool:
+        return isinstance(value, (bool, np.bool_))
+    if hint is int:
+        return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+    if hint is float:
+        ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+        return ok and (not finite or bool(np.isfinite(value)))
+    if hint is str:
+        return type(value) is str
+    if hint is np.ndarray:
+        return isinstance(value, np.ndarray)
+    if origin is tuple or hint is tuple:
+        if not isinstance(value, tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_conforms(v, args[0], finite) for v in value)
+        return not args or (len(args) == len(value) and all(_conforms(v, a, finite) for v, a in zip(value, args)))
+    if origin is dict or hint is dict:
+        return isinstance(value, dict) and (not args or all(
+            type(k) is str and _conforms(v, args[1], finite) for k, v in value.items()))
+    if isinstance(hint, type):
+        return isinstance(value, hint)
+    return True  # a type this check does not know: left to the class
+
+
+def _check_fields(obj, cls, where: str) -> None:
+    """Every field of a decoded object of schema type ``cls`` against its annotation (docs/security.md)."""
+    finite = cls.__name__ not in _RECORDS
+    for f, hint in _hints(cls).items():
+        if f.startswith("_") or f not in _fields(cls):
+            continue
+        v = getattr(obj, f)
+        if not _conforms(v, hint, finite):
+            shown = type(v).__name__ if not isinstance(v, (int, float, str)) else repr(v)[:40]
+            raise _bad(f"{where}.{f}", f"{shown} is not a valid {getattr(hint, '__name__', str(hint))}"
+                       + (" (finite)" if finite and "float" in str(hint) else ""))
 
 
 def decode_state(data: bytes, name: str = "state file"):

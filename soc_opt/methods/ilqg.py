@@ -16,6 +16,7 @@ uninterrupted one (iLQG draws no random numbers).  :func:`ilqg` is the one-call 
 from __future__ import annotations
 
 import dataclasses
+import io
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +24,7 @@ from typing import TYPE_CHECKING, Callable, Literal
 
 import numpy as np
 
-from .. import lqg
+from .. import files, lqg
 from ..config import Config, ConfigError, Interval, config_error
 from ..models import LinearGaussianPolicy, Rollouts
 from .base import MethodBase
@@ -367,7 +368,9 @@ class ILQG(MethodBase):
         return f"[ilqg] {where} cost {np.mean(rec.cost):.6g}  {step}  mu {rec.mu:.1e}  {metrics}  {times}"
 
     def finish(self, state: ILQGState, out) -> str:
-        np.savez_compressed(out / "policy.npz", **state.policy.to_dict())
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **state.policy.to_dict())
+        files.write_bytes(out / "policy.npz", buf.getvalue())  # renamed into place: no link followed
         why = {"converged": "converged (relative decrease below tol)", "no_descent": "no descent step found",
                "running": "iteration limit"}[state.status]
         return (f"iLQG: cost {state.costs[0]:.6g} -> {state.costs[-1]:.6g} in {len(state.costs) - 1} accepted "

@@ -24,6 +24,7 @@ mean sampled cost of the run).  Standard deviations are over seeds with ``ddof =
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 
 import matplotlib
@@ -33,8 +34,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
+from .. import files  # noqa: E402
 from ..experiments.report import COLORS, LABELS  # noqa: E402
-from .spec import RESULT, SweepSpec, describe, read_json, setting_table  # noqa: E402
+from .spec import RESULT, SweepSpec, describe, read_result, setting_table  # noqa: E402
 
 __all__ = ["write_report", "aggregate", "claims_rows", "versus_key", "QUANTITIES"]
 
@@ -102,10 +104,11 @@ def aggregate(spec: SweepSpec, results: dict[str, dict]) -> list[dict]:
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
     keys = list(dict.fromkeys(k for r in rows for k in r))
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
+    buf = io.StringIO(newline="")
+    w = csv.DictWriter(buf, fieldnames=keys)
+    w.writeheader()
+    w.writerows(rows)
+    files.write_text(path, buf.getvalue())
 
 
 def _fmt(x) -> str:
@@ -141,7 +144,7 @@ def _plot_final(task: str, spec: SweepSpec, rows: list[dict], path: Path) -> Pat
     axes[0, 0].legend(fontsize=8, loc="lower right")
     axes[0, 0].set_title(f"{task}: final policies, mean ± std over seeds")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -177,7 +180,7 @@ def _plot_costs(task: str, spec: SweepSpec, results: dict[str, dict], path: Path
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(f"{task}: cost per iteration, mean ± std over seeds")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -223,7 +226,7 @@ def _plot_versus(task: str, spec: SweepSpec, rows: list[dict], key: str, path: P
     axes[0, 0].legend(fontsize=7)
     axes[0, 0].set_title(f"{task}: final policies against {key}, mean ± std over seeds")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -235,7 +238,7 @@ def write_report(spec: SweepSpec, out: str | Path, status: dict[str, dict]) -> P
     trial_rows = []
     for t in spec.trials:
         st = status.get(t.id, {})
-        res = read_json(out / t.relpath / RESULT) if st.get("state") == "done" else None
+        res = read_result(out / t.relpath / RESULT, finished=False) if st.get("state") == "done" else None
         if res:
             results[t.id] = res
         trial_rows.append({"task": t.task_label, "setting": t.setting, "method": t.method, "seed": t.seed,
@@ -292,5 +295,5 @@ def write_report(spec: SweepSpec, out: str | Path, status: dict[str, dict]) -> P
         lines += [f"| {r['dir']} | {r['error'].replace('|', '/')} | {r['dir']}/error.txt |" for r in failed]
     lines += ["", "Per-trial rows: `trials.csv`; aggregated rows: `summary.csv`; trial states: `status.json`.", ""]
     path = out / "report.md"
-    path.write_text("\n".join(lines))
+    files.write_text(path, "\n".join(lines))
     return path

@@ -27,7 +27,9 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from .. import files
 from ..experiments.run import same_settings
+from ..experiments.rundir import lock_directory, unowned_entries
 from .spec import (
     ERROR,
     PROGRESS,
@@ -38,23 +40,47 @@ from .spec import (
     TrialSpec,
     as_json,
     read_json,
+    read_result,
     run_trial,
     write_json,
 )
+
+#: What marks a folder as a sweep directory: its ``sweep.json`` (a table with ``name`` and ``trials``).
+SWEEP_FILE = "sweep.json"
 
 __all__ = ["run_sweep", "prepare_out", "ProgressBoard", "STATES"]
 
 STATES = ("pending", "running", "done", "failed")
 
 
+def check_sweep_dir(out: Path) -> None:
+    """Refuse (:class:`SweepError`) an ``out`` that is neither new, empty nor a sweep directory (its
+    ``sweep.json``): a sweep writes into no folder of the user's."""
+    out = Path(out)
+    if os.path.lexists(out) and not out.is_dir():
+        raise SweepError(f"--out {str(out)!r} exists and is not a folder; use another --out")
+    rec = read_json(out / SWEEP_FILE) if os.path.lexists(out / SWEEP_FILE) else None
+    if isinstance(rec, dict) and isinstance(rec.get("name"), str) and isinstance(rec.get("trials"), list):
+        return
+    foreign = unowned_entries(out)
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise SweepError(f"--out {str(out)!r} is not a sweep directory (no sweep.json of a sweep) and not empty "
+                         f"({shown}); a sweep writes only into a new or empty folder or its own directory: use another --out")
+
+
 def prepare_out(spec: SweepSpec, out: Path) -> dict[str, str]:
     """Check ``out`` against the spec (before anything runs); return the trials' initial states.
 
     A trial directory holding a different trial spec is an error naming it (a changed sweep
-    file must not silently resume unrelated runs).  Finished trials are ``"done"``; every other
-    trial's ``trial.json`` is (re)written with the spec it will run with, so that the record names
-    options added to soc_opt since the directory was first prepared.
+    file must not silently resume unrelated runs), and so is a ``result.json`` claiming a finished
+    trial without the fields the report reads (:func:`soc_opt.sweeps.spec.read_result`).  Finished trials
+    are ``"done"``; every other trial's ``trial.json`` is (re)written with the spec it will run with, so
+    that the record names options added to soc_opt since the directory was first prepared.  Nothing is
+    written through a link (:mod:`soc_opt.files`).
     """
+    out = Path(out)
+    check_sweep_dir(out)
     states = {}
     for t in spec.trials:
         d = out / t.relpath
@@ -63,20 +89,19 @@ def prepare_out(spec: SweepSpec, out: Path) -> dict[str, str]:
         if old is not None and not same_settings(old, new):
             raise SweepError(f"trial directory {str(d)!r} holds trial {t.id} with a different specification; "
                              "use another --out or delete it")
-        res = read_json(d / RESULT)
-        states[t.id] = "done" if (old is not None and res and res.get("status") == "done") else "pending"
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "sweep.json", spec.to_dict())
+        res = read_result(d / RESULT)
+        states[t.id] = "done" if (old is not None and res is not None) else "pending"
+    write_json(out / SWEEP_FILE, spec.to_dict(), out)
     for t in spec.trials:
         d = out / t.relpath
-        d.mkdir(parents=True, exist_ok=True)
+        files.make_dirs(d, anchor=out)
         if states[t.id] != "done":  # it runs with this spec: record all of it (options added since included)
-            write_json(d / TRIAL, t.to_dict())
+            write_json(d / TRIAL, t.to_dict(), out)
     return states
 
 
-def _remote_trial(spec: TrialSpec, trial_dir: str, on_iteration):
-    return run_trial(spec, trial_dir, on_iteration)
+def _remote_trial(spec: TrialSpec, trial_dir: str, on_iteration, anchor: str | None = None):
+    return run_trial(spec, trial_dir, on_iteration, anchor)
 
 
 #: Where Ray looks for the token of a cluster with token authentication (Ray >= 2.52), in its order.
@@ -155,7 +180,7 @@ class _Status:
     def write(self) -> None:
         write_json(self.out / "status.json", {"sweep": self.spec.name, "updated": time.time(),
                                               "elapsed": time.time() - self.started,
-                                              "counts": self.counts(), "trials": self.trials})
+                                              "counts": self.counts(), "trials": self.trials}, self.out)
 
 
 def run_sweep(
@@ -174,10 +199,18 @@ def run_sweep(
 
     ``on_iteration(trial_id, state, trial_dir)`` is called inside the worker after each
     checkpointed iteration (it must be picklable).  Returns ``{"status": ..., "report": ...}``.
+    ``out`` must be new, empty or a sweep directory (:func:`check_sweep_dir`); the sweep holds its lock
+    (``out/lock``, naming the holder's pid) while it runs, so a second sweep on ``out`` stops at once.
     """
     out = Path(out)
     if workers is not None and workers < 1:
         raise SweepError(f"--workers must be >= 1, got {workers}")
+    check_sweep_dir(out)  # before the lock file is created
+    with lock_directory(out, what="sweep directory"):
+        return _run_sweep_locked(spec, out, address, workers, num_cpus, max_retries, on_iteration, board, report)
+
+
+def _run_sweep_locked(spec, out, address, workers, num_cpus, max_retries, on_iteration, board, report) -> dict:
     states = prepare_out(spec, out)
     status = _Status(spec, out, states)
     board = board or ProgressBoard(len(spec.trials))
@@ -214,15 +247,15 @@ def _schedule(todo: list[TrialSpec], out: Path, status: _Status, board: "Progres
     for t in todo:
         p = out / t.relpath / PROGRESS
         old = read_json(p)
-        if old and old.get("state") == "running":  # left over from an interrupted sweep
-            write_json(p, {**old, "state": "interrupted"})
+        if isinstance(old, dict) and old.get("state") == "running":  # left over from an interrupted sweep
+            write_json(p, {**old, "state": "interrupted"}, out)
     try:
         while queue or inflight:
             while queue and (workers is None or len(inflight) < workers):
                 t = queue.pop(0)
                 ncpu = max(1, t.config.baseline.workers)
                 ref = remote.options(num_cpus=ncpu, max_retries=max_retries, name=t.id).remote(
-                    t, str(out / t.relpath), on_iteration)
+                    t, str(out / t.relpath), on_iteration, str(out))
                 inflight[ref] = t
             ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.5)
             for ref in ready:
@@ -243,7 +276,7 @@ def _finish(t: TrialSpec, ref, out: Path, status: _Status, board: "ProgressBoard
         res = ray.get(ref)
     except Exception as e:  # noqa: BLE001 - worker died past its retries, or Ray failed the task
         msg = f"{type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else ''}"
-        (out / t.relpath / ERROR).write_text(f"{t.id}\n{e}\n")
+        files.write_text(out / t.relpath / ERROR, f"{t.id}\n{e}\n", anchor=out)
         res = {"status": "failed", "error": msg}
     if res["status"] == "done":
         status.set(t.id, "done", final_cost=res["final_cost"], wall_time=res["wall_time"], attempt=res["attempt"],
@@ -260,13 +293,14 @@ def _poll_running(inflight, out: Path, status: _Status, board: "ProgressBoard") 
     changed = False
     for t in inflight:
         p = read_json(out / t.relpath / PROGRESS)
-        if not p or p.get("state") != "running":
+        if not isinstance(p, dict) or p.get("state") != "running":
             continue
-        it = p.get("iteration")
-        detail = f"iteration {it if it is not None else 0}/{p.get('iterations')}" + (
-            f", attempt {p['attempt']}" if p.get("attempt", 1) > 1 else "")
+        it, att = p.get("iteration"), p.get("attempt")
+        att = att if type(att) is int else 1
+        detail = f"iteration {it if type(it) is int else 0}/{p.get('iterations')}" + (
+            f", attempt {att}" if att > 1 else "")
         if status.trials[t.id]["state"] != "running" or status.trials[t.id].get("detail") != detail:
-            status.set(t.id, "running", detail=detail, attempt=p.get("attempt"))
+            status.set(t.id, "running", detail=detail, attempt=att)
             board.set(t.id, "running", detail)
             changed = True
     if changed:

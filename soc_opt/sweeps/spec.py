@@ -46,7 +46,6 @@ import math
 import os
 import re
 import socket
-import tempfile
 import time
 import traceback
 from dataclasses import dataclass
@@ -55,6 +54,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .. import files
 from ..config import ConfigError, read_toml
 from ..methods.config import DPSOCConfig
 from ..methods.registry import check_config, sample_based, sections_of
@@ -97,13 +97,10 @@ class TrialDiverged(RuntimeError):
 # --------------------------------------------------------------------------- small helpers
 
 
-def write_json(path: Path, data) -> None:
-    """Write ``data`` as JSON atomically (a reader never sees a half-written file)."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".")
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=1, default=_jsonable)
-    os.replace(tmp, path)
+def write_json(path: Path, data, anchor: Path | None = None) -> None:
+    """Write ``data`` as JSON atomically (a reader never sees a half-written file), following no link
+    below ``anchor`` (:func:`soc_opt.files.write_bytes`)."""
+    files.write_json(path, data, anchor=anchor, indent=1, default=_jsonable)
 
 
 def as_json(data):
@@ -112,11 +109,47 @@ def as_json(data):
 
 
 def read_json(path: Path):
-    """The JSON content of ``path``, or ``None`` when it is missing or unreadable."""
+    """The JSON content of ``path``, or ``None`` when it is missing, unreadable, not a regular file, larger
+    than :data:`soc_opt.files.MAX_JSON_BYTES` or nested deeper than :data:`soc_opt.config.MAX_DEPTH`."""
     try:
-        return json.loads(Path(path).read_text())
-    except (OSError, ValueError):
+        return files.read_json_file(path)
+    except (OSError, ConfigError):
         return None
+
+
+#: The fields of a finished trial's ``result.json`` the report reads: required, and typed when present.
+RESULT_REQUIRED = ("final_cost", "state_spread", "action_spread")
+RESULT_TYPED = {"best_cost": float, "final_cost_mean_action": float, "rejected_steps": float, "final_vs_last_ratio": float,
+                "final_vs_last_worse": float, "iterations": float, "wall_time": float, "attempt": float,
+                "resumed_from": float, "metrics": dict, "metrics_mean_action": dict, "cost_per_iteration": list}
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float))  # booleans included: final_vs_last_worse is one
+
+
+def read_result(path: Path, *, finished: bool = True) -> dict | None:
+    """A trial's ``result.json``, None when absent, unreadable or (``finished``) not marked ``"done"``;
+    :class:`SweepError` naming the file when it lacks a field the report reads or holds one of the
+    wrong type (a crafted or foreign file, never one a trial wrote)."""
+    res = read_json(path)
+    if not isinstance(res, dict) or (finished and res.get("status") != "done"):
+        return None
+    for key in (*RESULT_REQUIRED, *RESULT_TYPED):
+        if key not in res and key not in RESULT_REQUIRED:
+            continue
+        v, typ = res.get(key), RESULT_TYPED.get(key, float)
+        if typ is float:
+            ok = _number(v)
+        elif typ is dict:
+            ok = isinstance(v, dict) and all(_number(x) for x in v.values())
+        else:
+            ok = isinstance(v, list) and all(_number(x) for x in v)
+        if not ok:
+            raise SweepError(f"{str(path)!r}: field {key!r} is {'missing' if key not in res else type(v).__name__}, "
+                             f"expected {'a number' if typ is float else typ.__name__}; not a result soc_opt wrote: "
+                             "delete it to run the trial again")
+    return res
 
 
 def _jsonable(v):
@@ -482,7 +515,7 @@ def check_finite(state: RunState) -> None:
                             f"({rec.phase} phase)")
 
 
-def _result(spec: TrialSpec, task, state: RunState, trial_dir: Path) -> dict:
+def _result(spec: TrialSpec, task, state: RunState, trial_dir: Path, anchor: Path) -> dict:
     from ..experiments.compare import evaluate_policy as _evaluate
     from ..experiments.compare import final_vs_last as _final_vs_last
     from ..experiments.compare import spreads as _spreads
@@ -492,8 +525,10 @@ def _result(spec: TrialSpec, task, state: RunState, trial_dir: Path) -> dict:
     policy = get_method(spec.method).final_policy(spec.config, state)
     ro = _evaluate(task, policy, spec.eval_samples, spec.seed, spec.config.baseline.workers)
     ro_mean = _evaluate(task, mean_action(policy), spec.eval_samples, spec.seed, spec.config.baseline.workers)
-    np.savez_compressed(trial_dir / "final_eval.npz", **ro.to_dict())
-    np.savez_compressed(trial_dir / "final_eval_mean_action.npz", **ro_mean.to_dict())
+    from ..experiments.rundir import npz_bytes
+
+    files.write_bytes(trial_dir / "final_eval.npz", npz_bytes(**ro.to_dict()), anchor=anchor)
+    files.write_bytes(trial_dir / "final_eval_mean_action.npz", npz_bytes(**ro_mean.to_dict()), anchor=anchor)
     final = _spreads(task, ro)
     if not math.isfinite(final["cost"]):
         raise TrialDiverged("diverging simulation: non-finite cost of the final policy")
@@ -515,50 +550,57 @@ def _result(spec: TrialSpec, task, state: RunState, trial_dir: Path) -> dict:
     }
 
 
+#: Files a sweep puts in a trial's run directory besides the run's own.
+TRIAL_FILES = (TRIAL, PROGRESS, ERROR, RESULT, "final_eval.npz", "final_eval_mean_action.npz")
+
+
 def run_trial(spec: TrialSpec, trial_dir: str | Path,
-              on_iteration: Callable[[str, RunState, Path], None] | None = None) -> dict:
+              on_iteration: Callable[[str, RunState, Path], None] | None = None, anchor: str | Path | None = None) -> dict:
     """Run (or resume) one trial in ``trial_dir``; return its status record.
 
     An ordinary run directory (soc_opt.experiments.run) plus ``trial.json`` (the spec),
     ``progress.json`` (state, attempt, iteration, pid), ``final_eval.npz`` and ``result.json``
     (written last: its presence marks the trial finished), or ``error.txt`` (the traceback) when
     the trial failed.  Exceptions of the trial (including :class:`TrialDiverged`) are recorded,
-    not raised.  ``on_iteration(trial_id, state, trial_dir)`` runs after each checkpoint.
+    not raised.  ``on_iteration(trial_id, state, trial_dir)`` runs after each checkpoint.  ``anchor``: the
+    sweep's directory, below which no link is followed (:mod:`soc_opt.files`; default ``trial_dir``).
     """
     from ..experiments.run import run_experiment
     from ..tasks import load_task
 
     d = Path(trial_dir)
-    d.mkdir(parents=True, exist_ok=True)
-    (d / ERROR).unlink(missing_ok=True)
-    prev = read_json(d / PROGRESS) or {}
-    attempt = int(prev.get("attempt", 0)) + 1
+    anchor = d if anchor is None else Path(anchor)
+    files.make_dirs(d, anchor=anchor)
+    files.remove(d / ERROR, anchor=anchor)
+    prev = read_json(d / PROGRESS)
+    prev_attempt = prev.get("attempt", 0) if isinstance(prev, dict) else 0
+    attempt = (prev_attempt if type(prev_attempt) is int and 0 <= prev_attempt < 10**6 else 0) + 1
     t0 = time.time()
     prog = {"state": "running", "attempt": attempt, "pid": os.getpid(), "host": socket.gethostname(),
             "iteration": None, "iterations": spec.config.baseline.iterations, "started": t0}
-    write_json(d / PROGRESS, prog)
+    write_json(d / PROGRESS, prog, anchor)
     ran = [0]
 
     def cb(st: RunState):
         ran[0] += 1
         check_finite(st)
-        write_json(d / PROGRESS, {**prog, "iteration": st.iteration})
+        write_json(d / PROGRESS, {**prog, "iteration": st.iteration}, anchor)
         if on_iteration is not None:
             on_iteration(spec.id, st, d)
 
     try:
         task = load_task(spec.task, overrides=spec.task_overrides)
         state = run_experiment(task, spec.method, spec.config, spec.seed, d, task_name=spec.task_label,
-                               on_iteration=cb)
-        res = {"trial": spec.id, "status": "done", **_result(spec, task, state, d),
+                               on_iteration=cb, anchor=anchor, owned=TRIAL_FILES)
+        res = {"trial": spec.id, "status": "done", **_result(spec, task, state, d, anchor),
                "attempt": attempt, "resumed_from": state.iteration - ran[0], "wall_time": time.time() - t0}
-        write_json(d / RESULT, res)
-        write_json(d / PROGRESS, {**prog, "state": "done", "iteration": state.iteration})
+        write_json(d / RESULT, res, anchor)
+        write_json(d / PROGRESS, {**prog, "state": "done", "iteration": state.iteration}, anchor)
         return res
     except Exception as e:  # noqa: BLE001 - a failed trial is recorded, the sweep goes on
         msg = f"{type(e).__name__}: {e}"
-        (d / ERROR).write_text(f"{spec.id} (attempt {attempt})\n{traceback.format_exc()}")
-        write_json(d / PROGRESS, {**prog, "state": "failed", "error": msg})
+        files.write_text(d / ERROR, f"{spec.id} (attempt {attempt})\n{traceback.format_exc()}", anchor=anchor)
+        write_json(d / PROGRESS, {**prog, "state": "failed", "error": msg}, anchor)
         return {"trial": spec.id, "status": "failed", "error": msg, "attempt": attempt,
                 "wall_time": time.time() - t0}
 

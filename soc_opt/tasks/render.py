@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import files
 from ..models import Rollouts
 from .mujoco import MujocoTask, import_mujoco
 
@@ -120,9 +121,10 @@ def render_filmstrip(task, traj, path, frames: int = 8, width: int = 320, height
         m = task.model
         width = min(width, int(m.vis.global_.offwidth))
         height = min(height, int(m.vis.global_.offheight))
-        spec = {"path": os.path.abspath(path), "width": width, "height": height, "camera": task.config.camera,
+        spec = {"path": "", "width": width, "height": height, "camera": task.config.camera,
                 **frame_scene(task, Q)}
         with tempfile.TemporaryDirectory() as work:
+            spec["path"] = os.path.join(work, "filmstrip.png")  # moved into place with soc_opt.files (no link followed)
             mj.mj_saveModel(m, os.path.join(work, "model.mjb"), None)
             np.save(os.path.join(work, "qpos.npy"), Q)
             with open(os.path.join(work, "spec.json"), "w") as f:
@@ -137,7 +139,9 @@ def render_filmstrip(task, traj, path, frames: int = 8, width: int = 320, height
                 except subprocess.TimeoutExpired:
                     reasons.append(f"{b}: timed out")
                     continue
-                if p.returncode == 0 and os.path.isfile(path):
+                if p.returncode == 0 and os.path.isfile(spec["path"]):
+                    with open(spec["path"], "rb") as f:
+                        files.write_bytes(path, f.read())
                     return RenderResult(path, b, f"rendered {len(idx)} frames with MUJOCO_GL={b}")
                 err = (p.stderr.strip().splitlines() or [f"exit code {p.returncode}"])[-1]
                 reasons.append(f"{b}: {err}")
@@ -169,4 +173,4 @@ def _plot_points(task, X, path, title):
     ax.legend(loc="upper left", fontsize=7)
     fig.suptitle(f"{task.name}: end-effector points (o start, x end)", fontsize=9)
     fig.text(0.01, 0.01, title[:200], fontsize=6)
-    fig.savefig(path, dpi=100)
+    files.save_figure(fig, path, dpi=100)
