@@ -174,3 +174,318 @@ def test_convert_checkpoint_with_trust_turns_a_genuine_old_run_into_one_that_res
     assert back.iteration == state.iteration and back.rng_state == state.rng_state
     assert main(["run", "linear2d", *ARGS, "--out", str(d)]) == 0
     assert "already finished" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ issue 31: the file system, bounded reads, contracts
+# Each test below failed on the main branch before issue 31 (the behaviour it checks did not exist).
+
+import io  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+
+from soc_opt.experiments import statefile  # noqa: E402
+
+SWEEP = ROOT / "problems" / "sweeps" / "linear2d_small.toml"
+
+
+def _outside(tmp_path, names) -> dict[Path, bytes]:
+    """Files outside every directory soc_opt is given (link targets), with their bytes."""
+    victim = tmp_path / "victim"
+    victim.mkdir(exist_ok=True)
+    out = {}
+    for n in names:
+        p = victim / n
+        p.write_bytes(f"the user's own {n}\n".encode())
+        out[p] = p.read_bytes()
+    return out
+
+
+def _unchanged(files_before: dict[Path, bytes]) -> None:
+    for p, data in files_before.items():
+        assert p.exists() and not p.is_symlink() and p.read_bytes() == data, p
+
+
+def _unfinished(finished, tmp_path, name="run") -> Path:
+    """A copy of the finished run set back one iteration (its previous checkpoint as the last one)."""
+    d = tmp_path / name
+    shutil.copytree(finished, d)
+    shutil.copyfile(d / "checkpoint.prev.npz", d / "checkpoint.npz")
+    return d
+
+
+def test_figures_written_where_links_were_planted_leave_the_link_targets_unchanged(finished, tmp_path, capsys):
+    names = ["cost_per_iteration.png", "ee_trajectories.png", "filmstrip.png", "final_eval.npz", "metrics.csv"]
+    targets = _outside(tmp_path, names)
+    d = _unfinished(finished, tmp_path)
+    for p in targets:
+        (d / p.name).unlink(missing_ok=True)
+        (d / p.name).symlink_to(p)
+    assert main(["run", "linear2d", *ARGS, "--out", str(d)]) == 0
+    _unchanged(targets)
+    for n in names:  # the run's own files replaced the links
+        assert (d / n).is_file() and not (d / n).is_symlink() and (d / n).stat().st_size > 0
+
+
+@pytest.mark.parametrize("where", ["run", "compare", "sweep"])
+def test_a_lock_planted_as_a_link_is_refused_and_its_target_keeps_its_bytes(finished, tmp_path, capsys, where):
+    targets = _outside(tmp_path, ["lock"])
+    d = tmp_path / where
+    if where == "run":
+        shutil.copytree(finished, d)
+        (d / "checkpoint.npz").unlink()  # not finished: the run takes its lock
+        args = ["run", "linear2d", *ARGS, "--out", str(d)]
+    elif where == "compare":
+        d.mkdir()
+        (d / "compare.json").write_text('{"format": "soc_opt compare"}')
+        args = ["compare", "linear2d", "--seeds", "1", "--iterations", "2", "--samples", "4", "--i-switch", "1",
+                "--progress", "lines", "--out", str(d)]
+    else:
+        d.mkdir()
+        (d / "sweep.json").write_text('{"name": "linear2d_small", "trials": []}')
+        args = ["sweep", str(SWEEP), "--out", str(d), "--workers", "1"]
+    (d / "lock").unlink(missing_ok=True)
+    (d / "lock").symlink_to(next(iter(targets)))
+    assert main(args) == 2
+    err = _error(capsys)
+    assert "lock" in err and "symbolic link" in err
+    _unchanged(targets)
+
+
+@pytest.mark.parametrize("restart", [False, True])
+def test_a_policies_folder_planted_as_a_link_is_refused_and_nothing_in_its_target_is_written_or_deleted(
+        finished, tmp_path, capsys, restart):
+    elsewhere = tmp_path / "users_policies"
+    elsewhere.mkdir()
+    own = {elsewhere / "iter_000.npz": b"mine 0", elsewhere / "iter_005.npz": b"mine 5", elsewhere / "notes.txt": b"x"}
+    for p, data in own.items():
+        p.write_bytes(data)
+    d = _unfinished(finished, tmp_path)
+    shutil.rmtree(d / "policies")
+    (d / "policies").symlink_to(elsewhere, target_is_directory=True)
+    assert main(["run", "linear2d", *ARGS, "--out", str(d), *(["--restart"] if restart else [])]) == 2
+    err = _error(capsys)
+    assert "policies" in err and "symbolic link" in err
+    assert sorted(elsewhere.iterdir()) == sorted(own)
+    _unchanged(own)
+
+
+USER_FILES = {"config.json": b'{"my": "settings"}', "task.json": b"{}", "metrics.csv": b"a,b\n1,2\n",
+              "best_policy.npz": b"npz", "lock": b"my lock", "costs.npz": b"c", "policy.npz": b"p",
+              "final_eval.npz": b"e", "summary.json": b"{}", "report.md": b"# mine", "policies/iter_001.npz": b"i"}
+
+
+def _user_folder(tmp_path) -> tuple[Path, dict[Path, bytes]]:
+    d = tmp_path / "mine"
+    for name, data in USER_FILES.items():
+        (d / name).parent.mkdir(parents=True, exist_ok=True)
+        (d / name).write_bytes(data)
+    return d, {d / n: data for n, data in USER_FILES.items()}
+
+
+@pytest.mark.parametrize("command", ["run", "run --restart", "run --method ilqg", "compare", "compare --restart", "sweep"])
+def test_out_on_a_folder_that_is_not_a_run_directory_is_refused_and_nothing_in_it_changes(tmp_path, capsys, command):
+    d, before = _user_folder(tmp_path)
+    words = command.split()
+    if words[0] == "run":
+        base = ARGS if "ilqg" not in words else ["--iterations", "2", "--progress", "lines"]
+        args = ["run", "linear2d", *base, *words[1:], "--out", str(d)]
+    elif words[0] == "compare":
+        args = ["compare", "linear2d", "--seeds", "1", "--iterations", "2", "--samples", "4", "--i-switch", "1",
+                "--progress", "lines", *words[1:], "--out", str(d)]
+    else:
+        args = ["sweep", str(SWEEP), "--out", str(d), "--workers", "1"]
+    assert main(args) == 2
+    err = _error(capsys)
+    assert str(d) in err and "not empty" in err
+    _unchanged(before)
+    assert sorted(p for p in d.rglob("*")) == sorted({*before, d / "policies"})
+
+
+_RSS = """
+import resource, sys
+from soc_opt.cli import main
+rc = main(sys.argv[1:])
+print("RSS", rc, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+"""
+#: Peak resident memory allowed for a refused resume (a whole linear2d run peaks near 250 MB here).
+RSS_BOUND_MB = 600
+
+
+def _peak_mb(args) -> tuple[int, float, str]:
+    p = subprocess.run([sys.executable, "-c", _RSS, *args], capture_output=True, text=True, timeout=600)
+    line = [ln for ln in p.stdout.splitlines() if ln.startswith("RSS")][-1].split()
+    return int(line[1]), int(line[2]) / 1024, p.stderr
+
+
+def _rewrite(path: Path, edit_tree=None, extra: dict | None = None, deflate_zero_member: tuple | None = None):
+    """Rewrite a genuine state file: ``edit_tree(tree)`` changes its structure, the checksum is recomputed
+    (whoever writes the file can), ``deflate_zero_member = (name, n_bytes)`` adds a deflated member of zeros."""
+    import zipfile
+
+    with np.load(path) as f:
+        members = {k: f[k] for k in f.files}
+    tree = json.loads(members.pop("__tree__").tobytes())
+    members.pop("__sha256__")
+    if edit_tree is not None:
+        edit_tree(tree)
+    tree_b = json.dumps(tree).encode()
+    digest = statefile._digest(tree_b, members)
+    np.savez(path, **members, **(extra or {}), __tree__=np.frombuffer(tree_b, np.uint8),
+             __sha256__=np.frombuffer(digest.encode(), np.uint8))
+    if deflate_zero_member is not None:
+        name, n = deflate_zero_member
+        header = io.BytesIO()
+        np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (n // 8,)})
+        with zipfile.ZipFile(path, "a", compression=zipfile.ZIP_DEFLATED) as zf:
+            with zf.open(name, "w", force_zip64=True) as w:
+                w.write(header.getvalue())
+                chunk = bytes(64 << 20)
+                for _ in range(n // len(chunk)):
+                    w.write(chunk)
+
+
+def test_a_checkpoint_with_a_deflated_2_gib_member_is_refused_before_inflating_it(finished, tmp_path):
+    d = _unfinished(finished, tmp_path)
+    _rewrite(d / "checkpoint.npz", deflate_zero_member=("a999.npy", 2 << 30))
+    assert (d / "checkpoint.npz").stat().st_size < 8 << 20  # a few MB on disk
+    rc, peak, err = _peak_mb(["run", "linear2d", *ARGS, "--out", str(d)])
+    assert rc == 2 and "checkpoint.npz" in err and "a999.npy" in err, err
+    assert peak < RSS_BOUND_MB, f"peak resident memory {peak:.0f} MB"
+
+
+def test_a_state_with_a_zero_stride_view_of_a_trillion_elements_is_refused_without_expanding_it(finished, tmp_path):
+    d = _unfinished(finished, tmp_path)
+
+    def broadcast_K(tree):
+        node = tree["state"]["fields"]["policy"]["fields"]["K"]
+        node["shape"], node["strides"] = [10**6, 10**6], [0, 0]
+
+    _rewrite(d / "checkpoint.npz", broadcast_K)
+    rc, peak, err = _peak_mb(["run", "linear2d", *ARGS, "--out", str(d)])
+    assert rc == 2 and "checkpoint.npz" in err and "more than" in err, err
+    assert peak < RSS_BOUND_MB, f"peak resident memory {peak:.0f} MB"
+    assert not list((d / "policies").glob("iter_*[!0-9].npz"))
+
+
+def test_a_config_json_cut_down_to_its_keys_does_not_accept_another_configuration(finished, tmp_path, capsys):
+    d = _unfinished(finished, tmp_path)
+    rec = json.loads((d / "config.json").read_text())
+    (d / "config.json").write_text(json.dumps({"method": rec["method"], "seed": rec["seed"], "config": {}}))
+    rows = (d / "metrics.csv").read_text()
+    args = [a if a != "4" else "6" for a in ARGS]  # --samples 6 instead of 4
+    assert main(["run", "linear2d", *args, "--out", str(d)]) == 2
+    err = _error(capsys)
+    assert "different configuration" in err and "(not recorded)" in err
+    assert (d / "metrics.csv").read_text() == rows
+
+
+@pytest.mark.parametrize("field,value,says", [
+    ("iteration", -3, "iteration -3"), ("iteration", float("inf"), "iteration"), ("iteration", 10**9, "outside"),
+    ("mult", float("nan"), "mult"), ("mult", "large", "mult"), ("em_done", "yes", "em_done"), ("rng_state", {"x": 1}, "rng_state"),
+])
+def test_a_schema_valid_state_with_invalid_values_is_refused_naming_the_field(finished, tmp_path, capsys, field,
+                                                                                value, says):
+    d = _unfinished(finished, tmp_path)
+
+    def edit(tree):
+        tree["state"]["fields"][field] = value
+
+    _rewrite(d / "checkpoint.npz", edit)
+    before = sorted(p.name for p in (d / "policies").iterdir())
+    assert main(["run", "linear2d", *ARGS, "--out", str(d)]) == 2
+    err = _error(capsys)
+    assert "checkpoint.npz" in err and says in err, err
+    assert "already finished" not in err
+    assert sorted(p.name for p in (d / "policies").iterdir()) == before
+
+
+def test_a_second_sweep_on_the_same_directory_stops_at_once_naming_the_holder(tmp_path, capsys):
+    from soc_opt.experiments.rundir import lock_directory
+
+    out = tmp_path / "sweep"
+    with lock_directory(out, what="sweep directory"):
+        assert main(["sweep", str(SWEEP), "--out", str(out), "--workers", "1"]) == 2
+        err = _error(capsys)
+    assert f"process {os.getpid()}" in err and "sweep directory" in err
+    assert sorted(p.name for p in out.iterdir()) == ["lock"]
+
+
+DEEP = "[" * 100_000 + "]" * 100_000
+
+
+@pytest.mark.parametrize("name", ["config.json", "task.json"])
+def test_a_100k_deep_json_in_a_run_directory_is_refused_naming_the_file(finished, tmp_path, capsys, name):
+    d = _unfinished(finished, tmp_path)
+    (d / name).write_text('{"a": ' + DEEP + "}")
+    assert main(["run", "linear2d", *ARGS, "--out", str(d)]) == 2
+    assert name in _error(capsys)
+
+
+def test_a_100k_deep_structure_in_a_checkpoint_is_refused_naming_it(finished, tmp_path, capsys):
+    d = _unfinished(finished, tmp_path)
+    raw = json.dumps({"format": statefile.FORMAT, "version": statefile.VERSION, "state": 0})
+    deep = raw.replace("0}", DEEP + "}").encode()
+    (d / "checkpoint.npz").write_bytes(_raw_state(deep))
+    assert main(["run", "linear2d", *ARGS, "--out", str(d)]) == 2
+    err = _error(capsys)
+    assert "checkpoint.npz" in err and "nested" in err
+
+
+def _raw_state(tree_b: bytes, arrays: dict | None = None) -> bytes:
+    arrays = arrays or {}
+    buf = io.BytesIO()
+    np.savez(buf, **arrays, __tree__=np.frombuffer(tree_b, np.uint8),
+             __sha256__=np.frombuffer(statefile._digest(tree_b, arrays).encode(), np.uint8))
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("kind", ["a 100k-deep TOML array", "a result.json of wrong types"])
+def test_a_hostile_sweep_file_or_result_is_refused_in_one_line_naming_it(tmp_path, capsys, kind):
+    out = tmp_path / "sweep"
+    sweep_file, name = SWEEP, "result.json"
+    if kind == "a 100k-deep TOML array":
+        sweep_file, name = tmp_path / "deep.toml", "deep.toml"
+        sweep_file.write_text('name = "deep"\ntasks = ' + DEEP + "\n")
+    else:
+        from soc_opt.sweeps.runner import prepare_out
+        from soc_opt.sweeps.spec import load_sweep
+
+        spec = load_sweep(SWEEP)
+        prepare_out(spec, out)
+        (out / spec.trials[0].relpath / "result.json").write_text('{"status": "done", "final_cost": "low"}')
+    assert main(["sweep", str(sweep_file), "--out", str(out), "--workers", "1"]) == 2
+    assert name in _error(capsys)
+
+
+@pytest.mark.parametrize("name", ["result.json", "trial.json", "progress.json"])
+def test_a_100k_deep_trial_record_reads_as_absent_and_never_raises(tmp_path, name):
+    from soc_opt.sweeps.runner import prepare_out
+    from soc_opt.sweeps.spec import load_sweep, read_json
+
+    spec = load_sweep(SWEEP)
+    out = tmp_path / "sweep"
+    prepare_out(spec, out)
+    path = out / spec.trials[0].relpath / name
+    path.write_text('{"status": "done", "x": ' + DEEP + "}")
+    assert read_json(path) is None
+    states = prepare_out(spec, out)  # the trial is pending: run again, its record rewritten
+    assert states[spec.trials[0].id] == "pending"
+
+
+@pytest.mark.parametrize("kind", ["shape 10^30", "a member that is not a .npy array"])
+def test_a_state_file_with_an_impossible_layout_or_foreign_member_is_refused_naming_it(finished, tmp_path, capsys, kind):
+    import zipfile
+
+    d = _unfinished(finished, tmp_path)
+    if kind == "shape 10^30":
+        def edit(tree):
+            tree["state"]["fields"]["policy"]["fields"]["K"]["shape"] = [10**30, 1]
+        _rewrite(d / "checkpoint.npz", edit)
+    else:
+        with zipfile.ZipFile(d / "checkpoint.npz", "a") as zf:
+            zf.writestr("readme.txt", "hello")
+    assert main(["run", "linear2d", *ARGS, "--out", str(d)]) == 2
+    err = _error(capsys)
+    assert "checkpoint.npz" in err and ("invalid shape" if kind == "shape 10^30" else "readme.txt") in err

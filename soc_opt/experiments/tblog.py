@@ -16,12 +16,19 @@ runs work the same and only the event files are missing (:func:`available`).
 
 from __future__ import annotations
 
+import io
 import math
 import uuid
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
+
+from .. import files
+from ..config import ConfigError
+
+#: Largest figure logged to TensorBoard: 64 MiB.
+MAX_FIGURE_BYTES = 64 << 20
 
 __all__ = ["available", "RunLog", "MISSING_MESSAGE"]
 
@@ -78,15 +85,19 @@ class RunLog:
         self.writer.flush()
 
     def figures(self, paths: Iterable[str | Path], step: int) -> int:
-        """PNG figures as images tagged with their file stem; returns how many were written."""
+        """PNG figures as images tagged with their file stem; returns how many were written.  A link, a
+        file larger than :data:`MAX_FIGURE_BYTES` or one that is no PNG is skipped."""
         from matplotlib.image import imread
 
         count = 0
         for p in paths:
             p = Path(p)
-            if not p.is_file():
+            if p.is_symlink() or not p.is_file():  # only the directory's own files (docs/security.md)
                 continue
-            img = imread(str(p))
+            try:
+                img = imread(io.BytesIO(files.read_bytes(p, MAX_FIGURE_BYTES, what="figure")), format="png")
+            except (OSError, ValueError, ConfigError):
+                continue
             if img.dtype != np.uint8:
                 img = np.clip(np.rint(np.asarray(img, float) * 255), 0, 255).astype(np.uint8)
             if img.ndim == 2:
