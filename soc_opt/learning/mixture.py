@@ -5,7 +5,8 @@ tuple buffer and the variational posterior (:class:`VBState`) from which the nex
 warm-started; :func:`soc_opt.learning.fit.update_prior` fits it and
 :func:`soc_opt.learning.fit.joint_posterior` turns it into per-step NIW priors.  The helpers here map
 the variational posterior between original units and the standardised coordinates each fit
-works in (sklearn's ``BayesianGaussianMixture`` attributes).
+works in (sklearn's ``BayesianGaussianMixture`` attributes), and :class:`Subspace` the directions
+a fit runs on when coordinates are exactly related (docs/math.md §2 step 1).
 """
 
 from __future__ import annotations
@@ -75,16 +76,15 @@ class VBState(NamedTuple):
         sklearn's ``precisions_cholesky_`` is the upper-triangular ``U = L^{-T}`` of the
         covariance ``L L^T`` (precision ``U U^T``).  ``lower_bound_ = -inf`` makes the first VB
         iteration count as a change, so the bound reached on the previous (different) data
-        never stops VB early.  In a subspace of ``r`` coordinates the Wishart degrees of
-        freedom are raised to at least ``r`` (sklearn's prior value; a posterior from a fit in
-        fewer coordinates may hold less).
+        never stops VB early.  The Wishart degrees of freedom are raised to at least the number
+        of coordinates fitted (sklearn's prior value, which a posterior fitted in those
+        coordinates always exceeds; one fitted in a :class:`Subspace` of fewer may not).
         """
         cov = self.covariances / (scale[None, :, None] * scale[None, None, :])
         means = (self.means - center) / scale
-        dof = np.array(self.degrees_of_freedom)
         if subspace is not None:
             means, cov = subspace.project(means, cov)
-            dof = np.maximum(dof, float(subspace.rank))
+        dof = np.maximum(np.array(self.degrees_of_freedom), float(cov.shape[-1]))
         L = chol(cov, "warm-start component covariance")
         eye = np.broadcast_to(np.eye(cov.shape[-1]), cov.shape)
         bgm.weight_concentration_ = np.array(self.weight_concentration)
@@ -276,9 +276,11 @@ class Subspace(NamedTuple):
            rtol: float = DEGENERATE_RTOL) -> "Subspace | None":
         """The :class:`Subspace` of standardised data ``Z (N, D)`` whose ``varying (D,)`` columns are
         not constant (:func:`varying_columns`), or None when no direction of them is degenerate (the
-        mixture is then fitted on all ``D`` coordinates, as before subspaces existed)."""
+        mixture is then fitted on all ``D`` coordinates, as before subspaces existed).  With no more
+        tuples than varying columns the covariance is singular for want of data, not because of
+        the coordinates: None too."""
         idx = np.flatnonzero(varying)
-        if idx.size < 2:
+        if idx.size < 2 or Z.shape[0] <= idx.size:
             return None
         Zv = Z[:, idx] - Z[:, idx].mean(axis=0)
         lam, V = np.linalg.eigh(_T(Zv) @ Zv / Z.shape[0])
