@@ -599,6 +599,54 @@ def test_constant_state_component_is_regularised(data):
         np.testing.assert_allclose(prediction_error(model, ro, "y"), 0.0, atol=1e-8)
 
 
+def _related(ro: Rollouts, shift: float, M: slice = slice(None)) -> Rollouts:
+    """``ro``'s rollouts ``M``, states shifted by ``shift``, with ``x_1 = 2 x_0 + 1`` exactly (two varying
+    coordinates in an exact linear relation) and ``x_2 = 0.25`` (a constant coordinate)."""
+    x = np.array(ro.x[M]) + shift
+    x[..., 1] = 2.0 * x[..., 0] + 1.0
+    x[..., 2] = 0.25
+    return Rollouts(x=x, s=x, a=ro.a[M], cost=ro.cost[M], y=ro.y[M])
+
+
+def test_degenerate_directions_are_the_exact_relations_between_varying_coordinates(data):
+    from soc_opt.learning.mixture import Subspace, standardisation, varying_columns
+
+    X = tuples(_related(data, 0.0)).reshape(-1, 2 * N + MU + 1)
+    center, scale = standardisation(X)
+    varying = varying_columns(X.std(axis=0), center)
+    assert not varying[2] and not varying[N + MU + 2]  # the constant coordinate, in s and s'
+    sub = Subspace.of((X - center) / scale, varying, 1e-6)
+    assert sub.null.shape[1] == 2  # x_1 = 2 x_0 + 1 in s and in s'
+    assert sub.rank + sub.null.shape[1] == X.shape[1]
+    np.testing.assert_allclose(sub.basis.T @ sub.null, 0.0, atol=1e-12)
+    for off in (0, N + MU):  # each null direction lies in the span of (x_0, x_1) of s or of s'
+        w = sub.null[[off, off + 1]]
+        assert np.linalg.norm(w) > 1 - 1e-9 or np.linalg.norm(w) < 1e-9
+    Zd = tuples(data).reshape(-1, 2 * N + MU + 1)
+    c, sc = standardisation(Zd)
+    assert Subspace.of((Zd - c) / sc, varying_columns(Zd.std(axis=0), c), 1e-6) is None
+
+
+def test_warm_start_survives_a_component_left_without_tuples_on_related_coordinates(data):
+    """A warm-started component that gets no tuples keeps sklearn's covariance prior, which is singular
+    along an exact relation between coordinates: VB failed ("ill-defined empirical covariance").  Fitted
+    on the non-degenerate directions, the prior keeps the relation in its means and is positive definite."""
+    cfg = FitConfig(n_components=4, buffer_size=0)
+    two = _related(data, 0.0, slice(0, 20))
+    far = _related(data, 30.0, slice(20, 40))
+    both = Rollouts(x=np.concatenate([two.x, far.x]), s=np.concatenate([two.s, far.s]), a=data.a,
+                    cost=data.cost, y=data.y)
+    first = update_prior(None, both, cfg, np.random.default_rng(0))
+    prior = update_prior(first, two, cfg, np.random.default_rng(1))  # the far cluster's components get nothing
+    assert prior.vb is not None and prior.n_components >= 1
+    np.testing.assert_allclose(prior.means[:, 1], 2.0 * prior.means[:, 0] + 1.0, atol=1e-9)
+    np.testing.assert_allclose(prior.means[:, 2], 0.25, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(prior.covariances)[:, 0] > 0)
+    again = update_prior(prior, two, cfg, np.random.default_rng(2))  # and a warm start from it
+    dyn = fit_dynamics(two, cfg, again)
+    assert np.all(np.isfinite(dyn.A)) and np.all(np.linalg.eigvalsh(dyn.cov)[:, 0] > 0)
+
+
 def test_config_toml_and_validation(tmp_path):
     f = tmp_path / "fit.toml"
     f.write_text('[fit]\nprior = "none"\nn_components = 5\nk0 = 2.0\nprior_warm_start = false\n')

@@ -2,6 +2,7 @@
 soc_opt/algorithms.py and the [baseline.noise] knob, docs/math.md §11.3)."""
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -342,3 +343,52 @@ def test_parallel_starts_change_nothing_but_the_wall_time():
         for key in ("kin_loglik_first", "kin_loglik_last", "kin_start", "kin_filter_start"):
             assert out[0][2][key] == out[1][2][key]
         np.testing.assert_array_equal(out[0][2]["posterior"][0], out[1][2]["posterior"][0])
+
+
+SLIDER = Path(__file__).parent / "data" / "slider" / "slider.toml"
+
+
+def test_slide_only_object_with_constant_coordinates_runs_for_several_iterations():
+    """The puck only slides: the heights and vertical velocities of both points are exactly constant and
+    each puck coordinate is its slide joint plus a constant.  With the mixture prior warm-started this
+    stopped at the fourth iteration ("ill-defined empirical covariance", issue 34)."""
+    task = load_task(SLIDER)
+    base = LQRFLMConfig(iterations=4, samples=20, init_var=1.0, noise=NoiseConfig(estimator="kinematic"))
+    assert base.fit.prior_warm_start
+    st = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
+    assert [r.iteration for r in st.history] == [0, 1, 2, 3]
+    assert all(np.isfinite(r.cost).all() for r in st.history)
+    z = [task.state_labels.index(f"{p}.{c}") for p in ("tip", "puck_c") for c in ("z", "vz")]
+    assert np.ptp(st.last_rollouts.x[..., z], axis=(0, 1)).max() == 0.0  # constant, exactly
+    assert isinstance(st.policy, KinematicFilteredPolicy)
+
+
+def test_gym_mujoco_task_runs_with_the_kinematic_estimator():
+    task = load_task("gym:Reacher-v5", overrides={"T": 20})
+    base = LQRFLMConfig(iterations=2, samples=4, init_var=1.0, noise=NoiseConfig(estimator="kinematic"))
+    st = run_algorithm(task, "dpsoc-em", DPSOCConfig(baseline=base, i_switch=1), seed=0)
+    assert "em" in [r.phase for r in st.history]
+    assert isinstance(st.policy, KinematicFilteredPolicy)
+    assert all(np.isfinite(r.cost).all() for r in st.history)
+
+
+@pytest.mark.parametrize("task, reason", [
+    ("linear2d", "task 'linear2d' is of kind 'linear', which has none"),
+    (f"{SLIDER}::no-puck-joints", "joint 'puck_x' moves the site 'puck_c'"),
+])
+def test_a_task_the_estimator_cannot_model_is_refused_before_anything_is_written(tmp_path, capsys, task, reason):
+    from soc_opt.cli import main
+
+    if task.endswith("::no-puck-joints"):  # the slider with the puck's slide joints left out of the state
+        text = SLIDER.read_text().replace('extra_joints = ["puck_x", "puck_y"]', "extra_joints = []")
+        text = text.replace("q0 = [0.3, 0.6, 0.0, 0.0]", "q0 = [0.3, 0.6]").replace('model = "slider.xml"',
+                                                                                   f'model = "{SLIDER.parent / "slider.xml"}"')
+        task = tmp_path / "slider_no_puck_joints.toml"
+        task.write_text(text)
+    config = tmp_path / "kinematic.toml"
+    config.write_text('[baseline]\niterations = 2\nsamples = 4\n[baseline.noise]\nestimator = "kinematic"\n')
+    out = tmp_path / "run"
+    assert main(["run", str(task), "--method", "lqr-flm", "--config", str(config), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("soc-opt: error: ") and reason in err[0]
+    assert not out.exists()

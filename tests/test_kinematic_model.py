@@ -2,12 +2,14 @@
 finite differences, and the kinematic rows match MuJoCo's semi-implicit Euler (docs/math.md §11.1)."""
 
 import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from soc_opt.config import ConfigError
 from soc_opt.models import ShapeError
 from soc_opt.noise.kinematic.model import AccelMap, KinematicModel, transition
 from soc_opt.tasks import load_task
@@ -65,8 +67,36 @@ def test_bad_latent_shape_names_the_shape(task_km):
 
 
 def test_non_mujoco_task_is_rejected_by_name():
-    with pytest.raises(TypeError, match="linear2d"):
+    with pytest.raises(ConfigError, match="task 'linear2d' is of kind 'linear'"):
         KinematicModel(load_task("linear2d"))
+
+
+SLIDER = Path(__file__).parent / "data" / "slider" / "slider.toml"
+
+
+def test_gym_mujoco_task_is_modelled_and_h_reproduces_its_state():
+    """A gym: task is a MuJoCo task (its model and data are MuJoCo's): the model accepts it, and h of
+    the joint coordinates read off a rollout rebuilds the rollout's states."""
+    task = load_task("gym:Reacher-v5", overrides={"T": 10})
+    km = KinematicModel(task)
+    ro = task.rollouts(task.initial_policy(1.0), 2, np.random.default_rng(0))
+    np.testing.assert_allclose(km.measure(km.z_of(ro.x), jacobian=False), ro.x, atol=1e-12)
+
+
+def test_a_joint_moving_a_point_outside_the_state_is_refused_naming_both():
+    """Without its slide joints in the state the puck's point would be rebuilt at its initial place."""
+    task = load_task(SLIDER, overrides={"state": {"joints": ["shoulder", "elbow"], "sites": ["tip", "puck_c"]},
+                                        "q0": [0.3, 0.6]})
+    with pytest.raises(ConfigError, match=r"""joint 'puck_x' moves the site 'puck_c'.*extra_joints = \["puck_x", "puck_y"\]"""):
+        KinematicModel(task)
+
+
+def test_joints_that_move_no_point_of_the_state_may_stay_out_of_it():
+    task = load_task(SLIDER, overrides={"state": {"joints": ["shoulder", "elbow"], "sites": ["tip"]}, "q0": [0.3, 0.6],
+                                        "cost": [{"type": "torque", "wu": 1e-3}]})
+    km = KinematicModel(task)
+    ro = task.rollouts(task.initial_policy(1.0), 2, np.random.default_rng(0))
+    np.testing.assert_allclose(km.measure(km.z_of(ro.x), jacobian=False), ro.x, atol=1e-12)
 
 
 def test_model_pickles_and_measures_the_same(task_km, rollouts_of):

@@ -121,7 +121,7 @@ def _check_inputs(task: Task, method: str, cfg: DPSOCConfig, seed: int) -> None:
         raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
     meth = get_method(method)
     meth.check_config(cfg)
-    meth.check_task(task)
+    meth.check_task(task, cfg)
 
 
 def _progress_line(method: str, seed: int, total: int, st, dt: float, elapsed: float) -> str:

@@ -87,7 +87,7 @@ from ..models import (
     check_array,
     symmetrize,
 )
-from .mixture import MixturePrior, VBState, standardisation
+from .mixture import MixturePrior, Subspace, VBState, standardisation, varying_columns
 
 __all__ = [
     "FitConfig",
@@ -220,16 +220,16 @@ def update_prior(
     standardised coordinates (per-column mean and standard deviation of the
     fitted data; constant columns get scale 1) and mapped back.
 
-    **Warm start** (``config.prior_warm_start``, when ``prior`` carries a
-    :class:`VBState` of at most ``config.n_components`` components): VB starts
-    from the previous variational posterior of the components the previous fit
-    kept (weight ``>= min_weight``), re-expressed in the new standardised
-    coordinates, instead of from a k-means initialisation with
-    ``n_components`` components.  The fixed point is the same kind of VB
-    optimum, reached in far fewer iterations when the data change little
-    between iterations, and emptied components no longer cost anything (with
-    ``min_weight = 0`` all components are carried over).  ``prior`` itself is
-    not modified.
+    **Degenerate directions** (docs/math.md §2 step 1): when the varying columns of the
+    standardised tuples are exactly linearly related (a point's position and the slide joint
+    that moves it; a point's height and velocity when it only slides on a table are constant
+    columns instead), VB runs on the other directions only
+    (:class:`~soc_opt.learning.mixture.Subspace`) and every component gets the data's mean and
+    the variance ``mixture_reg`` (standardised) along those relations.  Without this, a
+    warm-started component that receives no tuples keeps sklearn's covariance prior (the data's
+    covariance, singular along them) and VB fails.  Constant columns stay in the fit as zero
+    columns, which sklearn keeps decoupled from the rest with variance ``reg_covar``.  Without
+    degenerate directions the fit is the one on all coordinates, unchanged.
 
     Deterministic given ``rng`` (sklearn's ``random_state`` is drawn from it,
     also when warm-starting, so that the stream is consumed alike;
@@ -258,6 +258,9 @@ def update_prior(
     center, scale = standardisation(data)
     Z = (data - center) / scale
 
+    sub = Subspace.of(Z, varying_columns(data.std(axis=0), center), config.mixture_reg)
+    Zfit = Z if sub is None else Z @ sub.basis
+
     n_comp = max(1, min(config.n_components, Z.shape[0]))
     vb = getattr(prior, "vb", None)  # checkpoints written before warm starts have no vb
     warm = config.prior_warm_start and vb is not None and vb.means.shape[0] <= n_comp
@@ -277,14 +280,14 @@ def update_prior(
     with warnings.catch_warnings(), single_thread_blas():
         warnings.simplefilter("ignore", ConvergenceWarning)
         if warm:
-            vb.to_sklearn(bgm, center, scale)
-        bgm.fit(Z)
+            vb.to_sklearn(bgm, center, scale, sub)
+        bgm.fit(Zfit)
 
     w = np.asarray(bgm.weights_, dtype=float)
     keep = w >= config.min_weight
     if not np.any(keep):
         keep = w == w.max()
-    vb_new = VBState.from_sklearn(bgm, center, scale, keep)
+    vb_new = VBState.from_sklearn(bgm, center, scale, keep, sub)
     return MixturePrior(
         weights=w[keep] / w[keep].sum(),
         means=vb_new.means,

@@ -5,7 +5,8 @@ tuple buffer and the variational posterior (:class:`VBState`) from which the nex
 warm-started; :func:`soc_opt.learning.fit.update_prior` fits it and
 :func:`soc_opt.learning.fit.joint_posterior` turns it into per-step NIW priors.  The helpers here map
 the variational posterior between original units and the standardised coordinates each fit
-works in (sklearn's ``BayesianGaussianMixture`` attributes).
+works in (sklearn's ``BayesianGaussianMixture`` attributes), and :class:`Subspace` the directions
+a fit runs on when coordinates are exactly related (docs/math.md §2 step 1).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from ..linalg import T as _T
 from ..linalg import chol, tri_solve
 from ..models import ShapeError, check_array, symmetrize
 
-__all__ = ["VBState", "MixturePrior", "standardisation"]
+__all__ = ["VBState", "MixturePrior", "Subspace", "standardisation", "varying_columns", "DEGENERATE_RTOL"]
 
 
 class VBState(NamedTuple):
@@ -47,33 +48,49 @@ class VBState(NamedTuple):
     covariances: np.ndarray
 
     @classmethod
-    def from_sklearn(cls, bgm, center: np.ndarray, scale: np.ndarray, keep: np.ndarray) -> "VBState":
+    def from_sklearn(cls, bgm, center: np.ndarray, scale: np.ndarray, keep: np.ndarray,
+                     subspace: "Subspace | None" = None) -> "VBState":
         """The posterior of the ``keep`` components of a fitted ``BayesianGaussianMixture``
-        (fitted on ``(x - center) / scale``), in original units."""
+        (fitted on ``(x - center) / scale``, or with ``subspace`` on its coordinates
+        ``((x - center) / scale) @ subspace.basis``), in original units.
+
+        With ``subspace`` the means and covariances are embedded back into all ``D`` standardised
+        coordinates: ``m = U m_y`` and ``S = U S_y U^T + null_var W W^T`` (:class:`Subspace`).
+        """
+        means, cov = bgm.means_[keep], bgm.covariances_[keep]
+        if subspace is not None:
+            means, cov = subspace.embed(means, cov)
         return cls(
             weight_concentration=np.array(bgm.weight_concentration_[keep], dtype=float),
             mean_precision=np.array(bgm.mean_precision_[keep], dtype=float),
-            means=center + bgm.means_[keep] * scale,
+            means=center + means * scale,
             degrees_of_freedom=np.array(bgm.degrees_of_freedom_[keep], dtype=float),
-            covariances=bgm.covariances_[keep] * scale[None, :, None] * scale[None, None, :],
+            covariances=cov * scale[None, :, None] * scale[None, None, :],
         )
 
-    def to_sklearn(self, bgm, center: np.ndarray, scale: np.ndarray) -> None:
+    def to_sklearn(self, bgm, center: np.ndarray, scale: np.ndarray, subspace: "Subspace | None" = None) -> None:
         """Set the fitted attributes of ``bgm`` (sklearn ``warm_start`` continues from them) to
-        this posterior in the coordinates ``(x - center) / scale``.
+        this posterior in the coordinates ``(x - center) / scale`` (with ``subspace``: projected
+        on its basis ``U``, means ``U^T m`` and covariances ``U^T S U``).
 
         sklearn's ``precisions_cholesky_`` is the upper-triangular ``U = L^{-T}`` of the
         covariance ``L L^T`` (precision ``U U^T``).  ``lower_bound_ = -inf`` makes the first VB
         iteration count as a change, so the bound reached on the previous (different) data
-        never stops VB early.
+        never stops VB early.  The Wishart degrees of freedom are raised to at least the number
+        of coordinates fitted (sklearn's prior value, which a posterior fitted in those
+        coordinates always exceeds; one fitted in a :class:`Subspace` of fewer may not).
         """
         cov = self.covariances / (scale[None, :, None] * scale[None, None, :])
+        means = (self.means - center) / scale
+        if subspace is not None:
+            means, cov = subspace.project(means, cov)
+        dof = np.maximum(np.array(self.degrees_of_freedom), float(cov.shape[-1]))
         L = chol(cov, "warm-start component covariance")
         eye = np.broadcast_to(np.eye(cov.shape[-1]), cov.shape)
         bgm.weight_concentration_ = np.array(self.weight_concentration)
         bgm.mean_precision_ = np.array(self.mean_precision)
-        bgm.means_ = (self.means - center) / scale
-        bgm.degrees_of_freedom_ = np.array(self.degrees_of_freedom)
+        bgm.means_ = means
+        bgm.degrees_of_freedom_ = dof
         bgm.covariances_ = cov
         bgm.precisions_cholesky_ = _T(tri_solve(L, eye))
         bgm.converged_ = False
@@ -213,5 +230,82 @@ def standardisation(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     center = data.mean(axis=0)
     scale = data.std(axis=0)
-    scale = np.where(scale > 1e-12 * np.maximum(1.0, np.abs(center)), scale, 1.0)
+    scale = np.where(varying_columns(scale, center), scale, 1.0)
     return center, scale
+
+
+def varying_columns(std: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """``(D,)`` bool: the columns of standard deviation ``std`` and mean ``center`` that are not
+    constant (``std > 1e-12 max(1, |center|)``; :func:`standardisation` gives the others scale 1)."""
+    return std > 1e-12 * np.maximum(1.0, np.abs(center))
+
+
+#: A direction of the standardised tuples is degenerate when its variance is at most this fraction
+#: of the largest: exactly collinear coordinates leave round-off (~1e-16 of it), while the nearest
+#: to degenerate the existing tasks come is ~1e-9 (peg's smoothed states, which lie on the
+#: kinematics' manifold, at rho^2 = 0 in short test runs).
+DEGENERATE_RTOL = 1e-12
+
+
+class Subspace(NamedTuple):
+    """The directions of standardised tuples the mixture is fitted on, when some are degenerate.
+
+    Fields:
+        basis:    (D, r) orthonormal ``U``: every constant column (as its unit vector: sklearn fits it
+                  as a zero column, decoupled from the rest, with variance ``reg_covar``, as without
+                  a subspace), and the directions of the varying columns whose variance exceeds
+                  :data:`DEGENERATE_RTOL` times the largest.
+        null:     (D, D - r) orthonormal ``W``: the other directions of the varying columns: exact
+                  linear relations between coordinates (e.g. a point's position and the slide joint
+                  that moves it, or its height and the hinge angle that does not), where the data do
+                  not vary although each coordinate does.
+        null_var: the variance every component gets along ``W`` (``FitConfig.mixture_reg``, what
+                  sklearn's ``reg_covar`` gives a constant column).
+    """
+
+    basis: np.ndarray
+    null: np.ndarray
+    null_var: float
+
+    @property
+    def rank(self) -> int:
+        return self.basis.shape[1]
+
+    @classmethod
+    def of(cls, Z: np.ndarray, varying: np.ndarray, null_var: float,
+           rtol: float = DEGENERATE_RTOL) -> "Subspace | None":
+        """The :class:`Subspace` of standardised data ``Z (N, D)`` whose ``varying (D,)`` columns are
+        not constant (:func:`varying_columns`), or None when no direction of them is degenerate (the
+        mixture is then fitted on all ``D`` coordinates, as before subspaces existed).  With no more
+        tuples than varying columns the covariance is singular for want of data, not because of
+        the coordinates: None too."""
+        idx = np.flatnonzero(varying)
+        if idx.size < 2 or Z.shape[0] <= idx.size:
+            return None
+        Zv = Z[:, idx] - Z[:, idx].mean(axis=0)
+        lam, V = np.linalg.eigh(_T(Zv) @ Zv / Z.shape[0])
+        null = lam <= rtol * float(lam[-1])
+        null[-1] = False
+        if not np.any(null):
+            return None
+        D = Z.shape[1]
+        const = np.flatnonzero(~np.asarray(varying, dtype=bool))
+        keep = V[:, ~null]
+        U = np.zeros((D, keep.shape[1] + const.size))
+        U[idx, : keep.shape[1]] = keep
+        U[const, keep.shape[1] + np.arange(const.size)] = 1.0
+        W = np.zeros((D, int(null.sum())))
+        W[idx] = V[:, null]
+        return cls(U, W, float(null_var))
+
+    def project(self, means: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Standardised ``means (C, D)``, ``cov (C, D, D)`` in the basis: ``(m U, U^T S U)``."""
+        U = self.basis
+        return means @ U, symmetrize(_T(U)[None] @ cov @ U[None])
+
+    def embed(self, means: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Subspace ``means (C, r)``, ``cov (C, r, r)`` in all ``D`` standardised coordinates:
+        ``(m U^T, U S U^T + null_var W W^T)`` (along ``W`` the mean is the data's: zero)."""
+        U, W = self.basis, self.null
+        full = U[None] @ cov @ _T(U)[None] + self.null_var * (W @ _T(W))[None]
+        return means @ _T(U), symmetrize(full)

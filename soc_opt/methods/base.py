@@ -41,8 +41,10 @@ class Method(Protocol):
     def check_config(self, cfg) -> None:
         """Method-specific checks of a run configuration (``ConfigError`` naming the key)."""
 
-    def check_task(self, task: Task) -> None:
-        """Raise ``ConfigError`` (before any simulation) if the method cannot run on ``task``."""
+    def check_task(self, task: Task, cfg=None) -> None:
+        """Raise ``ConfigError`` (before any simulation or file is written) if the method cannot run on
+        ``task``, or, given the run configuration ``cfg``, not with that configuration (e.g. its state
+        estimator cannot model the task)."""
 
     def check_file(self, data: dict, path: Path) -> None:
         """Extra checks of a run-configuration file's raw table (e.g. a hint for misplaced keys)."""
@@ -88,7 +90,7 @@ class MethodBase(ABC):
     def check_config(self, cfg) -> None:
         pass
 
-    def check_task(self, task) -> None:
+    def check_task(self, task, cfg=None) -> None:
         pass
 
     def check_file(self, data: dict, path: Path) -> None:
@@ -119,7 +121,7 @@ def run_method(method: Method, task, cfg, seed: int = 0, state=None,
     ``on_iteration`` is called with the new state after every iteration (checkpoints, progress).
     """
     method.check_config(cfg)
-    method.check_task(task)
+    method.check_task(task, cfg)
     if state is None:
         state = method.initial_state(task, cfg, seed)
     while not method.finished(cfg, state):

@@ -329,7 +329,7 @@ class ILQG(MethodBase):
     sample_based = False
     cost_phase = "ilqg"
 
-    def check_task(self, task: Task) -> None:
+    def check_task(self, task: Task, cfg=None) -> None:
         check_task(task)
 
     def check_file(self, data: dict, path) -> None:

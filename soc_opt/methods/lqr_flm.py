@@ -27,7 +27,7 @@ from ..lqg import LocalModel
 from ..models import LinearGaussianPolicy, Rollouts
 from ..noise import aware as noise_aware
 from ..noise.estimator import FilteredPolicy
-from ..noise.strategy import Estimates, NoiseStrategy, resolve
+from ..noise.strategy import Estimates, NoiseStrategy, resolve, strategy_class
 from .base import MethodBase
 from .config import AcceptanceConfig, LQRFLMConfig, with_paper_scale
 from .state import AcceptedPolicy, IterationRecord, PreviousStep, RunState, improved, record, state_rng
@@ -293,6 +293,13 @@ class LQRFLM(MethodBase):
 
     def total_iterations(self, cfg) -> int:
         return cfg.baseline.iterations
+
+    def check_task(self, task: Task, cfg=None) -> None:
+        """With ``cfg``: the state estimator of ``[baseline.noise]`` can model ``task``
+        (:meth:`~soc_opt.noise.strategy.NoiseStrategy.check_task`)."""
+        if cfg is not None:
+            noise = cfg.baseline.noise
+            strategy_class(noise.estimator).check_task(task, noise)
 
     def initial_state(self, task: Task, cfg, seed: int) -> RunState:
         return initial_state(task, cfg.baseline, seed)

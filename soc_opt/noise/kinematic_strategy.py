@@ -18,6 +18,7 @@ from ..lqg import LocalModel
 from ..models import symmetrize
 from . import aware as noise_aware
 from .kinematic import loop as kinematic_loop
+from .kinematic import model as kinematic_model
 from .kinematic.dynamics import structured_dynamics, structured_prior, with_dynamics
 from .kinematic.filter import KinematicFilter, KinematicFilteredPolicy
 from .strategy import EMModel, Estimates, LoopModel, NoiseStrategy, kalman_em_model, kalman_lqg_model
@@ -54,6 +55,12 @@ class KinematicEstimator(NoiseStrategy):
     """
 
     name = "kinematic"
+
+    @classmethod
+    def check_task(cls, task, cfg) -> None:
+        """A MuJoCo task (gym: ones included) whose state holds every joint that moves one of its points
+        (:func:`soc_opt.noise.kinematic.model.check_task`)."""
+        kinematic_model.check_task(task)
 
     def estimate(self, prior, rollouts, fit_cfg, sampler, rng: np.random.Generator, previous=None) -> Estimates:
         """Smooth ``rollouts`` (sampled by ``sampler``), then the mixture prior on the smoothed tuples;

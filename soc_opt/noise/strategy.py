@@ -121,6 +121,11 @@ class NoiseStrategy:
 
     name = ""
 
+    @classmethod
+    def check_task(cls, task, cfg: NoiseConfig) -> None:
+        """Raise ``ConfigError`` if this estimator cannot work on ``task`` (called before a run writes
+        anything; the default estimators work on every task)."""
+
     def __init__(self, task, cfg: NoiseConfig):
         self.task = task
         self.cfg = cfg

@@ -26,9 +26,62 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...config import ConfigError
 from ...models import ShapeError, check_array
 
-__all__ = ["KinematicModel", "AccelMap", "transition"]
+__all__ = ["KinematicModel", "AccelMap", "transition", "check_task"]
+
+#: What the model reads off a MuJoCo task (:class:`soc_opt.tasks.mujoco.MujocoTask`, gym: tasks included).
+_MUJOCO_TASK_ATTRS = ("qpos_adr", "dof_adr", "state_qpos_idx", "state_qvel_idx", "point_refs", "layout", "substeps",
+                      "_qinit", "x0")
+
+
+def _task_name(task) -> str:
+    return str(getattr(task, "name", None) or type(task).__name__)
+
+
+def check_task(task) -> None:
+    """Raise :class:`~soc_opt.config.ConfigError` unless the kinematic estimator can model ``task``
+    (``docs/noise.md`` §11, "What the estimator needs of a task").
+
+    * The task is a MuJoCo task: an MJCF model or a ``gym:`` MuJoCo environment (its model and data
+      are MuJoCo's).  A linear task has no kinematics to use.
+    * Every joint that moves a point of the state (``state.sites``: a site or a body origin) is in
+      the state (``state.joints`` or ``state.extra_joints``).  The model rebuilds the points from
+      the state's joints alone, so a joint left out would be frozen at its initial value and the
+      point placed wrongly; the message names the joint, the point and where to add the joint.
+      Joints that move no point of the state (e.g. a goal marker's slides) may stay out.
+    """
+    import mujoco
+
+    model = getattr(task, "model", None)
+    missing = [a for a in _MUJOCO_TASK_ATTRS if not hasattr(task, a)]
+    if not isinstance(model, mujoco.MjModel) or missing:
+        kind = getattr(task, "kind", type(task).__name__)
+        raise ConfigError(f"estimator = 'kinematic' needs a MuJoCo task (an MJCF model or a gym: MuJoCo environment) "
+                          f"to take its kinematics from; task {_task_name(task)!r} is of kind {kind!r}, which has none "
+                          "(use estimator = 'none' or 'kalman' for it)")
+    in_state = {int(a) for a in task.qpos_adr}
+    bad = []
+    for kind, pid in task.point_refs:
+        body = int(model.site_bodyid[pid]) if kind == "site" else int(pid)
+        point = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SITE if kind == "site" else mujoco.mjtObj.mjOBJ_BODY, pid)
+        while body > 0:
+            for j in range(int(model.body_jntadr[body]), int(model.body_jntadr[body]) + int(model.body_jntnum[body])):
+                if int(model.jnt_qposadr[j]) not in in_state:
+                    bad.append((mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"<joint {j}>", kind, point,
+                                int(model.jnt_type[j])))
+            body = int(model.body_parentid[body])
+    if bad:
+        joint, kind, point, jtype = bad[0]
+        names = list(dict.fromkeys(b[0] for b in bad))
+        free = jtype not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+        fix = ("it is a free/ball joint, which the state cannot hold: declare a point that it does not move"
+               if free else "add " + ("it" if len(names) == 1 else "them") + " to state.extra_joints in the task TOML, "
+               "e.g. extra_joints = [" + ", ".join(f'"{n}"' for n in names) + "]")
+        raise ConfigError(f"task {_task_name(task)!r}: joint {joint!r} moves the {kind} {point!r} of state.sites but is "
+                          "not in the state (state.joints or state.extra_joints); the kinematic estimator rebuilds the "
+                          f"points from the state's joints alone and would hold it at its initial value; {fix}")
 
 
 @dataclass(frozen=True)
@@ -76,7 +129,8 @@ def transition(accel: AccelMap, dt: float, c2: float, q_var: float):
 
 
 class KinematicModel:
-    """``h``, its Jacobian and the kinematic constants of a :class:`~soc_opt.tasks.mujoco.MujocoTask`.
+    """``h``, its Jacobian and the kinematic constants of a :class:`~soc_opt.tasks.mujoco.MujocoTask`
+    (``gym:`` tasks included; :func:`check_task` says what it refuses).
 
     Attributes: ``n`` (task state), ``nq``, ``nz = 2 nq``, ``m``, ``T``, ``dt``, ``c2``,
     ``zidx (nz,)`` (positions of ``(q, qd)`` in the task state, so ``z = x[..., zidx]``).
@@ -85,9 +139,7 @@ class KinematicModel:
     def __init__(self, task):
         import mujoco
 
-        if getattr(task, "kind", None) != "mujoco":
-            raise TypeError(f"the kinematic estimator needs a MuJoCo task, got task {getattr(task, 'name', task)!r} "
-                            f"of kind {getattr(task, 'kind', type(task).__name__)!r}")
+        check_task(task)
         self.mj = mujoco
         self.task = task
         self.model = task.model
@@ -154,7 +206,8 @@ class KinematicModel:
         jdp, jdr = np.zeros((3, nv)), np.zeros((3, nv))
         o_p, o_v = self.pos_sl.start, self.vel_sl.start
         # joints outside z keep their initial angle and zero velocity (written once: the
-        # kinematics calls read qpos/qvel and never write them)
+        # kinematics calls read qpos/qvel and never write them); check_task refuses a task where
+        # such a joint moves a point, so they move none of the points read here
         d.qpos[:] = self._qinit
         d.qvel[:] = 0.0
         plan = []
