@@ -20,7 +20,8 @@ A run directory (``soc-opt run|compare --out DIR``) holds
 
 **Contract.**  ``config.json`` and ``task.json`` are the contract of the run: a run started
 again on the directory resumes only if the method, seed, the configuration sections that method
-reads (``Method.sections``, :mod:`soc_opt.methods.registry`), the resolved task configuration and the MJCF
+reads (``Method.sections``, :mod:`soc_opt.methods.registry`; compared in full: a key missing from the
+record is a difference, :func:`differences`), the resolved task configuration and the MJCF
 files are the same; otherwise :class:`RunDirectoryError` lists what differs.  A directory with no
 finished iteration (no checkpoint) holds nothing to protect: its contract is replaced.
 
@@ -28,6 +29,13 @@ finished iteration (no checkpoint) holds nothing to protect: its contract is rep
 the file names its pid and host.  The kernel drops the lock when the holder exits, even when it is
 killed, so a lock file left behind by a dead process is stale and simply taken over; a live
 holder makes a second writer fail at once with a message naming it.
+
+**Ownership.**  ``config.json`` holds ``"format": "soc_opt run"``: what marks a folder as a run directory
+(:func:`run_record`; a record written before the mark is recognised by its ``method``, ``seed`` and
+``config``).  A folder that is neither new, empty nor a run directory is refused before anything, the
+lock file included, is written (:meth:`RunDirectory.check_owned`); ``--restart`` removes only the names
+a run writes.  Nothing is written, truncated or removed through a symbolic link below the folder the
+caller owns (:mod:`soc_opt.files`, docs/security.md).
 
 **Writes.**  Every file is written to a temporary name and renamed into place (atomic); the
 checkpoint is written last, after the iteration's other files, and the previous one is kept as
