@@ -257,3 +257,24 @@ def test_example_toml_replaces_the_pendulum_reward_by_its_cost_terms():
     s[:, 1] = 0.1  # hinge angle
     a = np.full((task.T, 1), 2.0)
     np.testing.assert_allclose(task.cost(s, a), 0.5 * 10.0 * 0.1**2 + 0.5 * 0.01 * 4.0)
+
+
+def test_the_figure_points_of_a_gym_task_are_its_state_points_also_when_they_are_bodies(tmp_path):
+    """Gymnasium's pusher has no sites: its state points are bodies.  The figures' points must be those
+    points (one per name, at the state's coordinates), not the leaf bodies of the tree (issue 34: the
+    run's figures failed with an IndexError after the last iteration)."""
+    from soc_opt.experiments import report
+    from soc_opt.experiments.compare import point_names
+
+    path = tmp_path / "pusher.toml"
+    path.write_text('model = "gym:Pusher-v5"\nT = 4\n[state]\nsites = ["tips_arm", "object"]\n')
+    task = load_task(path)
+    x = np.stack([task.x0, task.x0 + 0.01])
+    pts = task.ee_points(x)
+    assert pts.shape == (2, 2, 3) and point_names(task) == ["tips_arm", "object"]
+    labels = task.state_labels
+    for i, name in enumerate(("tips_arm", "object")):
+        idx = [labels.index(f"{name}.{c}") for c in "xyz"]
+        np.testing.assert_array_equal(pts[:, i], x[:, idx])
+    fig = report.plot_ee({"lqr-flm": pts[None]}, task.dt, tmp_path / "ee.png", "pusher", point_names=point_names(task))
+    assert fig.stat().st_size > 0

@@ -98,7 +98,7 @@ def plot_ee(points: dict, dt: float, path: Path, title: str, point_names=None, t
     for p in range(P):
         for j, c in enumerate(used):
             ax = axes[p, j]
-            pname = point_names[p] if point_names else f"point {p}"
+            pname = point_names[p] if point_names and p < len(point_names) else f"point {p}"
             ax.set_title(f"{pname}: {'xyz'[c]}")
             if targets is not None:
                 ax.axhline(targets[p][c], color="k", lw=0.8, ls=":", label="target" if (p, j) == (0, 0) else None)

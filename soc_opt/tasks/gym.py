@@ -315,7 +315,7 @@ class GymMujocoTask(MujocoTask):
     def ee_points(self, x) -> np.ndarray:
         """``(..., P, 3)`` points for figures: the state sites, or else the positions of the leaf
         bodies of the kinematic tree (:attr:`ee_bodies`, e.g. a pendulum's pole, a cheetah's feet)."""
-        if self._site_ids:
+        if self.point_refs:  # the state points (sites or bodies)
             return super().ee_points(x)
         mj = import_mujoco()
         x = np.asarray(x, dtype=float)
