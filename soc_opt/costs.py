@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -74,6 +75,14 @@ def ramp(kind: str, T: int, final_multiplier: float = 1.0) -> np.ndarray:
     else:
         raise ValueError(f"unknown ramp {kind!r}; allowed: {', '.join(RAMPS)}")
     r[-1] *= final_multiplier
+    return r
+
+
+@lru_cache(maxsize=256)
+def _ramp_cached(kind: str, T: int, final_multiplier: float) -> np.ndarray:
+    """:func:`ramp`, computed once per ``(kind, T, final_multiplier)`` (read-only: it is shared)."""
+    r = ramp(kind, T, final_multiplier)
+    r.flags.writeable = False
     return r
 
 
@@ -120,7 +129,24 @@ class CostTerm(ABC):
 
     def multipliers(self, T: int) -> np.ndarray:
         """``weight * r (T,)``."""
-        return self.weight * ramp(self.ramp, T, self.final_multiplier)
+        return self.weight * _ramp_cached(self.ramp, T, self.final_multiplier)
+
+    def stage(self, s_k, a_k, k: int, T: int) -> np.float64:
+        """``weight * r_k * l_k(s_k, a_k)`` of one stage ``k`` of a horizon-``T`` trajectory, in O(1).
+
+        ``s_k (n,)``, ``a_k (m,)``.  Equal bit for bit to ``self(s, a)[..., k]`` for any
+        trajectory ``s``, ``a`` through ``(s_k, a_k)`` at stage ``k``: the same kernel
+        (``_value``) on a one-stage slice -- every kernel reduces each stage's own row only, so
+        its rounding does not depend on the number of stages -- times the same multiplier
+        (docs/gym.md, "Reward").
+        """
+        s_k = np.asarray(s_k, dtype=float)
+        a_k = np.asarray(a_k, dtype=float)
+        if s_k.shape != (self.n,) or a_k.shape != (self.m,):
+            raise ShapeError(f"{self.name} cost: one stage needs s_k ({self.n},) and a_k ({self.m},), got {s_k.shape}, {a_k.shape}")
+        if not 0 <= k < T:
+            raise ValueError(f"{self.name} cost: stage {k} outside 0..{T - 1}")
+        return self._value(s_k[None], a_k[None])[0] * (self.weight * _ramp_cached(self.ramp, T, self.final_multiplier)[k])
 
     def _split(self, s, a):
         s = np.asarray(s, dtype=float)
@@ -351,6 +377,18 @@ class CostSum:
         for t in self.terms:
             out = out + t(s, a)
         return out
+
+    def stage(self, s_k, a_k, k: int, T: int) -> float:
+        """Stage cost ``l_k(s_k (n,), a_k (m,))`` of stage ``k`` of a horizon-``T`` trajectory, in O(1).
+
+        Equal bit for bit to ``self(s, a)[..., k]`` of any trajectory through ``(s_k, a_k)`` at
+        stage ``k`` (:meth:`CostTerm.stage`, added in the same order from the same zero); what
+        :class:`soc_opt.envs.SocOptEnv` charges per step (docs/gym.md, "Reward").
+        """
+        out = 0.0
+        for t in self.terms:
+            out = out + t.stage(s_k, a_k, k, T)
+        return float(out)
 
     def derivatives(self, s, a) -> Derivatives:
         """Costs and derivatives along one trajectory ``s (T+1 or T, n)``, ``a (T, m)``."""
