@@ -110,6 +110,17 @@ def _zeros(T: int, n: int, m: int) -> Derivatives:
     )
 
 
+def _one_stage(name: str, n: int, m: int, s_k, a_k, k: int, T: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(s_k (1, n), a_k (1, m))`` as float rows, after checking the shapes and ``0 <= k < T``."""
+    s_k = np.asarray(s_k, dtype=float)
+    a_k = np.asarray(a_k, dtype=float)
+    if s_k.shape != (n,) or a_k.shape != (m,):
+        raise ShapeError(f"{name}: one stage needs s_k ({n},) and a_k ({m},), got {s_k.shape}, {a_k.shape}")
+    if not 0 <= k < T:
+        raise ValueError(f"{name}: stage {k} outside 0..{T - 1}")
+    return s_k[None], a_k[None]
+
+
 class CostTerm(ABC):
     """Base class: ``weight * r_k * l_k(s_k, a_k)``.
 
@@ -140,13 +151,11 @@ class CostTerm(ABC):
         its rounding does not depend on the number of stages -- times the same multiplier
         (docs/gym.md, "Reward").
         """
-        s_k = np.asarray(s_k, dtype=float)
-        a_k = np.asarray(a_k, dtype=float)
-        if s_k.shape != (self.n,) or a_k.shape != (self.m,):
-            raise ShapeError(f"{self.name} cost: one stage needs s_k ({self.n},) and a_k ({self.m},), got {s_k.shape}, {a_k.shape}")
-        if not 0 <= k < T:
-            raise ValueError(f"{self.name} cost: stage {k} outside 0..{T - 1}")
-        return self._value(s_k[None], a_k[None])[0] * (self.weight * _ramp_cached(self.ramp, T, self.final_multiplier)[k])
+        return self._stage(*_one_stage(f"{self.name} cost", self.n, self.m, s_k, a_k, k, T), k, T)
+
+    def _stage(self, s1, a1, k: int, T: int) -> np.float64:
+        """:meth:`stage` of checked one-row arrays ``s1 (1, n)``, ``a1 (1, m)``."""
+        return self._value(s1, a1)[0] * (self.weight * _ramp_cached(self.ramp, T, self.final_multiplier)[k])
 
     def _split(self, s, a):
         s = np.asarray(s, dtype=float)
@@ -385,9 +394,10 @@ class CostSum:
         stage ``k`` (:meth:`CostTerm.stage`, added in the same order from the same zero); what
         :class:`soc_opt.envs.SocOptEnv` charges per step (docs/gym.md, "Reward").
         """
+        s1, a1 = _one_stage("cost", self.n, self.m, s_k, a_k, k, T)
         out = 0.0
         for t in self.terms:
-            out = out + t.stage(s_k, a_k, k, T)
+            out = out + t._stage(s1, a1, k, T)
         return float(out)
 
     def derivatives(self, s, a) -> Derivatives:
