@@ -34,13 +34,17 @@ def _drive(env, actions, seed: int) -> float:
     return time.perf_counter() - t0
 
 
-def run(env_ids=ENV_IDS, steps: int = 5000, warmup: int = 1000, repeats: int = 5, seed: int = 0) -> list[dict]:
-    """Rows ``{"env", "T", "steps", "repeats", "median_steps_per_s", "min_steps_per_s", "max_steps_per_s"}``."""
+def run(env_ids=ENV_IDS, steps: int = 5000, warmup: int = 1000, repeats: int = 5, seed: int = 0,
+        T: int | None = None) -> list[dict]:
+    """Rows ``{"env", "T", "steps", "repeats", "median_steps_per_s", "min_steps_per_s", "max_steps_per_s"}``.
+
+    ``T``: every task's horizon instead of its own (a per-step cost that grows with ``T`` shows).
+    """
     from .. import envs as _envs  # registers the soc_opt ids
 
     rows = []
     for env_id in env_ids:
-        env = _envs.make(env_id)
+        env = _envs.make(env_id) if T is None else _envs.make(env_id, overrides={"T": int(T)})
         env.action_space.seed(seed)
         actions = [env.action_space.sample() for _ in range(steps)]
         _drive(env, actions[:warmup], seed)
@@ -53,6 +57,8 @@ def run(env_ids=ENV_IDS, steps: int = 5000, warmup: int = 1000, repeats: int = 5
 
 
 if __name__ == "__main__":
-    for row in run():
+    import sys
+
+    for row in run(T=int(sys.argv[1]) if len(sys.argv) > 1 else None):
         print(f"{row['env']:>22s} (T = {row['T']}): median {row['median_steps_per_s']:8.0f} steps/s "
               f"(range {row['min_steps_per_s']:.0f}-{row['max_steps_per_s']:.0f}, {row['repeats']} x {row['steps']} steps)")
