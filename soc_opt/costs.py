@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -77,6 +78,14 @@ def ramp(kind: str, T: int, final_multiplier: float = 1.0) -> np.ndarray:
     return r
 
 
+@lru_cache(maxsize=256)
+def _ramp_cached(kind: str, T: int, final_multiplier: float) -> np.ndarray:
+    """:func:`ramp`, computed once per ``(kind, T, final_multiplier)`` (read-only: it is shared)."""
+    r = ramp(kind, T, final_multiplier)
+    r.flags.writeable = False
+    return r
+
+
 @dataclass(frozen=True)
 class Derivatives:
     """Stage costs and their derivatives along one trajectory.
@@ -101,6 +110,17 @@ def _zeros(T: int, n: int, m: int) -> Derivatives:
     )
 
 
+def _one_stage(name: str, n: int, m: int, s_k, a_k, k: int, T: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(s_k (1, n), a_k (1, m))`` as float rows, after checking the shapes and ``0 <= k < T``."""
+    s_k = np.asarray(s_k, dtype=float)
+    a_k = np.asarray(a_k, dtype=float)
+    if s_k.shape != (n,) or a_k.shape != (m,):
+        raise ShapeError(f"{name}: one stage needs s_k ({n},) and a_k ({m},), got {s_k.shape}, {a_k.shape}")
+    if not 0 <= k < T:
+        raise ValueError(f"{name}: stage {k} outside 0..{T - 1}")
+    return s_k[None], a_k[None]
+
+
 class CostTerm(ABC):
     """Base class: ``weight * r_k * l_k(s_k, a_k)``.
 
@@ -120,7 +140,22 @@ class CostTerm(ABC):
 
     def multipliers(self, T: int) -> np.ndarray:
         """``weight * r (T,)``."""
-        return self.weight * ramp(self.ramp, T, self.final_multiplier)
+        return self.weight * _ramp_cached(self.ramp, T, self.final_multiplier)
+
+    def stage(self, s_k, a_k, k: int, T: int) -> np.float64:
+        """``weight * r_k * l_k(s_k, a_k)`` of one stage ``k`` of a horizon-``T`` trajectory, in O(1).
+
+        ``s_k (n,)``, ``a_k (m,)``.  Equal bit for bit to ``self(s, a)[..., k]`` for any
+        trajectory ``s``, ``a`` through ``(s_k, a_k)`` at stage ``k``: the same kernel
+        (``_value``) on a one-stage slice -- every kernel reduces each stage's own row only, so
+        its rounding does not depend on the number of stages -- times the same multiplier
+        (docs/gym.md, "Reward").
+        """
+        return self._stage(*_one_stage(f"{self.name} cost", self.n, self.m, s_k, a_k, k, T), k, T)
+
+    def _stage(self, s1, a1, k: int, T: int) -> np.float64:
+        """:meth:`stage` of checked one-row arrays ``s1 (1, n)``, ``a1 (1, m)``."""
+        return self._value(s1, a1)[0] * (self.weight * _ramp_cached(self.ramp, T, self.final_multiplier)[k])
 
     def _split(self, s, a):
         s = np.asarray(s, dtype=float)
@@ -351,6 +386,19 @@ class CostSum:
         for t in self.terms:
             out = out + t(s, a)
         return out
+
+    def stage(self, s_k, a_k, k: int, T: int) -> float:
+        """Stage cost ``l_k(s_k (n,), a_k (m,))`` of stage ``k`` of a horizon-``T`` trajectory, in O(1).
+
+        Equal bit for bit to ``self(s, a)[..., k]`` of any trajectory through ``(s_k, a_k)`` at
+        stage ``k`` (:meth:`CostTerm.stage`, added in the same order from the same zero); what
+        :class:`soc_opt.envs.SocOptEnv` charges per step (docs/gym.md, "Reward").
+        """
+        s1, a1 = _one_stage("cost", self.n, self.m, s_k, a_k, k, T)
+        out = 0.0
+        for t in self.terms:
+            out = out + t._stage(s1, a1, k, T)
+        return float(out)
 
     def derivatives(self, s, a) -> Derivatives:
         """Costs and derivatives along one trajectory ``s (T+1 or T, n)``, ``a (T, m)``."""

@@ -24,7 +24,8 @@ agent's actions instead of a linear-Gaussian policy:
   configured by the task), ``float64 (n,)``;
 * ``step(a_k)`` advances the task's own simulator (:meth:`LinearTask.simulator`,
   :meth:`MujocoTask.simulator`) by one control step; the reward is ``-Y_k``, the task's
-  stage cost of ``(s_k, a_k)`` evaluated by the task's cost function on the episode so far;
+  stage cost of ``(s_k, a_k)`` alone (:meth:`Task.stage_cost`: O(1) per step, bit for bit the
+  ``k``-th entry of :meth:`Task.cost` on the whole episode);
 * ``terminated`` is always false; ``truncated`` is true after ``T`` steps (stepping further
   raises);
 * ``info``: ``true_state`` (``x_k``), ``step`` (``k``) and, from ``step``, ``stage_cost``;
@@ -169,7 +170,7 @@ class SocOptEnv(gymnasium.Env):
         xi = None if self._xi is None else self._xi[k]
         self._x[0, k + 1] = self._sim.step(a, xi)
         self._s[0, k + 1] = self._x[0, k + 1] + self._eps[k + 1]
-        stage = float(task.cost(self._s, self._a)[0, k])
+        stage = task.stage_cost(self._s[0, k], self._a[0, k], k)  # O(1); = task.cost(s, a)[0, k] bit for bit
         self._k = k + 1
         truncated = self._k == task.T
         info = {"true_state": self._x[0, k + 1].copy(), "step": self._k, "stage_cost": stage}

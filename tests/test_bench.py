@@ -26,6 +26,7 @@ COLUMNS = {
     "iteration": {"method", "phase", "median_s", "n"},
     "noisefit": {"M", "method", "bias_A", "bias_B"},
     "gym_envs": {"env", "cost_first", "cost_last", "cost_best", "seconds_per_iteration", "error"},
+    "env_steps": {"env", "T", "steps", "repeats", "median_steps_per_s", "min_steps_per_s", "max_steps_per_s"},
 }
 
 

@@ -211,3 +211,32 @@ def test_errors_name_the_problem():
         TorqueCost(N, M_)(np.zeros((T + 1, N + 1)), np.zeros((T, M_)))
     with pytest.raises(ShapeError, match="expected \\(n=7, m=3\\)"):
         CostSum([TorqueCost(N, 2)], N, M_)
+
+
+@pytest.mark.parametrize("r", RAMPS)
+def test_one_stage_cost_equals_the_batched_cost_bit_for_bit(r):
+    """``CostTerm.stage`` / ``CostSum.stage`` (one stage, O(1); docs/gym.md "Reward") give exactly
+    the ``k``-th entry of the batched evaluation, for every term, ramp, horizon and scale."""
+    terms = _terms(r)
+    cs = CostSum(list(terms.values()), N, M_)
+    rng = np.random.default_rng(12)
+    for T_ in (1, 2, 7, 100):
+        for scale in (1e-3, 1.0, 1e3):
+            S = rng.normal(size=(3, T_ + 1, N)) * scale
+            A = rng.normal(size=(3, T_, M_)) * scale
+            full = {name: t(S, A) for name, t in terms.items()}
+            total = cs(S, A)
+            for i in range(3):
+                for k in range(T_):
+                    for name, t in terms.items():
+                        assert np.array_equal(t.stage(S[i, k], A[i, k], k, T_), full[name][i, k]), (name, T_, k)
+                    assert np.array_equal(cs.stage(S[i, k], A[i, k], k, T_), total[i, k]), (T_, k)
+
+
+def test_one_stage_cost_rejects_a_trajectory_or_a_stage_outside_the_horizon():
+    term = _terms()["torque"]
+    s, a = _traj()
+    with pytest.raises(ShapeError, match="one stage"):
+        term.stage(s, a, 0, T)
+    with pytest.raises(ValueError, match="stage 6 outside 0..5"):
+        term.stage(s[0], a[0], T, T)

@@ -109,6 +109,55 @@ def test_unseeded_reset_continues_the_seeded_stream():
     np.testing.assert_array_equal(x2, ro.x[0])
 
 
+def _whole_episode_cost_env(name, overrides=None):
+    """The environment as it was before issue 35: each step charged ``task.cost`` evaluated on the
+    whole episode so far (``(1, T+1, n)`` states and ``(1, T, m)`` actions, zeros after step ``k``),
+    entry ``k``.  Built by replacing its task's ``stage_cost`` with that evaluation."""
+    task = load_task(name, overrides=overrides)
+    env = envs.SocOptEnv(task)
+    task.stage_cost = lambda s_k, a_k, k: float(task.cost(env._s, env._a)[0, k])
+    return env
+
+
+def _assert_same_step(new, old):
+    """Observation, reward, flags and info of two ``step`` (or ``reset``) results, bit for bit."""
+    assert len(new) == len(old)
+    for a, b in zip(new[:-1], old[:-1]):
+        assert type(a) is type(b) and np.array_equal(a, b), (a, b)
+    info, ref = new[-1], old[-1]
+    assert set(info) == set(ref)
+    for key in info:
+        if key == "episode":
+            assert set(info[key]) == set(ref[key]) and all(np.array_equal(info[key][f], ref[key][f]) for f in ref[key])
+        elif key == "metrics":
+            assert info[key] == ref[key]
+        else:
+            assert type(info[key]) is type(ref[key]) and np.array_equal(info[key], ref[key]), key
+
+
+@pytest.mark.parametrize("name", ["linear2d", "peg", "door"])
+def test_o1_step_rewards_and_episodes_equal_the_whole_episode_cost_evaluation_bit_for_bit(name):
+    """Issue 35: ``step`` charges the new stage alone (``Task.stage_cost``, O(1)) and reproduces,
+    ``np.array_equal``, every observation, reward, flag and info of the whole-episode evaluation,
+    over seeded and unseeded episodes of random actions (the action space's samples)."""
+    overrides = {"T": 40} if name == "door" else None
+    env = envs.SocOptEnv(load_task(name, overrides=overrides))
+    ref = _whole_episode_cost_env(name, overrides)
+    env.action_space.seed(7)
+    T = env.task.T
+    for seed in (0, 1, None, 12345):
+        _assert_same_step(env.reset(seed=seed), ref.reset(seed=seed))
+        rewards = []
+        for _ in range(T):
+            a = env.action_space.sample()
+            out = env.step(a)
+            _assert_same_step(out, ref.step(a.copy()))
+            rewards.append(out[1])
+        # the episode's whole-trajectory cost is the per-step rewards, bit for bit
+        assert np.array_equal(-np.array(rewards), out[-1]["episode"]["cost"])
+        assert np.array_equal(env.episode().cost, ref.episode().cost)
+
+
 def test_task_env_takes_a_toml_path_and_truncates_at_T():
     env = gym.make("soc_opt/Task-v0", task=str(ROOT / "problems/linear2d/linear2d.toml"), overrides={"T": 4})
     env.reset(seed=0)

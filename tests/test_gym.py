@@ -114,6 +114,32 @@ def test_reward_expansion_matches_the_known_derivatives(arm_id):
                                task.cost(s, a), rtol=1e-9)
 
 
+def test_soc_opt_env_on_a_gym_task_evaluates_one_reward_per_step_equal_to_the_whole_episode_evaluation(arm_id):
+    """Issue 35 on a reward-as-cost task: ``SocOptEnv.step`` evaluates the environment's reward once
+    (``RewardCost.stage``), and its rewards and episodes are bit for bit those of the former
+    whole-episode evaluation (``task.cost`` on the episode so far, entry ``k``)."""
+    from soc_opt.envs import SocOptEnv
+
+    task, ref_task = (load_task(f"gym:{arm_id}", overrides={"T": 8, "rho2": 1e-3}) for _ in range(2))
+    env, ref = SocOptEnv(task), SocOptEnv(ref_task)
+    ref_task.stage_cost = lambda s_k, a_k, k: float(ref_task.cost(ref._s, ref._a)[0, k])
+    env.action_space.seed(3)
+    for seed in (0, None):
+        obs, _ = env.reset(seed=seed)
+        assert np.array_equal(obs, ref.reset(seed=seed)[0])
+        for k in range(task.T):
+            a = env.action_space.sample()
+            before = task.reward.evaluations
+            new, old = env.step(a), ref.step(a.copy())
+            if k < task.T - 1:  # the last step also evaluates the finished episode's cost and metrics
+                assert task.reward.evaluations - before == 1
+            for x, y in zip(new[:4], old[:4]):
+                assert np.array_equal(x, y)
+            assert np.array_equal(new[-1]["stage_cost"], old[-1]["stage_cost"])
+        assert np.array_equal(new[-1]["episode"]["cost"], old[-1]["episode"]["cost"])
+        assert np.array_equal(new[-1]["episode"]["s"], old[-1]["episode"]["s"])
+
+
 def test_rollout_costs_and_states_equal_the_environment_stepped_with_the_same_actions():
     env_id = "InvertedDoublePendulum-v5"
     task = load_task(f"gym:{env_id}", overrides={"T": 30, "rho2": 0.0})

@@ -16,9 +16,9 @@ from ..config import ConfigError
 __all__ = ["PARTS", "DEFAULT_PARTS", "SUPPORT", "parse_parts", "run_part"]
 
 #: Every benchmark part, in the order ``soc-opt bench`` runs them.
-PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration", "noisefit", "gym_envs")
+PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration", "noisefit", "gym_envs", "env_steps")
 #: The parts of a plain ``soc-opt bench`` (``noisefit``: ~3 CPU minutes, ``gym_envs``: minutes per
-#: environment; both only on request).
+#: environment; both only on request, as is ``env_steps``, the soc_opt Gymnasium environments' steps/s).
 DEFAULT_PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration")
 #: Modules of this package that are not ``bench`` parts: the solver benchmark of ``soc-opt solvers``
 #: (``solvers``, its report ``solvers_report``) and the fatrop build-time study (``fatrop_scale``).

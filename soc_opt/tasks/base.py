@@ -185,6 +185,15 @@ class TaskBase:
         """Stage costs ``(..., T)`` of states ``s (..., T+1, n)`` and actions ``a (..., T, m)``."""
         return self._cost(s, a)
 
+    def stage_cost(self, s_k, a_k, k: int) -> float:
+        """Stage cost ``Y_k`` of ``(s_k (n,), a_k (m,))`` at stage ``k`` alone, in O(1).
+
+        Bit for bit ``self.cost(s, a)[..., k]`` of any trajectory through ``(s_k, a_k)`` at
+        stage ``k`` (:meth:`soc_opt.costs.CostSum.stage`); the reward of one step of
+        :class:`soc_opt.envs.SocOptEnv` (docs/gym.md, "Reward").
+        """
+        return self._cost.stage(s_k, a_k, k, self.T)
+
     def true_cost(self, rollouts: Rollouts) -> np.ndarray:
         """``(M, T)`` stage costs on the true states ``x`` (for reporting)."""
         return self._cost(rollouts.x, rollouts.a)

@@ -178,6 +178,15 @@ class RewardCost(CostSum):
             self._last = (s, a, out.copy())
         return out
 
+    def stage(self, s_k, a_k, k: int, T: int) -> float:
+        """``-r(s_k, a_k)``: one stage, one reward evaluation (equal to ``self(s, a)[..., k]``)."""
+        s_k = np.asarray(s_k, dtype=float)
+        a_k = np.asarray(a_k, dtype=float)
+        if s_k.shape != (self.n,) or a_k.shape != (self.m,) or not 0 <= k < T:
+            raise ShapeError(f"reward cost: one stage needs s_k ({self.n},), a_k ({self.m},) and 0 <= k < {T}, "
+                             f"got {s_k.shape}, {a_k.shape}, k = {k}")
+        return float(-self.reward(s_k, a_k))
+
     def derivatives(self, s, a) -> Derivatives:
         """``-r`` and its finite-difference derivatives along ``s (T+1 or T, n)``, ``a (T, m)``."""
         a = np.asarray(a, dtype=float)
