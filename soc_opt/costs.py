@@ -207,14 +207,17 @@ class PointCost(CostTerm):
         idx: state indices of the point coordinates (``3 P`` for ``P`` stacked points).
         target: fixed target ``(len(idx),)``; or
         target_idx: state indices of a second, moving point (then ``d`` is the
-            weighted distance between the two points of the state).
+            weighted distance between the two points of the state);
+        target_offset: with ``target_idx``, a constant ``(len(idx),)`` added to the moving point
+            (e.g. a point 8 cm behind an object to push it from there; default 0).
         wp: per-coordinate weights (scalar, length 3 repeated per point, or ``len(idx)``).
         l1, l2, alpha: as in the formula (``alpha > 0`` keeps the root smooth).
     """
 
     name = "point"
 
-    def __init__(self, n, m, idx, *, target=None, target_idx=None, wp=1.0, l1=0.0, l2=1.0, alpha=1e-5, **kw):
+    def __init__(self, n, m, idx, *, target=None, target_idx=None, target_offset=None, wp=1.0, l1=0.0, l2=1.0,
+                 alpha=1e-5, **kw):
         super().__init__(n, m, **kw)
         idx = np.asarray(idx, dtype=int).ravel()
         if idx.size == 0 or idx.min() < 0 or idx.max() >= n:
@@ -229,7 +232,9 @@ class PointCost(CostTerm):
             if tidx.size != p or tidx.min() < 0 or tidx.max() >= n:
                 raise ValueError(f"point cost: target indices {tidx.tolist()} must be {p} indices below n={n}")
             S[np.arange(p), tidx] -= 1.0
-            self.target = np.zeros(p)
+            self.target = np.zeros(p) if target_offset is None else _vec("point cost target_offset", target_offset, p)
+        elif target_offset is not None:
+            raise ValueError("point cost: target_offset needs target_idx (a moving point to offset)")
         else:
             self.target = _vec("point cost target", target, p)
         self.S = S

@@ -34,6 +34,8 @@ def _terms(r="constant"):
         "point_l1_only": PointCost(N, M_, [0, 3, 6], target=[0.5, 0.0, -0.5], l1=1.0, l2=0.0, alpha=0.01, **kw),
         "point_moving_target": PointCost(N, M_, [0, 1, 2], target_idx=[3, 4, 5], wp=[1.0, 1.0, 3.0], l1=0.2, l2=1.0,
                                          alpha=0.1, **kw),
+        "point_moving_target_offset": PointCost(N, M_, [0, 1, 2], target_idx=[3, 4, 5], target_offset=[0.3, -0.1, 0.2],
+                                                wp=[1.0, 1.0, 3.0], l1=0.2, l2=1.0, alpha=0.1, **kw),
         "torque": TorqueCost(N, M_, wu=[1.0, 0.1, 2.0], **kw),
         "state": StateCost(N, M_, idx=[1, 4, 6], target=[0.3, -1.0, 2.0], weights=[1.0, 5.0, 0.2], **kw),
         "state_full": StateCost(N, M_, target=0.5, weights=2.0, **kw),
@@ -114,6 +116,15 @@ def test_point_cost_moving_target_is_distance_between_state_points():
     s, a = _traj(4)
     term = PointCost(N, M_, [0, 1, 2], target_idx=[4, 5, 6], l2=2.0)
     np.testing.assert_allclose(term(s, a), ((s[:T, 0:3] - s[:T, 4:7]) ** 2).sum(axis=1), rtol=1e-13)
+
+
+def test_point_cost_offset_target_is_the_distance_to_the_shifted_state_point():
+    s, a = _traj(4)
+    off = np.array([0.08, -0.05, 0.0])
+    term = PointCost(N, M_, [0, 1, 2], target_idx=[4, 5, 6], target_offset=off, l2=2.0)
+    np.testing.assert_allclose(term(s, a), ((s[:T, 0:3] - s[:T, 4:7] - off) ** 2).sum(axis=1), rtol=1e-13)
+    with pytest.raises(ValueError, match="target_offset needs target_idx"):
+        PointCost(N, M_, [0, 1, 2], target=[0.0, 0.0, 0.0], target_offset=off)
 
 
 def test_quadratic_cost_is_spec_formula():

@@ -44,3 +44,46 @@ def test_an_injected_upward_import_breaks_a_contract(tmp_path, module, upward):
     out = _lint(root)
     assert out.returncode != 0, out.stdout
     assert "BROKEN" in out.stdout
+
+
+def _private_imports(root: Path) -> list[str]:
+    """``file:line module.name`` for every private name (``_x``) one module of the package takes from
+    another: ``from m import _x``, or ``m._x`` on a module ``m`` the file imported."""
+    import ast
+
+    hits = []
+    for p in sorted((root / "soc_opt").rglob("*.py")):
+        tree = ast.parse(p.read_text())
+        modules = set()  # names bound to modules of the package
+        for n in ast.walk(tree):
+            if isinstance(n, ast.ImportFrom) and n.module != "__future__":
+                base = p.parent
+                for _ in range(max(n.level - 1, 0)):
+                    base = base.parent
+                if n.level == 0:
+                    base = root
+                where = base.joinpath(*(n.module or "").split(".")) if n.module else base
+                for a in n.names:
+                    if a.name.startswith("_") and not a.name.startswith("__"):
+                        hits.append(f"{p.relative_to(root)}:{n.lineno} {n.module}.{a.name}")
+                    elif (where / f"{a.name}.py").exists() or (where / a.name / "__init__.py").exists():
+                        modules.add(a.asname or a.name)
+            elif isinstance(n, ast.Import):
+                modules.update(a.asname for a in n.names if a.asname and a.name.startswith("soc_opt"))
+        for n in ast.walk(tree):
+            if (isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name) and n.value.id in modules
+                    and n.attr.startswith("_") and not n.attr.startswith("__")):
+                hits.append(f"{p.relative_to(root)}:{n.lineno} {n.value.id}.{n.attr}")
+    return hits
+
+
+def test_no_module_of_the_package_uses_another_modules_private_names():
+    assert _private_imports(ROOT) == []
+
+
+def test_the_private_name_check_sees_an_injected_private_import(tmp_path):
+    dst = _copy(tmp_path)
+    target = dst / "soc_opt" / "bench" / "estep.py"
+    target.write_text(target.read_text() + "\nfrom ..estep import _private_helper  # noqa\n")
+    assert any(h.startswith("soc_opt/bench/estep.py:") and h.endswith("estep._private_helper")
+               for h in _private_imports(dst))

@@ -228,6 +228,30 @@ def test_figures_written_where_links_were_planted_leave_the_link_targets_unchang
         assert (d / n).is_file() and not (d / n).is_symlink() and (d / n).stat().st_size > 0
 
 
+COMPARE_ARGS = ["compare", "linear2d", "--seeds", "1", "--iterations", "2", "--samples", "4", "--i-switch", "1",
+                "--progress", "lines"]
+
+
+@pytest.mark.parametrize("where", ["compare", "sweep"])
+def test_reports_rewritten_where_links_were_planted_leave_the_link_targets_unchanged(tmp_path, capsys, where):
+    d = tmp_path / where
+    if where == "compare":
+        args = [*COMPARE_ARGS, "--out", str(d)]
+        names = ["summary.json", "report.md", "actions.png", "cost_per_iteration.png", "seed_0/lqr-flm/final_eval.npz"]
+    else:
+        args = ["sweep", str(SWEEP), "--out", str(d), "--workers", "1"]
+        names = ["report.md", "summary.csv", "trials.csv", "status.json"]
+    assert main(args) == 0  # a finished directory; running again rewrites its report
+    targets = _outside(tmp_path, [n.replace("/", "_") for n in names])
+    for n, p in zip(names, targets):
+        (d / n).unlink()
+        (d / n).symlink_to(p)
+    assert main(args) == 0
+    _unchanged(targets)
+    for n in names:
+        assert (d / n).is_file() and not (d / n).is_symlink() and (d / n).stat().st_size > 0
+
+
 @pytest.mark.parametrize("where", ["run", "compare", "sweep"])
 def test_a_lock_planted_as_a_link_is_refused_and_its_target_keeps_its_bytes(finished, tmp_path, capsys, where):
     targets = _outside(tmp_path, ["lock"])

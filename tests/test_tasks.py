@@ -20,6 +20,7 @@ from soc_opt.tasks import (
     load_task,
     render_filmstrip,
 )
+from soc_opt.tasks.loading import problems_dir
 
 START = np.array([0.1, 0.1, -1.54, -1.7, 1.54, -0.2, 0.0])
 
@@ -676,3 +677,36 @@ def test_filmstrip_without_a_named_camera_frames_the_whole_robot(tmp_path, monke
     spec, Q = seen
     assert spec["camera"] is None
     assert _geom_spheres_in_view(task.model, Q, spec)
+
+
+def _peg_with_term(tmp_path, term: str):
+    from soc_opt.tasks import load_task
+
+    text = (problems_dir() / "peg" / "peg.toml").read_text().replace(
+        'model = "arm7_peg.xml"', f'model = "{(problems_dir() / "peg" / "arm7_peg.xml").as_posix()}"')
+    path = tmp_path / "peg_offset.toml"
+    path.write_text(text + "\n[[cost]]\ntype = \"point\"\nsites = [\"peg_top\"]\n" + term + "\n")
+    return load_task(path)
+
+
+def test_a_point_cost_to_another_point_plus_an_offset_charges_the_distance_to_the_shifted_point(tmp_path):
+    task = _peg_with_term(tmp_path, 'target_sites = ["peg_bottom"]\ntarget_offset = [0.0, 0.1, 0.3]\nl2 = 2.0\nl1 = 0.0')
+    base = _peg_with_term(tmp_path, 'target_sites = ["peg_bottom"]\ntarget_offset = [0.0, 0.0, 0.0]\nl2 = 0.0\nl1 = 0.0')
+    rng = np.random.default_rng(0)
+    s = task.x0 + 0.05 * rng.normal(size=(task.T + 1, task.n))
+    a = rng.normal(size=(task.T, task.m))
+    top, bottom = (s[:task.T, task.layout["site_pos"]].reshape(task.T, 2, 3)[:, i] for i in (0, 1))
+    expected = ((top - bottom - [0.0, 0.1, 0.3]) ** 2).sum(-1)  # 1/2 l2 d^2 with l2 = 2
+    np.testing.assert_allclose(task.cost(s[None], a[None])[0] - base.cost(s[None], a[None])[0], expected, rtol=1e-10,
+                               atol=1e-12)
+
+
+@pytest.mark.parametrize("term, says", [
+    ('target = [0.0, 0.3, -0.2]\ntarget_offset = [0.0, 0.0, 0.1]', "target_offset: only with 'target_sites'"),
+    ('target_sites = ["peg_bottom"]\ntarget_offset = [0.0, 0.1]', "target_offset: expected 3 numbers"),
+])
+def test_a_misplaced_or_misshaped_target_offset_is_refused_naming_it(tmp_path, term, says):
+    from soc_opt.config import ConfigError
+
+    with pytest.raises(ConfigError, match=says):
+        _peg_with_term(tmp_path, term)

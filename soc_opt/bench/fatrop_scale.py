@@ -28,9 +28,9 @@ __all__ = ["mx_stages", "measure"]
 
 def _vech_matrix(n: int) -> np.ndarray:
     """``E`` (n*n, n(n+1)/2) with ``vec(P) = E vech(P)`` (column-major ``vec``)."""
-    from ..lqg.fatrop_nlp import _vech_pairs
+    from ..lqg.fatrop_nlp import vech_pairs
 
-    pairs = _vech_pairs(n)
+    pairs = vech_pairs(n)
     E = np.zeros((n * n, len(pairs)))
     for idx, (i, j) in enumerate(pairs):
         E[i + j * n, idx] = 1.0
@@ -40,9 +40,9 @@ def _vech_matrix(n: int) -> np.ndarray:
 
 def _vech_select(n: int) -> np.ndarray:
     """``S`` with ``vech(P) = S vec(P)``."""
-    from ..lqg.fatrop_nlp import _vech_pairs
+    from ..lqg.fatrop_nlp import vech_pairs
 
-    pairs = _vech_pairs(n)
+    pairs = vech_pairs(n)
     S = np.zeros((len(pairs), n * n))
     for idx, (i, j) in enumerate(pairs):
         S[idx, i + j * n] = 1.0
@@ -57,7 +57,7 @@ def _stage_function_mx(ca, n: int, m: int, kind: str, r: int = 0, _orig=None):
         return _orig(ca, n, m, kind, r)
     nvp = n * (n + 1) // 2
     mu, pv = ca.MX.sym("mu", n), ca.MX.sym("p", nvp)
-    u = ca.MX.sym("u", F._n_controls(kind, n, m, r))
+    u = ca.MX.sym("u", F.n_controls(kind, n, m, r))
     sizes = [("A", n, n), ("B", n, m), ("c", n, 1), ("W", n, n), ("C", n + m, n + m), ("cl", n + m, 1),
              ("c0", 1, 1), ("Kh", m, n), ("kh", m, 1), ("R", m, m), ("logdetSh", 1, 1)]
     dat = ca.MX.sym("data", sum(a * b for _, a, b in sizes))
@@ -91,12 +91,12 @@ def mx_stages():
     """Use :func:`_stage_function_mx` for the free stages of :mod:`soc_opt.lqg.fatrop_nlp` inside the block."""
     from ..lqg import fatrop_nlp as F
 
-    orig = F._stage_function
-    F._stage_function = lambda ca, n, m, kind, r=0: _stage_function_mx(ca, n, m, kind, r, _orig=orig)
+    orig = F.stage_function
+    F.stage_function = lambda ca, n, m, kind, r=0: _stage_function_mx(ca, n, m, kind, r, _orig=orig)
     try:
         yield
     finally:
-        F._stage_function = orig
+        F.stage_function = orig
 
 
 class _Built(Exception):
@@ -133,11 +133,11 @@ def measure(n: int, m: int, T: int, *, mx: bool, seed: int = 0, budget: str = "p
     or MX (``mx``) stages: build and solve seconds, iterations, policy difference to the closed form.
     ``build_only``: stop after the solver is built and report ``build_s`` (graph + ``nlpsol``)."""
     from ..lqg import KLStepConfig, kl_step
-    from .lqg import _budget, make_instance
+    from .lqg import kl_budget_of, make_instance
 
     rng = np.random.default_rng([seed, n, m, T])
     prob = make_instance(n, m, T, rng)
-    nu = _budget(budget, T, rng)
+    nu = kl_budget_of(budget, T, rng)
     cfg = KLStepConfig(fatrop_expand=not mx)
     t0 = time.perf_counter()
     cf = kl_step(*prob[:3], nu, *prob[3:], config=cfg)

@@ -51,7 +51,7 @@ import numpy as np
 from ..lqg import KLStepConfig, kl_step
 from ..testing import make_kl_instance as make_instance
 
-__all__ = ["QUICK", "run", "make_instance", "FATROP_MAX_VARS"]
+__all__ = ["QUICK", "run", "make_instance", "kl_budget_of", "FATROP_MAX_VARS"]
 
 FATROP_MAX_VARS = 5000
 """Default ``fatrop_max_vars`` of :func:`run` (NLP variables in the closed-form count): fatrop's
@@ -59,7 +59,7 @@ solver build did not finish within 7 minutes at 21 700 (``n=26, m=7, T=100``).""
 _FATROP_SKIP_REASON = "solver build > 7 min and > 5.9 GB at n=26, m=7, T=100"
 
 
-def _budget(kind: str, T: int, rng: np.random.Generator):
+def kl_budget_of(kind: str, T: int, rng: np.random.Generator):
     per_step = rng.uniform(0.05, 0.5, T)
     return float(per_step.sum()) if kind == "total" else per_step
 
@@ -119,7 +119,7 @@ def _fatrop_columns(prob, nu, cf, config, run: bool) -> dict:
 def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None, run_fatrop: bool = True) -> dict:
     rng = np.random.default_rng([seed, n, m, T])
     prob = make_instance(n, m, T, rng)
-    nu = _budget(kind, T, rng)
+    nu = kl_budget_of(kind, T, rng)
     cf, times = _time_closed_form(prob, nu, repeats, config)
     row = {
         "n": n, "m": m, "T": T, "budget": kind,

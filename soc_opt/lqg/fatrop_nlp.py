@@ -83,13 +83,13 @@ from .moments import forward_arrays
 from .problem import KLProblem, KLStepConfig, KLStepResult, SolverError
 
 
-def _vech_pairs(n: int) -> list[tuple[int, int]]:
+def vech_pairs(n: int) -> list[tuple[int, int]]:
     """Index pairs of ``vech`` (lower triangle, column by column)."""
     return [(i, j) for j in range(n) for i in range(j, n)]
 
 
 def _stage_data(prob: KLProblem, t: int, with_ref_cov: bool) -> np.ndarray:
-    """Step ``t``'s data as one column-major vector (the layout :func:`_stage_function` unpacks)."""
+    """Step ``t``'s data as one column-major vector (the layout :func:`stage_function` unpacks)."""
     d, c, r = prob.dynamics, prob.cost, prob.reference
     parts = [d.A[t], d.B[t], d.c[t], d.cov[t], c.C[t], c.c[t], [c.c0[t]], r.K[t], r.k[t], prob.Shinv[t],
              [prob.logdetSh[t]]]
@@ -111,7 +111,7 @@ def _ldl_pivots(ca, M, size: int) -> list:
     return piv
 
 
-def _stage_function(ca, n: int, m: int, kind: str, r: int = 0):
+def stage_function(ca, n: int, m: int, kind: str, r: int = 0):
     """SX function ``(mu, vech P, u, data) -> (E[l], KL, mu', vech P')`` of one kind of stage.
 
     Kinds: ``"moment"`` (a free step, controls ``(a_mean, vec Cov(a, s), vech Cov(a))``),
@@ -120,9 +120,9 @@ def _stage_function(ca, n: int, m: int, kind: str, r: int = 0):
     controls ``(a_mean, vec Cov(a, U^T s), vech Cov(a))``), ``"pin"`` (``nu_k = 0``, the
     reference, no controls).
     """
-    vp = _vech_pairs(n)
+    vp = vech_pairs(n)
     mu, pv = ca.SX.sym("mu", n), ca.SX.sym("p", len(vp))
-    u = ca.SX.sym("u", _n_controls(kind, n, m, r))
+    u = ca.SX.sym("u", n_controls(kind, n, m, r))
     sizes = [("A", n, n), ("B", n, m), ("c", n, 1), ("W", n, n), ("C", n + m, n + m), ("cl", n + m, 1),
              ("c0", 1, 1), ("Kh", m, n), ("kh", m, 1), ("R", m, m), ("logdetSh", 1, 1)]
     if kind == "pin":
@@ -146,13 +146,13 @@ def _stage_function(ca, n: int, m: int, kind: str, r: int = 0):
 
 def _sym_from_vech(ca, v, n: int):
     P = ca.SX(n, n)
-    for idx, (i, j) in enumerate(_vech_pairs(n)):
+    for idx, (i, j) in enumerate(vech_pairs(n)):
         P[i, j] = v[idx]
         P[j, i] = v[idx]
     return P
 
 
-def _n_controls(kind: str, n: int, m: int, r: int = 0) -> int:
+def n_controls(kind: str, n: int, m: int, r: int = 0) -> int:
     return {"moment": m + m * n + m * (m + 1) // 2, "moment0": m + m * r + m * (m + 1) // 2, "pin": 0}[kind]
 
 
@@ -190,7 +190,7 @@ def _moment_terms(ca, D: dict, n: int, m: int, mu, P, u, U=None):
 class _FatropOCP:
     """The stage layout of the multiple-shooting NLP (see the module docstring).
 
-    Per step ``t``: a stage kind (:func:`_stage_function`), ``nx[t]`` states (0 at ``t = 0``),
+    Per step ``t``: a stage kind (:func:`stage_function`), ``nx[t]`` states (0 at ``t = 0``),
     ``nu[t]`` controls, ``ng[t]`` path rows (the KL row, if any), in fatrop's order.
     """
 
@@ -207,7 +207,7 @@ class _FatropOCP:
                       for t, k in enumerate(kind)]
         nxs = n + self.nvp + (1 if scalar else 0)
         self.nx = [0] + [nxs] * (T - 1)
-        self.nu = [_n_controls(k, n, m, self.U0.shape[1]) for k in self.stage]
+        self.nu = [n_controls(k, n, m, self.U0.shape[1]) for k in self.stage]
         free = kind == "free"
         if scalar:
             self.has_kl = np.zeros(T, bool)
@@ -241,19 +241,19 @@ class _FatropOCP:
         Saa = Sas @ ref.K[t].T + S0[t]
         if kind == "moment0":
             Sas = Sas @ self.U0
-        x0 = list(ref.K[t] @ mu + ref.k[t]) + list(np.ravel(Sas, order="F")) + [Saa[i, j] for i, j in _vech_pairs(m)]
+        x0 = list(ref.K[t] @ mu + ref.k[t]) + list(np.ravel(Sas, order="F")) + [Saa[i, j] for i, j in vech_pairs(m)]
         return x0, [-np.inf] * len(x0)
 
     def build(self, ca, ub):
         """``(nlp dict, x0, lbx, lbg, ubg)`` of the MX graph, variables and rows in fatrop's order."""
         prob, T, n = self.prob, self.T, self.n
         ref = prob.reference
-        funcs = {k: _stage_function(ca, n, self.m, k, self.U0.shape[1]) for k in set(self.stage)}
+        funcs = {k: stage_function(ca, n, self.m, k, self.U0.shape[1]) for k in set(self.stage)}
         X = [None] + [ca.MX.sym(f"x{t}", self.nx[t]) for t in range(1, T)]
         U = [ca.MX.sym(f"u{t}", self.nu[t]) for t in range(T)]
         S0 = self._start_covariances(ub)
         mg = forward_arrays(prob.dynamics, ref.K, ref.k, S0, prob.mu0, prob.P0)
-        vp = _vech_pairs(n)
+        vp = vech_pairs(n)
         w, x0, lbx, g, lbg, ubg = [], [], [], [], [], []
         obj = 0
         n_free = 0
@@ -340,7 +340,7 @@ def _alpha_for_kl(b: float) -> float:
 
 def _vech_to_sym(v: np.ndarray, n: int) -> np.ndarray:
     P = np.zeros((n, n))
-    for idx, (i, j) in enumerate(_vech_pairs(n)):
+    for idx, (i, j) in enumerate(vech_pairs(n)):
         P[i, j] = P[j, i] = v[idx]
     return P
 

@@ -138,7 +138,13 @@ class TaskBase:
                     tidx = self._site_indices(t.target_sites, f"{key}.target_sites")
                     if t.target is not None:
                         raise ConfigError(f"{key}: give either 'target' or 'target_sites', not both")
-                    return PointCost(self.n, self.m, idx, target_idx=tidx, wp=t.wp, l1=t.l1, l2=t.l2, alpha=t.alpha, **common)
+                    if t.target_offset is not None and len(t.target_offset) != len(idx):
+                        raise ConfigError(f"{key}.target_offset: expected {len(idx)} numbers (3 per site), "
+                                          f"got {len(t.target_offset)}")
+                    return PointCost(self.n, self.m, idx, target_idx=tidx, target_offset=t.target_offset, wp=t.wp, l1=t.l1,
+                                     l2=t.l2, alpha=t.alpha, **common)
+                if t.target_offset is not None:
+                    raise ConfigError(f"{key}.target_offset: only with 'target_sites' (a fixed 'target' needs no offset)")
                 if t.target is None:
                     raise ConfigError(f"{key}: missing 'target' (or 'target_sites')")
                 if len(t.target) != len(idx):

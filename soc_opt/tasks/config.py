@@ -48,7 +48,8 @@ class PointTermConfig(Config):
     """``type = "point"``: ``1/2 l2 d^2 + l1 sqrt(alpha + d^2)`` of stacked site positions.
 
     ``sites`` (MuJoCo) or ``indices`` (any task) pick the point coordinates; the
-    target is a fixed ``target`` (3 per site) or ``target_sites`` (moving points).
+    target is a fixed ``target`` (3 per site) or ``target_sites`` (moving points), optionally shifted
+    by ``target_offset`` (3 per site, world frame: ``d`` measured to ``target_site + offset``).
     """
 
     type: Literal["point"] = "point"
@@ -56,6 +57,7 @@ class PointTermConfig(Config):
     indices: tuple[int, ...] = ()
     target: tuple[float, ...] | None = None
     target_sites: tuple[str, ...] = ()
+    target_offset: tuple[float, ...] | None = None
     wp: FloatOrList = 1.0
     l1: float = 0.0
     l2: float = 1.0
