@@ -110,6 +110,12 @@ def _f(x) -> float:
     return float(x.mid()) if isinstance(x, arb) else float(x)
 
 
+def _qtext(x: fmpq) -> str:
+    """A rational for display: exact when short, else its float (marked nonzero when it is)."""
+    t = str(x)
+    return t if len(t) <= 40 else f"{float(x):.3g} (exact rational, {'nonzero' if x != 0 else 'zero'})"
+
+
 def _show(M: fmpq_mat, digits: int = 6) -> list:
     return [[round(float(v), digits) for v in row] for row in M.tolist()]
 
@@ -337,10 +343,10 @@ def _uniqueness_gain(c, lines):
     g1, g2 = gradient(steps[k], F1, mom), gradient(steps[k], F2, mom)
     H, B = _H(steps[k]), steps[k][1]
     P = _cov_block(C, n, k, k)
-    lines.append(f"  stacked B_{k} = {_show(B)} (rank {B.rank()} of m = {B.ncols()}); det H_{k} = {H.det()}; "
+    lines.append(f"  stacked B_{k} = {_show(B)} (rank {B.rank()} of m = {B.ncols()}); det H_{k} = {_qtext(H.det())}; "
                  f"P_{k}|T = {_show(P)}")
     lines.append(f"  F1 = {_show(F1)}, F2 = {_show(F2)}; Lbar(F1) = {_f(lbar(steps[k], F1, Sig, mom)):.12g}, "
-                 f"Lbar(F2) - Lbar(F1) = {lbar_rational(steps[k], F2, Sig, mom) - lbar_rational(steps[k], F1, Sig, mom)}")
+                 f"Lbar(F2) - Lbar(F1) = {_qtext(lbar_rational(steps[k], F2, Sig, mom) - lbar_rational(steps[k], F1, Sig, mom))}")
     fails = all([
         _check(lines, _pos_def(steps[k][3]), f"So_{k} > 0 (so Lbar is concave in [K k] and a zero gradient is a maximum)"),
         _check(lines, F1 != F2, "F1 != F2"),
@@ -378,9 +384,10 @@ def _uniqueness_sigma(c, lines):
         _check(lines, _pos_def(H), f"H_{k} > 0"),
         _check(lines, _pos_def(Smin), "Sigma_min > 0"),
         _check(lines, _is_zero(gradient(steps[k], F, mom)), "gradient in [K k] exactly 0 at F"),
-        _check(lines, True, "corrected: for D >= 0, D != 0, Lbar(F, Sigma_min + D) - Lbar(F, Sigma_min) = -tr(H D)/2 < 0, "
-                            "so (F, Sigma_min) is the unique maximiser on {Sigma >= Sigma_min}"),
     ])
+    if corrected:
+        lines.append("  so, Lbar being affine in Sigma: Lbar(F, Sigma_min + D) - Lbar(F, Sigma_min) = -tr(H D)/2 < 0 for every "
+                     "D >= 0, D != 0, and (F, Sigma_min) is the unique maximiser on {Sigma >= Sigma_min}")
     return fails, corrected
 
 
