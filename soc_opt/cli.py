@@ -441,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--seed", type=int, default=0)
     v.add_argument("--instances", type=int, help="instances per claim (default 20; --full 100)")
     v.add_argument("--full", action="store_true", help="more instances and the literal CVXPY sweep")
-    v.add_argument("--replay", nargs="+", metavar="FILE", help="re-check certificate files with plain numpy")
+    v.add_argument("--replay", nargs="+", metavar="FILE", help="re-check certificate files in exact rational and interval arithmetic")
     v.add_argument("--write-certificates", dest="write_certificates", metavar="DIR",
                    help="run the counterexample searches and write their certificates to DIR")
     v.add_argument("--only", help="comma-separated claim keys (uniqueness, uniqueness_sigma, ltv, dpsoc, "

@@ -70,14 +70,25 @@ def random_spd_spectrum(rng: np.random.Generator, d: int, lo: float, hi: float) 
 
 
 def _null_space_rows(rng: np.random.Generator, m: int, b_rank: int, b_null) -> np.ndarray:
-    """``V`` (``b_rank x m``) whose rows span part of the orthogonal complement of ``b_null``."""
+    """Integer ``V`` (``b_rank x m``) with ``V @ b_null == 0`` exactly.
+
+    ``b_null`` (an integer vector with ``b_null[0] != 0``; by default random nonzero integers
+    in ``[-3, 3]``) spans the null space; the rows are ``b_null[0] e_j - b_null[j] e_0``
+    (``j = 1..b_rank``), so with small integers every product ``U @ V`` of dyadic ``U`` is exact
+    in binary floating point and the rank deficiency is exact, not numerical (docs/math.md §9.1).
+    """
     if not 0 <= b_rank < m:
         raise ValueError(f"b_rank must be in [0, m) = [0, {m}), got {b_rank}")
     if b_null is None:
-        b_null = rng.standard_normal(m)
-    b_null = np.asarray(b_null, dtype=float) / np.linalg.norm(b_null)
-    basis = np.linalg.svd(np.eye(m) - np.outer(b_null, b_null))[0][:, : m - 1]
-    return basis[:, :b_rank].T
+        b_null = rng.integers(1, 4, size=m) * rng.choice([-1, 1], size=m)
+    w = np.asarray(b_null)
+    if w.shape != (m,) or not np.all(w == np.round(w)) or w[0] == 0:
+        raise ValueError(f"b_null must be {m} integers with b_null[0] != 0, got {b_null!r}")
+    w = w.astype(np.int64)
+    V = np.zeros((b_rank, m))
+    for j in range(1, b_rank + 1):
+        V[j - 1, 0], V[j - 1, j] = -w[j], w[0]
+    return V
 
 
 def random_augmented_model(
@@ -96,9 +107,10 @@ def random_augmented_model(
     ``1/sqrt(n)``, bias ``co_k ~ N(0, 0.25 I)`` and a full ``So_k`` (cross term between
     ``s_{k+1}`` and ``y_k`` present) with eigenvalues in ``[0.05, 0.5]``.
 
-    ``b_rank < m`` makes the action columns ``[B_k; By_k]`` rank-deficient: they are
-    ``U_k V`` with a fixed ``V`` (``b_rank x m``) shared by all steps, so the null space
-    (``b_null``, or a random unit vector) is the same at every step.
+    ``b_rank < m`` makes the action columns ``[B_k; By_k]`` exactly rank-deficient: they are
+    ``U_k V`` with a dyadic ``U_k`` and a fixed integer ``V`` (``b_rank x m``) shared by all
+    steps, so ``[B_k; By_k] b_null == 0`` holds exactly in floating point at every step
+    (``b_null``: integers, or random ones; see :func:`_null_space_rows`).
     """
     Ao = np.zeros((T, n + 1, n + m))
     co = np.zeros((T, n + 1))
@@ -111,7 +123,9 @@ def random_augmented_model(
         if V is None:
             Ao[k, :, n:] = rng.standard_normal((n + 1, m)) / np.sqrt(n)
         else:
-            Ao[k, :, n:] = rng.standard_normal((n + 1, b_rank)) @ V / np.sqrt(n)
+            # dyadic U (multiples of 2^-12) times the integer V: exact in float, so B_k b_null == 0 exactly
+            U = rng.standard_normal((n + 1, b_rank)) / (np.sqrt(n) * np.linalg.norm(V, axis=1))
+            Ao[k, :, n:] = (np.round(U * 4096) / 4096) @ V
         co[k] = 0.5 * rng.standard_normal(n + 1)
         So[k] = random_spd_spectrum(rng, n + 1, 0.05, 0.5)
     return AugmentedModel(Ao, co, So, n)

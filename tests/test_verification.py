@@ -125,6 +125,23 @@ def test_surrogate_hessian_is_minus_kron_and_singular_for_rank_deficient_B():
     assert np.linalg.matrix_rank(model.Bs[0]) == 1
 
 
+@pytest.mark.parametrize("seed", range(20))
+def test_rank_deficient_instances_are_exactly_rank_deficient(seed):
+    """b_rank = m - 1 gives stacked [B; By] whose rank is m - 1 in exact rational arithmetic (not only
+    numerically) at every step, with nonzero columns (docs/math.md §9.1)."""
+    from flint import fmpq_mat
+
+    from soc_opt.verification.replay import num
+
+    rng = np.random.default_rng(seed)
+    n, m, T = 1 + seed % 3, 2 + seed % 2, 3
+    model = G.random_augmented_model(rng, n, m, T, b_rank=m - 1)
+    for k in range(T):
+        B = model.Ao[k, :, n:]
+        assert fmpq_mat([[num(float(v)) for v in row] for row in B]).rank() == m - 1
+        assert np.all(np.abs(B).max(axis=0) > 0)
+
+
 def test_expected_stage_costs_matches_monte_carlo():
     rng = np.random.default_rng(5)
     T, n, m = 3, 2, 1

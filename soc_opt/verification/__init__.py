@@ -13,7 +13,7 @@ description.  ``docs/verification.md`` gives the exact definitions.
 
 The claims table (``registry``: each claim's statement as written, hypotheses, corrected
 statement, expected verdict; ``checks``: the checks through the library's code path;
-``certificates``: minimal counterexamples; ``replay``: their re-check in plain numpy) is what
+``certificates``: minimal counterexamples; ``replay``: their re-check in exact arithmetic) is what
 ``soc-opt verify`` runs; ``run_all`` gives the older per-row table (``soc-opt verify --rows``).
 
 Modules: ``claims_uniqueness`` (claim 1), ``claims_em`` (claims 2 and 3),

@@ -1,6 +1,7 @@
 """Minimal counterexamples to the claims that fail as written, found by a deterministic search and
-written as certificate files (JSON) that ``soc-opt verify --replay FILE`` re-checks with plain
-numpy (:mod:`soc_opt.verification.replay`, which imports nothing of the library).
+written as certificate files (JSON) that ``soc-opt verify --replay FILE`` re-checks in exact
+rational and interval arithmetic (:mod:`soc_opt.verification.replay`, which imports nothing of the
+library; docs/verification.md "Counterexamples").
 
 The search visits sizes ``(n, m, T)`` in increasing order of ``n + m + T`` (then ``n``, ``m``,
 ``T``) and, per size, ``seeds`` random instances (``Generator(PCG64([seed, n, m, T]))``); the
@@ -8,14 +9,21 @@ first instance on which the library's own code path (``estep.smooth``, ``mstep.s
 ``mstep.maximize``, ``mstep.surrogate_grad_hess``) shows the failure is the certificate.  Each
 certificate also records the numbers of the corrected statement on the same instance
 (docs/math.md §5, §9).
+
+Every datum is written exactly (:func:`exact_text`): the instance is the exact binary value of the
+floats the search used, and every point the argument needs to be *exactly* a maximiser (the two
+maximisers of the uniqueness counterexample, the M-step policies) is recomputed from that instance
+in exact rationals (:func:`soc_opt.verification.replay.maximiser`), not taken from the float code.
 """
 
 from __future__ import annotations
 
 import json
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
+from flint import fmpq, fmpq_mat
 
 from .. import estep, mstep
 from ..models import LinearGaussianPolicy
@@ -26,10 +34,11 @@ from ..testing import (
     random_spd_spectrum,
     sample_model_trajectory,
 )
+from . import replay as rp
 from .checks import em_inequality_gap, policy_F, with_F
 from .table import _json_safe
 
-__all__ = ["sizes", "search_uniqueness", "search_uniqueness_sigma", "search_ltv", "search_cost_decrease",
+__all__ = ["exact_text", "exact_tree", "sizes", "search_uniqueness", "search_uniqueness_sigma", "search_ltv", "search_cost_decrease",
            "search_free_energy", "SEARCHES", "write_certificates"]
 
 
@@ -44,6 +53,43 @@ def _rng(seed: int, n: int, m: int, T: int) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64([seed, n, m, T]))
 
 
+FORMAT = "soc_opt certificate v2"
+#: how a reader must take the numbers of ``data``
+ARITHMETIC = ("every datum is an exact rational: 'p/q', or a decimal string read exactly; the replay decides in exact "
+              "rational arithmetic, logarithms as interval balls (docs/verification.md)")
+
+
+def exact_text(x) -> str:
+    """The exact value of one number as text: the float's shortest decimal when that decimal *is* its
+    binary value, else ``"p/q"``; an ``fmpq``, ``Fraction`` or int as ``"p/q"`` / ``"p"``."""
+    if isinstance(x, (fmpq, Fraction)):
+        return str(x)
+    if isinstance(x, str):  # already exact text
+        Fraction(x)
+        return x
+    if isinstance(x, (bool, np.bool_)):
+        raise TypeError("a boolean is not a datum")
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    x = float(x)
+    if not np.isfinite(x):
+        raise ValueError(f"{x} is not finite")
+    r = repr(x)
+    fr = Fraction(x)
+    return r if Fraction(r) == fr else f"{fr.numerator}/{fr.denominator}"
+
+
+def exact_tree(obj):
+    """:func:`exact_text` applied to every number of a nested dict / list / array / ``fmpq_mat``."""
+    if isinstance(obj, dict):
+        return {k: (v if k in ("n", "step", "d") else exact_tree(v)) for k, v in obj.items()}
+    if isinstance(obj, fmpq_mat):
+        return [[str(v) for v in row] for row in obj.tolist()]
+    if isinstance(obj, (list, tuple, np.ndarray)):
+        return [exact_tree(v) for v in obj]
+    return exact_text(obj)
+
+
 def _model_dict(model) -> dict:
     return {"Ao": model.Ao, "co": model.co, "So": model.So, "n": model.n}
 
@@ -53,10 +99,27 @@ def _policy_dict(p: LinearGaussianPolicy) -> dict:
 
 
 def _cert(kind: str, claim: str, n: int, m: int, T: int, tried: list, data: dict, numbers: dict) -> dict:
-    return _json_safe({"format": "soc_opt certificate v1", "kind": kind, "claim": claim, "n": n, "m": m, "T": T,
-                       "search": {"order": "n+m+T ascending, then (n, m, T); seeds per size in order",
-                                  "tried": tried},
-                       "data": data, "library_numbers": numbers})
+    return {"format": FORMAT, "arithmetic": ARITHMETIC, "kind": kind, "claim": claim, "n": n, "m": m, "T": T,
+            "search": {"order": "n+m+T ascending, then (n, m, T); seeds per size in order", "tried": tried},
+            "data": exact_tree(data), "library_numbers": _json_safe(numbers)}
+
+
+def _exact_moments(data: dict, policy_key: str):
+    """Exact per-step model and smoothed moments of ``data`` (exact text) under ``data[policy_key]``."""
+    steps, _ = rp._model(data["model"])
+    mean, C, _ = rp.dense_smoother(data["model"], data[policy_key], data["y"], data["mu0"], data["P0"])
+    return steps, [rp.moments(mean, C, data["y"], k) for k in range(len(steps))]
+
+
+def _exact_mstep(data: dict, policy_key: str, cov) -> dict:
+    """The surrogate M-step from ``data[policy_key]``'s smoothing, exactly: per step the minimum-norm
+    maximiser of ``Lbar_k`` in ``[K_k k_k]`` (:func:`replay.maximiser`) and covariance ``cov[k]``."""
+    steps, moms = _exact_moments(data, policy_key)
+    Fs = [rp.maximiser(s, mom) for s, mom in zip(steps, moms)]
+    n = Fs[0].ncols() - 1
+    K = [[[str(F[i, j]) for j in range(n)] for i in range(F.nrows())] for F in Fs]
+    k = [[str(F[i, n]) for i in range(F.nrows())] for F in Fs]
+    return {"K": K, "k": k, "cov": exact_tree(cov)}
 
 
 def _search(found, seeds: int, max_total: int, m_min: int = 1):
@@ -107,8 +170,16 @@ def _uniqueness_found(rng, n, m, T):
     scale = max(1.0, abs(L1))
     if np.abs(gh.grad).max() > 1e-8 * scale or np.abs(g2).max() > 1e-8 * scale or abs(L1 - L2) > 1e-9 * scale:
         return None
-    data = {"model": _model_dict(model), "mu0": mu0, "P0": P0, "y": y, "policy": _policy_dict(policy),
-            "step": 0, "F1": F1[0], "F2": F2[0], "Sigma": first.cov[0]}
+    # the certificate's points, exactly: the minimum-norm maximiser and a move along the exact null vector of B
+    data = exact_tree({"model": _model_dict(model), "mu0": mu0, "P0": P0, "y": y, "policy": _policy_dict(policy),
+                       "step": 0})
+    steps, moms = _exact_moments(data, "policy")
+    v = rp.null_vector(steps[0][1])
+    if v is None:  # the float code saw a singular H that is not singular exactly
+        return None
+    G1 = rp.maximiser(steps[0], moms[0])
+    data.update({"F1": exact_tree(G1), "F2": exact_tree(G1 + v * fmpq_mat([[1] * (n + 1)])),
+                 "Sigma": [["0.1" if i == j else "0" for j in range(m)] for i in range(m)]})
     numbers = {"grad_at_F1": gh.grad, "grad_at_F2": g2, "Lbar_at_F1": L1, "Lbar_at_F2": L2,
                "hessian_eigenvalues": w, "H_eigenvalues": np.linalg.eigvalsh(
                    model.Bs[0].T @ np.linalg.solve(model.So[0], model.Bs[0])),
@@ -134,8 +205,11 @@ def _sigma_found(rng, n, m, T):
         vals.append(float(mstep.surrogate(model, sm, y, p)[0]))
     if not np.all(np.diff(vals) < 0):
         return None
-    data = {"model": _model_dict(model), "mu0": mu0, "P0": P0, "y": y, "policy": _policy_dict(policy), "step": 0,
-            "F": policy_F(new)[0], "Sigma_min": floor, "t": ts}
+    data = exact_tree({"model": _model_dict(model), "mu0": mu0, "P0": P0, "y": y, "policy": _policy_dict(policy),
+                       "step": 0, "Sigma_min": floor})
+    F = _exact_mstep(data, "policy", [floor])  # the exact maximiser in [K k], written as one matrix [K k]
+    data["F"] = [row_K + [row_k] for row_K, row_k in zip(F["K"][0], F["k"][0])]
+    data["t"] = ["0", "0.25", "0.5", "1", "2", "4"]
     numbers = {"Lbar_at_t_Sigma_min": vals, "maximiser_Sigma": new.cov[0],
                "grad_Sigma": mstep.surrogate_grad_hess(model, estep.moments(sm, y), 0, new).grad_sigma}
     return data, numbers
@@ -156,8 +230,10 @@ def _ltv_found(rng, n, m, T):
     g = em_inequality_gap(model, y, mu0, P0, policy, sm, new)
     if not (g["dL"] > 0 and g["dlogp"] < g["dL"] - 1e-6 * max(1.0, abs(g["logp_old"]))):
         return None
-    data = {"model": _model_dict(model), "mu0": mu0, "P0": P0, "y": y, "old": _policy_dict(policy),
-            "new": _policy_dict(new)}
+    data = exact_tree({"model": _model_dict(model), "mu0": mu0, "P0": P0, "y": y, "old": _policy_dict(policy)})
+    floor = [["0.05" if i == j else "0" for j in range(m)] for i in range(m)]
+    data["cov_floor"] = floor
+    data["new"] = _exact_mstep(data, "old", [floor] * T)  # the M-step, exactly (floor 0.05 = 1/20)
     return data, g
 
 
@@ -206,9 +282,10 @@ def _cost_found(rng, n, m, T):
     # the model's prior-predictive mean of y_0 under phi^i (an observed y below it pushes the update)
     mean_s = sys_["mu0"]
     ymean0 = float(model.Ao[0, n] @ np.concatenate([mean_s, phi.K[0] @ mean_s + phi.k[0]]) + model.co[0, n])
-    data = {"model": _model_dict(model), "mu0": sys_["mu0"], "P0": sys_["P0"], "y": Y, "old": _policy_dict(phi),
-            "new": _policy_dict(new), "exact_em": _policy_dict(ex),
-            "cost": {k: sys_[k] for k in ("Qs", "s_star", "Qa", "a_star")}, "true_system": sys_}
+    data = exact_tree({"model": _model_dict(model), "mu0": sys_["mu0"], "P0": sys_["P0"], "y": Y,
+                       "old": _policy_dict(phi), "exact_em": _policy_dict(ex),
+                       "cost": {k: sys_[k] for k in ("Qs", "s_star", "Qa", "a_star")}, "true_system": sys_})
+    data["new"] = _exact_mstep(data, "old", data["old"]["cov"])  # the surrogate M-step with Sigma held, exactly
     numbers = {**g, "EV_old": V[0], "EV_new": V[1], "logp_exact_em": lp_ex, "y0_prior_mean": ymean0}
     return data, numbers
 
@@ -238,14 +315,18 @@ def search_free_energy() -> dict:
                 F = [duality_objective(t * np.ones(d), S, mu, S, A, b, c, rho) for t in ts]
                 tried.append({"d": d, "rho": rho, "a": a})
                 if max(F) > duality_objective(mq, Cq, mu, S, A, b, c, rho) + 1e-9:
-                    data = {"d": d, "rho": rho, "mu": mu, "S": S, "A": A, "b": b, "c": c, "t": ts}
+                    # the tilted Q* exactly: covariance (S^-1 - rho A)^-1, mean Cq (S^-1 mu + rho b)
+                    Si_x, rho_x = rp.mat(exact_tree(S)).inv(), rp.num(exact_text(rho))
+                    Cq_x = (Si_x - rp.mat(exact_tree(A)) * rho_x).inv()
+                    mq_x = Cq_x * (Si_x * rp.col(exact_tree(mu)) + rp.col(exact_tree(b)) * rho_x)
+                    data = exact_tree({"d": d, "rho": rho, "mu": mu, "S": S, "A": A, "b": b, "c": c, "t": ts})
+                    data["Qstar"] = {"mean": [str(mq_x[i, 0]) for i in range(d)], "cov": exact_tree(Cq_x)}
                     numbers = {"lhs": lhs, "F_at_Qstar": duality_objective(mq, Cq, mu, S, A, b, c, rho),
                                "Qstar_mean": mq, "Qstar_cov": Cq, "F_at_Q_t": F}
-                    return _json_safe({"format": "soc_opt certificate v1", "kind": "free_energy",
-                                       "claim": "free_energy", "n": d, "m": 0, "T": 0,
-                                       "search": {"order": "d, then rho in (-1, -0.5, -2), a in (1, 0.5, 2)",
-                                                  "tried": tried},
-                                       "data": data, "library_numbers": numbers})
+                    return {"format": FORMAT, "arithmetic": ARITHMETIC, "kind": "free_energy", "claim": "free_energy",
+                            "n": d, "m": 0, "T": 0,
+                            "search": {"order": "d, then rho in (-1, -0.5, -2), a in (1, 0.5, 2)", "tried": tried},
+                            "data": data, "library_numbers": _json_safe(numbers)}
     raise RuntimeError("no free-energy counterexample found")
 
 
