@@ -36,7 +36,7 @@ from ..testing import (
 )
 from . import replay as rp
 from .checks import em_inequality_gap, policy_F, with_F
-from .table import _json_safe
+from .table import json_safe
 
 __all__ = ["exact_text", "exact_tree", "sizes", "search_uniqueness", "search_uniqueness_sigma", "search_ltv", "search_cost_decrease",
            "search_free_energy", "SEARCHES", "write_certificates"]
@@ -101,12 +101,12 @@ def _policy_dict(p: LinearGaussianPolicy) -> dict:
 def _cert(kind: str, claim: str, n: int, m: int, T: int, tried: list, data: dict, numbers: dict) -> dict:
     return {"format": FORMAT, "arithmetic": ARITHMETIC, "kind": kind, "claim": claim, "n": n, "m": m, "T": T,
             "search": {"order": "n+m+T ascending, then (n, m, T); seeds per size in order", "tried": tried},
-            "data": exact_tree(data), "library_numbers": _json_safe(numbers)}
+            "data": exact_tree(data), "library_numbers": json_safe(numbers)}
 
 
 def _exact_moments(data: dict, policy_key: str):
     """Exact per-step model and smoothed moments of ``data`` (exact text) under ``data[policy_key]``."""
-    steps, _ = rp._model(data["model"])
+    steps, _ = rp.exact_model(data["model"])
     mean, C, _ = rp.dense_smoother(data["model"], data[policy_key], data["y"], data["mu0"], data["P0"])
     return steps, [rp.moments(mean, C, data["y"], k) for k in range(len(steps))]
 
@@ -248,7 +248,7 @@ def search_ltv(seeds: int = 5, max_total: int = 6) -> dict:
 def _cost_found(rng, n, m, T):
     """Claim 3's pipeline at a fixed size: a stable linear system, rollouts, y = exp(-cost), a per-step
     least-squares augmented model, Y sampled from it, Sigma held at Sigma^i."""
-    from .claims_em import _ls_augmented, expected_stage_costs
+    from .claims_em import expected_stage_costs, ls_augmented
 
     Qo, _ = np.linalg.qr(rng.standard_normal((n, n)))
     sys_ = {"A": 0.95 * Qo, "B": rng.standard_normal((n, m)) / np.sqrt(n), "c": 0.1 * rng.standard_normal(n),
@@ -267,7 +267,7 @@ def _cost_found(rng, n, m, T):
                        + rng.standard_normal((M, n)) @ np.linalg.cholesky(sys_["W"]).T)
     ds = s[:, :T] - sys_["s_star"]
     cost = np.einsum("mti,ij,mtj->mt", ds, sys_["Qs"], ds) + np.einsum("mti,ij,mtj->mt", a, sys_["Qa"], a)
-    model = _ls_augmented(s, a, np.exp(-cost))
+    model = ls_augmented(s, a, np.exp(-cost))
     _, Y = sample_model_trajectory(rng, model, phi, sys_["mu0"], sys_["P0"])
     sm = estep.smooth(model, phi, Y, sys_["mu0"], sys_["P0"])
     new = mstep.maximize(model, sm, Y, constraints=mstep.MStepConstraints(cov_floor=phi.cov[0].tolist()))
@@ -326,7 +326,7 @@ def search_free_energy() -> dict:
                     return {"format": FORMAT, "arithmetic": ARITHMETIC, "kind": "free_energy", "claim": "free_energy",
                             "n": d, "m": 0, "T": 0,
                             "search": {"order": "d, then rho in (-1, -0.5, -2), a in (1, 0.5, 2)", "tried": tried},
-                            "data": data, "library_numbers": _json_safe(numbers)}
+                            "data": data, "library_numbers": json_safe(numbers)}
     raise RuntimeError("no free-energy counterexample found")
 
 

@@ -24,7 +24,7 @@ from ..testing import (
     random_spd_spectrum,
     sample_model_trajectory,
 )
-from .claims_uniqueness import _fd_hessian_vec
+from .claims_uniqueness import fd_hessian_vec
 
 __all__ = ["Outcome", "uniqueness_gain", "uniqueness_sigma", "lemma_ltv", "proposition_dpsoc",
            "theorem_cost_decrease", "em_inequality_gap"]
@@ -115,7 +115,7 @@ def library_hessians(inst: Instance) -> np.ndarray:
         F = F0 + v.reshape((m, n + 1), order="F")[None]
         return np.asarray(mstep.surrogate(model, inst.sm, inst.y, with_F(pol, F)))
 
-    return _fd_hessian_vec(f, m * (n + 1), 1e-2)
+    return fd_hessian_vec(f, m * (n + 1), 1e-2)
 
 
 def _rel_lambda_max(Hs: np.ndarray) -> float:
@@ -315,15 +315,15 @@ def theorem_cost_decrease(rng, instances: int, full: bool = False):
     (``objective='exact'``) does not lower ``log p(Y)``.  Instances: claim 3's linear systems with
     ``y = exp(-Y)`` and a per-step least-squares augmented model.
     """
-    from .claims_em import _claim3_instance, _ls_augmented, expected_stage_costs
+    from .claims_em import claim3_instance, expected_stage_costs, ls_augmented
 
     aw = Outcome("max of (E[V_new|Y] - E[V_old|Y])/max(1,E[V_old|Y]) over moves that raised L (held if <= 1e-9)")
     co = Outcome("min of (dlog p - dQ) and of the exact-EM dlog p, / max(1,|log p|) (held if >= -1e-9)",
                  larger_is_worse=False)
     cfg = mstep.MStepConfig(exact_max_iter=50)
     for _ in range(instances):
-        n, m, T, system, phi, s, a, yobs = _claim3_instance(rng, 40)
-        model = _ls_augmented(s, a, yobs)
+        n, m, T, system, phi, s, a, yobs = claim3_instance(rng, 40)
+        model = ls_augmented(s, a, yobs)
         _, Y = sample_model_trajectory(rng, model, phi, system["mu0"], system["P0"])
         mu0, P0 = system["mu0"], system["P0"]
         sm = estep.smooth(model, phi, Y, mu0, P0)

@@ -182,7 +182,7 @@ def expected_stage_costs(smoothed: Smoothed, policy: LinearGaussianPolicy, Qs, s
     return state + action
 
 
-def _ls_augmented(s: np.ndarray, a: np.ndarray, y: np.ndarray, ridge: float = 1e-6, jitter: float = 1e-6) -> AugmentedModel:
+def ls_augmented(s: np.ndarray, a: np.ndarray, y: np.ndarray, ridge: float = 1e-6, jitter: float = 1e-6) -> AugmentedModel:
     """Per-step least-squares fit of ``(s_{k+1}, y_k)`` on ``(s_k, a_k, 1)`` from ``M`` rollouts.
 
     ``So_k`` is the residual covariance with ``1/(M - (n+m+1))`` normalisation plus ``jitter I``.
@@ -204,7 +204,7 @@ def _ls_augmented(s: np.ndarray, a: np.ndarray, y: np.ndarray, ridge: float = 1e
     return AugmentedModel(Ao, co, So, n)
 
 
-def _claim3_instance(rng: np.random.Generator, M: int):
+def claim3_instance(rng: np.random.Generator, M: int):
     """A random stable linear system with quadratic costs, a policy ``phi^i`` and ``M`` rollouts under it."""
     n = int(rng.integers(1, 4))
     m = int(rng.integers(1, 3))
@@ -248,7 +248,7 @@ def claim3_cost_decrease(seed: int = 0, instances: int = 20, *, rollouts: int = 
     orthogonal, ``w ~ N(0, W)``), quadratic stage cost ``Y_k`` (docs/math.md §0, ``a* = 0``), a random
     policy ``phi^i``, ``rollouts`` rollouts under ``phi^i`` with ``y_k = exp(-Y_k)`` (costs scaled
     so that ``Y_k = O(1)``), an augmented model fitted by per-step least squares
-    (:func:`_ls_augmented`), one ``Y`` sampled from the fitted model under ``phi^i`` (the paper's
+    (:func:`ls_augmented`), one ``Y`` sampled from the fitted model under ``phi^i`` (the paper's
     Step 2), ``estep.smooth`` under ``phi^i``, and ``mstep.maximize`` (surrogate, time-varying)
     giving ``phi^{i+1}``.  ``L`` is ``sum_k mstep.surrogate`` with the same smoothed moments;
     ``E[V_phi|Y] = sum_k expected_stage_costs`` under the same smoothing distribution.
@@ -266,8 +266,8 @@ def claim3_cost_decrease(seed: int = 0, instances: int = 20, *, rollouts: int = 
     acc = {lab: {"tried": 0, "held": 0, "worst": -np.inf, "ce": None, "not_increased": 0, "errors": 0,
                  "dV": []} for lab, _ in _CLAIM3_VARIANTS}
     for _ in range(instances):
-        n, m, T, system, phi, s, a, y = _claim3_instance(rng, rollouts)
-        model = _ls_augmented(s, a, y)
+        n, m, T, system, phi, s, a, y = claim3_instance(rng, rollouts)
+        model = ls_augmented(s, a, y)
         _, Y_model = sample_model_trajectory(rng, model, phi, system["mu0"], system["P0"])
         cache = {}
         for lab, y_mode in _CLAIM3_VARIANTS:

@@ -303,7 +303,7 @@ def _mstep_rejects(model, sm, y) -> int:
     return 0
 
 
-def _fd_hessian_vec(f, d: int, h: float) -> np.ndarray:
+def fd_hessian_vec(f, d: int, h: float) -> np.ndarray:
     """Central second differences at 0 of a vector-valued ``f: R^d -> R^T``: returns ``(T, d, d)``.
 
     Exact for quadratics up to rounding.
@@ -340,7 +340,7 @@ def _claim1_fd_row(cases) -> ClaimResult:
             F = F0 + v.reshape((m, n + 1), order="F")[None]
             return np.asarray(ms.surrogate(model, sm, y, LinearGaussianPolicy(F[..., :n], F[..., n], policy.cov)))
 
-        Hfd = _fd_hessian_vec(f, m * (n + 1), 1e-2)  # (T, d, d)
+        Hfd = fd_hessian_vec(f, m * (n + 1), 1e-2)  # (T, d, d)
         ok_case = True
         vals0 = f(np.zeros(m * (n + 1)))
         for k in range(T):

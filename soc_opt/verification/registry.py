@@ -179,11 +179,11 @@ def run_claims(seed: int = 0, *, full: bool = False, instances: int | None = Non
 
 
 def _outcome_json(o: checks.Outcome | None):
-    from .table import _json_safe
+    from .table import json_safe
 
     if o is None:
         return None
-    return _json_safe({"instances": o.instances, "held": o.held, "worst_margin": o.worst,
+    return json_safe({"instances": o.instances, "held": o.held, "worst_margin": o.worst,
                        "margin_meaning": o.margin_meaning, "notes": o.notes, "first_failure": o.example})
 
 

@@ -123,7 +123,7 @@ def _show(M: fmpq_mat, digits: int = 6) -> list:
 # --------------------------------------------------------------------------- model and policy
 
 
-def _model(d):
+def exact_model(d):
     """Per step ``(A_k, B_k, c_k, So_k)`` with the *stacked* ``B_k = [B^d_k; B^y_k]`` (``(n+1) x m``)."""
     n = int(d["n"])
     out = []
@@ -152,7 +152,7 @@ def dense_smoother(model: dict, policy: dict, y, mu0, P0):
     ``(s_0..s_T)`` given ``Y`` (``(T+1) n`` square; block ``(k, j)`` is ``Cov(s_k, s_j | Y)``) and
     ``lp = (r, det Cyy, T)`` with ``log p(Y) = r - 1/2 log det Cyy - T/2 log 2 pi`` (see :func:`logp`).
     """
-    steps, n = _model(model)
+    steps, n = exact_model(model)
     K, kk, cov = _policy(policy)
     y = [num(v) for v in y]
     T = len(y)
@@ -335,7 +335,7 @@ def _is_maximiser(lines, steps, mean, C, y, policy, label):
 def _uniqueness_gain(c, lines):
     d = c["data"]
     y = d["y"]
-    steps, n = _model(d["model"])
+    steps, n = exact_model(d["model"])
     mean, C, _ = dense_smoother(d["model"], d["policy"], y, d["mu0"], d["P0"])
     k = int(d["step"])
     mom = moments(mean, C, y, k)
@@ -365,7 +365,7 @@ def _uniqueness_gain(c, lines):
 def _uniqueness_sigma(c, lines):
     d = c["data"]
     y = d["y"]
-    steps, _ = _model(d["model"])
+    steps, _ = exact_model(d["model"])
     mean, C, _ = dense_smoother(d["model"], d["policy"], y, d["mu0"], d["P0"])
     k = int(d["step"])
     mom = moments(mean, C, y, k)
@@ -394,7 +394,7 @@ def _uniqueness_sigma(c, lines):
 def _ltv_like(c, lines):
     d = c["data"]
     y = d["y"]
-    steps, _ = _model(d["model"])
+    steps, _ = exact_model(d["model"])
     mean, C, lp_old = dense_smoother(d["model"], d["old"], y, d["mu0"], d["P0"])
     _, _, lp_new = dense_smoother(d["model"], d["new"], y, d["mu0"], d["P0"])
     T = len(steps)

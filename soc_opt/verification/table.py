@@ -45,13 +45,13 @@ def format_table(results: list[ClaimResult]) -> str:
     return "\n".join(out)
 
 
-def _json_safe(x):
+def json_safe(x):
     if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
+        return {str(k): json_safe(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
+        return [json_safe(v) for v in x]
     if isinstance(x, np.ndarray):
-        return _json_safe(x.tolist())
+        return json_safe(x.tolist())
     if isinstance(x, (np.floating, float)):
         v = float(x)
         return v if math.isfinite(v) else None
@@ -64,4 +64,4 @@ def _json_safe(x):
 
 def to_json(results: list[ClaimResult]) -> dict:
     """JSON-serialisable dict ``{"results": [row, ...]}`` (non-finite floats become ``null``)."""
-    return {"results": [_json_safe(asdict(r)) for r in results]}
+    return {"results": [json_safe(asdict(r)) for r in results]}
