@@ -27,6 +27,7 @@ __all__ = [
     "single_thread_blas_cached",
     "as_generator",
     "symmetrize",
+    "schur_pd_margin",
 ]
 
 
@@ -142,3 +143,40 @@ def as_generator(rng, seed: int | None = None) -> np.random.Generator:
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
     return rng
+
+
+def schur_pd_margin(M: np.ndarray, split: int) -> np.ndarray:
+    """Scale-free positive-definiteness margin of a symmetric ``M`` (batched over leading axes).
+
+    Write ``M = [[A, C], [C^T, D]]`` with ``A`` the leading ``split x split`` block.  ``M > 0`` iff
+    ``D > 0`` and ``S = A - C D^-1 C^T > 0`` (block LDL^T congruence), and each of ``D`` and ``S``
+    is judged by its own ratio ``lambda_min / lambda_max``.  Unlike ``lambda_min(M) / lambda_max(M)``
+    this does not drift when the blocks live on different scales (``A`` ~ c^2, ``C`` ~ c, ``D`` ~ 1
+    when a state is rescaled by c) or when a mean shift makes ``C`` large: uncentred second moments
+    ``[[P + mu mu^T, mu], [mu^T, 1]]`` have margin ``min(1, lambda_min(P) / lambda_max(P))`` whatever
+    ``mu``.  ``S`` is formed by a subtraction, so it is known only to about ``eps * ||A||``; an ``S``
+    whose smallest eigenvalue is below that rounding level gets a margin ``<= 0`` (singular).
+
+    Returns the margin (shape of the batch axes): ``> 0`` when both ``D`` and ``S`` are positive
+    definite, and compared with a relative tolerance by the callers.
+    """
+    M = symmetrize(np.asarray(M, dtype=float))
+    d = M.shape[-1]
+    if not 0 < split < d:
+        raise ValueError(f"split must be in 1..{d - 1}, got {split}")
+    tiny = np.finfo(float).tiny
+    A, C, D = M[..., :split, :split], M[..., :split, split:], M[..., split:, split:]
+    wD, VD = np.linalg.eigh(D)
+    topD = np.maximum(np.abs(wD).max(-1), tiny)
+    ratio_D = wD[..., 0] / topD
+    # pseudo-inverse of D on its numerically nonzero spectrum (D singular is already decided by ratio_D)
+    keep = wD > d * np.finfo(float).eps * topD[..., None]
+    inv_w = np.where(keep, 1.0 / np.where(keep, wD, 1.0), 0.0)
+    CV = C @ VD
+    S = symmetrize(A - (CV * inv_w[..., None, :]) @ T(CV))
+    wS = np.linalg.eigvalsh(S)
+    topS = np.maximum(np.abs(wS).max(-1), tiny)
+    ratio_S = wS[..., 0] / topS
+    rounding = 8 * d * np.finfo(float).eps * np.maximum(np.abs(np.linalg.eigvalsh(A)).max(-1), tiny)
+    ratio_S = np.where(wS[..., 0] <= rounding, np.minimum(ratio_S, 0.0), ratio_S)
+    return np.minimum(ratio_D, ratio_S)

@@ -15,9 +15,11 @@ import numpy as np
 import pytest
 from scipy import integrate
 
+from soc_opt import mstep
 from soc_opt import testing as G
 from soc_opt import verification as V
 from soc_opt.estep import moments, smooth
+from soc_opt.models import AugmentedModel, Smoothed
 
 
 def _gauss_pdf(x, mu, S):
@@ -140,6 +142,76 @@ def test_rank_deficient_instances_are_exactly_rank_deficient(seed):
         B = model.Ao[k, :, n:]
         assert fmpq_mat([[num(float(v)) for v in row] for row in B]).rank() == m - 1
         assert np.all(np.abs(B).max(axis=0) > 0)
+
+
+def _rescaled(model, sm, c, whole_state):
+    """The same instance with the state mean multiplied by ``c`` (``whole_state=False``: only the smoothed
+    means move) or with the state itself multiplied by ``c`` (``s -> c s``: B, co, So rows and the smoothed
+    moments change with it, H_k = B^T So^-1 B does not)."""
+    n = model.n
+    if not whole_state:
+        return model, Smoothed(sm.mean * c, sm.cov, sm.cross, sm.loglik)
+    D = np.ones(n + 1)
+    D[:n] = c
+    Ao = np.array(model.Ao) * D[None, :, None]
+    Ao[:, :, :n] /= c
+    So = np.array(model.So) * D[:, None] * D[None, :]
+    return AugmentedModel(Ao, np.array(model.co) * D, So, n), Smoothed(sm.mean * c, sm.cov * c**2, sm.cross * c**2, sm.loglik)
+
+
+def _uniqueness_verdicts(model, sm, y):
+    """(closed-form M-step raised NonUnique, time-invariant M-step raised NonUnique, every per-step Hessian
+    negative definite, the time-invariant Hessian sum negative definite)."""
+    raised = []
+    for variant in ("time_varying", "time_invariant"):
+        try:
+            mstep.maximize(model, sm, y, constraints=mstep.MStepConstraints(cov_floor=0.1), variant=variant)
+            raised.append(False)
+        except mstep.NonUniqueMaximizerError:
+            raised.append(True)
+    mom = moments(sm, y)
+    steps = [V.step_hessian_nd_margin(model, mom.Sss[k], k, 1e-10)[1] for k in range(model.T)]
+    Hsum = sum(V.surrogate_hessian(model, mom.Sss[k], k) for k in range(model.T))
+    return raised[0], raised[1], all(steps), V.hessian_nd_margin(Hsum, model.m, 1e-10)[1]
+
+
+SCALES = (1.0, 30.0, 300.0, 1e4)
+
+
+def test_uniqueness_verdict_does_not_change_when_a_well_posed_instance_is_rescaled():
+    """Issue 32: 100 well-posed instances (B_k full column rank, P_k > 0 from the smoother), each with the
+    state mean and, separately, the whole state multiplied by 1, 30, 300, 1e4: the M-step's uniqueness test
+    and the claim-1 Hessian tests say "unique" every time (their tolerances are relative to the problem's
+    own scale, not absolute)."""
+    rng = np.random.default_rng(32)
+    wrong = []
+    for i in range(100):
+        n, m, T = int(rng.integers(1, 5)), int(rng.integers(1, 3)), int(rng.integers(2, 5))
+        m = min(m, n + 1)
+        model = G.random_augmented_model(rng, n, m, T)
+        policy = G.random_policy(rng, T, n, m)
+        mu0, P0 = G.random_initial_state(rng, n)
+        _, y = G.sample_model_trajectory(rng, model, policy, mu0, P0)
+        sm = smooth(model, policy, y, mu0, P0)
+        for whole in (False, True):
+            for c in SCALES:
+                got = _uniqueness_verdicts(*_rescaled(model, sm, c, whole), y)
+                if got != (False, False, True, True):
+                    wrong.append((i, "whole state" if whole else "mean", c, got))
+    assert not wrong, f"{len(wrong)} false failures, first {wrong[:5]}"
+
+
+@pytest.mark.parametrize("whole_state", [False, True])
+def test_rank_deficient_B_is_detected_at_every_scale(whole_state):
+    rng = np.random.default_rng(33)
+    n, m, T = 3, 2, 3
+    model = G.random_augmented_model(rng, n, m, T, b_rank=m - 1)
+    policy = G.random_policy(rng, T, n, m)
+    mu0, P0 = G.random_initial_state(rng, n)
+    _, y = G.sample_model_trajectory(rng, model, policy, mu0, P0)
+    sm = smooth(model, policy, y, mu0, P0)
+    for c in SCALES:
+        assert _uniqueness_verdicts(*_rescaled(model, sm, c, whole_state), y) == (True, True, False, False), c
 
 
 def test_expected_stage_costs_matches_monte_carlo():

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from ..testing import random_augmented_model, random_initial_state, random_policy, sample_model_trajectory
 from .claims_em import claim2_em_monotone, claim3_cost_decrease, expected_stage_costs
-from .claims_uniqueness import claim1_uniqueness, surrogate_hessian
+from .claims_uniqueness import claim1_uniqueness, hessian_nd_margin, step_hessian_nd_margin, surrogate_hessian
 from .common import ClaimResult
 from .free_energy import (
     claim4_free_energy,
@@ -64,6 +64,8 @@ __all__ = [
     "random_initial_state",
     "sample_model_trajectory",
     "surrogate_hessian",
+    "hessian_nd_margin",
+    "step_hessian_nd_margin",
     "expected_stage_costs",
     "log_partition",
     "tilted_gaussian",

@@ -2,7 +2,10 @@
 statement that does hold, the expected verdict and the check that decides the verdict.
 
 A verdict is ``holds`` (the statement as written held on every instance), ``holds under corrected
-statement`` (it failed, the corrected statement held on the same instances) or ``fails``.  A
+statement`` (it failed, the corrected statement held on the same instances) or ``fails``.  When the
+corrected statement is about another quantity than the claim (``Claim.corrected_is_about``, e.g. the
+cost claim, whose corrected statement is about log p(Y)), the verdict stays ``fails`` and
+``ClaimVerdict.what_holds`` says separately what the other statement is about and whether it held.  A
 claim whose verdict differs from its expected verdict makes ``soc-opt verify`` exit non-zero.
 Failing statements point to a certificate: the minimal counterexample found by
 :mod:`soc_opt.verification.certificates`, re-checked by ``soc-opt verify --replay FILE``.
@@ -40,6 +43,10 @@ class Claim:
     expected: str
     certificate: str | None
     check: Callable
+    #: set when the corrected statement is about another quantity than the claim (e.g. log p(Y) instead
+    #: of cost): it is then reported on its own line and cannot turn the verdict into "holds under
+    #: corrected statement"
+    corrected_is_about: str | None = None
 
 
 @dataclass(frozen=True)
@@ -54,13 +61,27 @@ class ClaimVerdict:
 
     @property
     def as_expected(self) -> bool:
+        """The verdict is the expected one and, for a claim with ``corrected_is_about``, the other
+        statement (reported by :attr:`what_holds`) held too."""
+        if self.claim.corrected_is_about is not None and not (self.corrected is not None and self.corrected.holds):
+            return False
         return self.verdict == self.claim.expected
 
+    @property
+    def what_holds(self) -> str | None:
+        """For a claim whose corrected statement is about another quantity: what that statement is about
+        and whether it held (the claim's own verdict stays ``fails``)."""
+        c, co = self.claim, self.corrected
+        if c.corrected_is_about is None or co is None:
+            return None
+        return (f"the claim fails; a different statement, about {c.corrected_is_about}, "
+                f"{'holds' if co.holds else 'does not hold'} ({co.held}/{co.instances}): {c.corrected}")
 
-def _verdict(aw: checks.Outcome, co: checks.Outcome | None) -> str:
+
+def _verdict(aw: checks.Outcome, co: checks.Outcome | None, corrected_is_about: str | None = None) -> str:
     if aw.holds:
         return HOLDS
-    if co is not None and co.holds:
+    if co is not None and co.holds and corrected_is_about is None:
         return CORRECTED
     return FAILS
 
@@ -147,7 +168,8 @@ CLAIMS: tuple[Claim, ...] = (
           "if the surrogate M-step raises L, then E[V_{phi^{i+1}}|Y] <= E[V_{phi^i}|Y]",
           "quadratic cost, y = exp(-Y) modelled linearly, Sigma held at Sigma^i",
           "the EM inequality: dlog p(Y) >= dQ for the same move, and exact EM does not lower log p(Y)",
-          CORRECTED, f"{CERT_DIR}/cost_decrease_n1_m1_T1.json", checks.theorem_cost_decrease),
+          FAILS, f"{CERT_DIR}/cost_decrease_n1_m1_T1.json", checks.theorem_cost_decrease,
+          corrected_is_about="log p(Y) (the EM inequality), not the cost E[V|Y]"),
     Claim("free_energy", "Lemma radon (free energy)", "docs/math.md §9.4",
           "(1/rho) log E_P[exp(rho J)] = sup_Q (E_Q J - KL(Q||P)/rho), attained by Q* ∝ P exp(rho J)",
           "rho != 0, E_P[exp(rho J)] finite",
@@ -174,7 +196,7 @@ def run_claims(seed: int = 0, *, full: bool = False, instances: int | None = Non
             continue
         t0 = time.perf_counter()
         aw, co = c.check(child_rng(seed, _TAGS[c.key]), n, full)
-        out.append(ClaimVerdict(c, _verdict(aw, co), aw, co, time.perf_counter() - t0))
+        out.append(ClaimVerdict(c, _verdict(aw, co, c.corrected_is_about), aw, co, time.perf_counter() - t0))
     return out
 
 
@@ -194,7 +216,7 @@ def verdicts_json(results: list[ClaimVerdict]) -> dict:
         c = r.claim
         rows.append({"key": c.key, "label": c.label, "cite": c.cite, "statement": c.statement,
                      "hypotheses": c.hypotheses, "corrected_statement": c.corrected, "expected": c.expected,
-                     "verdict": r.verdict, "as_expected": r.as_expected,
+                     "verdict": r.verdict, "as_expected": r.as_expected, "what_holds": r.what_holds,
                      "certificate": c.certificate if r.verdict != HOLDS else None,
                      "as_written": _outcome_json(r.as_written), "corrected": _outcome_json(r.corrected),
                      "seconds": round(r.seconds, 3)})
@@ -214,6 +236,8 @@ def format_verdicts(results: list[ClaimVerdict]) -> str:
     for r in results:
         if r.verdict != HOLDS and r.claim.certificate:
             lines.append(f"{r.claim.label}: counterexample {r.claim.certificate}")
+        if r.what_holds:
+            lines.append(f"  [{r.claim.key}] {r.what_holds}")
         for note in r.as_written.notes + (r.corrected.notes if r.corrected else []):
             lines.append(f"  [{r.claim.key}] {note}")
     return "\n".join(lines)
