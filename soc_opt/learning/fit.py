@@ -220,16 +220,17 @@ def update_prior(
     standardised coordinates (per-column mean and standard deviation of the
     fitted data; constant columns get scale 1) and mapped back.
 
-    **Degenerate directions** (docs/math.md §2 step 1): when the varying columns of the
-    standardised tuples are exactly linearly related (a point's position and the slide joint
-    that moves it; a point's height and velocity when it only slides on a table are constant
-    columns instead), VB runs on the other directions only
+    **Degenerate directions** (docs/math.md §2 step 1): when the fit on all coordinates fails
+    because the varying columns of the standardised tuples are exactly linearly related (a
+    point's position and the slide joint that moves it; a point's height and velocity when it only
+    slides on a table are constant columns instead), VB runs again on the other directions only
     (:class:`~soc_opt.learning.mixture.Subspace`) and every component gets the data's mean and
     the variance ``mixture_reg`` (standardised) along those relations.  Without this, a
     warm-started component that receives no tuples keeps sklearn's covariance prior (the data's
     covariance, singular along them) and VB fails.  Constant columns stay in the fit as zero
-    columns, which sklearn keeps decoupled from the rest with variance ``reg_covar``.  Without
-    degenerate directions the fit is the one on all coordinates, unchanged.
+    columns, which sklearn keeps decoupled from the rest with variance ``reg_covar``.  A fit on all
+    coordinates that succeeds is kept as it is, so runs that never failed (the door's handle height
+    is exactly related to its hinge, and its fits never failed) give the same numbers as before.
 
     Deterministic given ``rng`` (sklearn's ``random_state`` is drawn from it,
     also when warm-starting, so that the stream is consumed alike;
@@ -258,30 +259,42 @@ def update_prior(
     center, scale = standardisation(data)
     Z = (data - center) / scale
 
-    sub = Subspace.of(Z, varying_columns(data.std(axis=0), center), config.mixture_reg)
-    Zfit = Z if sub is None else Z @ sub.basis
-
     n_comp = max(1, min(config.n_components, Z.shape[0]))
     vb = getattr(prior, "vb", None)  # checkpoints written before warm starts have no vb
     warm = config.prior_warm_start and vb is not None and vb.means.shape[0] <= n_comp
     if warm:
         n_comp = vb.means.shape[0]
-    bgm = BayesianGaussianMixture(
-        n_components=n_comp,
-        covariance_type="full",
-        weight_concentration_prior_type="dirichlet_distribution",
-        weight_concentration_prior=config.weight_concentration,
-        reg_covar=config.mixture_reg,
-        max_iter=config.max_iter,
-        tol=config.tol * Z.shape[0],
-        random_state=int(rng.integers(2**31 - 1)),
-        warm_start=warm,
-    )
-    with warnings.catch_warnings(), single_thread_blas():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        if warm:
-            vb.to_sklearn(bgm, center, scale, sub)
-        bgm.fit(Zfit)
+    seed = int(rng.integers(2**31 - 1))
+
+    def fit(sub: Subspace | None) -> BayesianGaussianMixture:
+        bgm = BayesianGaussianMixture(
+            n_components=n_comp,
+            covariance_type="full",
+            weight_concentration_prior_type="dirichlet_distribution",
+            weight_concentration_prior=config.weight_concentration,
+            reg_covar=config.mixture_reg,
+            max_iter=config.max_iter,
+            tol=config.tol * Z.shape[0],
+            random_state=seed,
+            warm_start=warm,
+        )
+        with warnings.catch_warnings(), single_thread_blas():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            if warm:
+                vb.to_sklearn(bgm, center, scale, sub)
+            bgm.fit(Z if sub is None else Z @ sub.basis)
+        return bgm
+
+    sub = None
+    try:
+        bgm = fit(None)  # all coordinates: the fit of every run that never met a degenerate direction
+    except ValueError as e:
+        # sklearn's "ill-defined empirical covariance": a component without tuples along exactly related
+        # coordinates (docs/math.md §2 step 1); fitted again on the non-degenerate directions
+        sub = Subspace.of(Z, varying_columns(data.std(axis=0), center), config.mixture_reg)
+        if sub is None or "covariance" not in str(e):
+            raise
+        bgm = fit(sub)
 
     w = np.asarray(bgm.weights_, dtype=float)
     keep = w >= config.min_weight

@@ -105,11 +105,10 @@ def _f_step_exact(model, Eas, S, Sigma, rc, method, solver, cfg, Fprev, min_norm
     """Inner M-step for F: unconstrained ``E[a stilde^T] Stilde^{-1}``; with offset/trust constraints a
     CVXPY step weighted by ``Sigma^{-1}`` (Sigma held fixed: ECM).  Batched over the leading axis."""
     n, m = model.n, model.m
-    p_min, _ = min_eig_rel(S)
-    p_bad = la.schur_pd_margin(S, n) <= cfg.eig_tol  # P_k against its own scale, not ||Stilde_k||
-    if np.any(p_bad):
+    p_min, p_rel = min_eig_rel(S)
+    if np.any(p_rel <= cfg.eig_tol):
         if not min_norm:
-            i = int(np.flatnonzero(p_bad)[-1])
+            i = int(np.flatnonzero(p_rel <= cfg.eig_tol)[-1])
             raise NonUniqueMaximizerError(
                 f"exact-EM M-step is not unique at {labels[i]}: Stilde (P_k) is not positive definite "
                 f"(smallest eigenvalue {p_min[i]:.3e}). Pass min_norm=True for the minimum-norm maximiser."
