@@ -98,7 +98,8 @@ def maximize(
         smoothed, y: smoothed states and observations; reduced to :class:`Moments` by
             :func:`soc_opt.estep.moments` (use :func:`maximize_moments` for precomputed moments).
         constraints: the feasible set (:class:`MStepConstraints`; default: none, which is an error
-            for the surrogate unless ``allow_singular``, because its optimum is ``Sigma = 0``).
+            for the surrogate unless ``MStepConstraints(allow_singular=True)``, because its optimum is
+            ``Sigma = 0``).
         method: ``"closed_form"`` (batched Cholesky solves) or ``"cvxpy"`` (DPP problem per step).
         solver: CVXPY solver, ``"CLARABEL"`` or ``"SCS"`` (default ``config.solver``).
         variant: ``"time_varying"`` (one ``phi_k`` per step, the Proposition's sweep) or
