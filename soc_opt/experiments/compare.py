@@ -37,6 +37,7 @@ from .rundir import (
     encode_checkpoint,
     lock_directory,
     npz_bytes,
+    refuse_foreign,
     refuse_legacy,
     run_record,
     unowned_entries,
@@ -154,14 +155,10 @@ def check_compare_dir(out: Path) -> None:
         return
     foreign = unowned_entries(out)
     seeds = [n for n in foreign if _SEED_DIR.fullmatch(n) and (out / n).is_dir() and not (out / n).is_symlink()]
-    if seeds and all(run_record(out / n / m) is not None for n in seeds for m in METHODS if (out / n / m).exists()) \
-            and any(run_record(out / n / m) is not None for n in seeds for m in METHODS):
-        return  # a compare directory from before compare.json
-    if foreign:
-        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
-        raise RunDirectoryError(
-            f"--out {str(out)!r} is not a compare directory (no compare.json) and not empty ({shown}); a comparison "
-            "writes only into a new or empty folder or its own directory: use another --out")
+    runs = [run_record(out / n / m) for n in seeds for m in METHODS if (out / n / m).exists()]
+    if runs and all(r is not None for r in runs):
+        return  # a compare directory from before compare.json: seed_N folders holding run directories only
+    refuse_foreign(out, foreign, "a compare directory", "compare.json")
 
 
 def _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, restart) -> dict:

@@ -364,6 +364,17 @@ def unowned_entries(path: Path, owned=()) -> list[str]:
     return out
 
 
+def refuse_foreign(path: Path, foreign: list[str], kind: str, marker: str, error: type[Exception] | None = None) -> None:
+    """Raise ``error`` (default :class:`RunDirectoryError`) naming ``path`` and its first ``foreign`` entries
+    (:func:`unowned_entries`) when there are any: ``path`` is not ``kind`` (marked by ``marker``) and not empty."""
+    if not foreign:
+        return
+    shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+    raise (error or RunDirectoryError)(
+        f"--out {str(path)!r} is not {kind} (no {marker}) and not empty ({shown}); soc_opt writes only into a new "
+        f"or empty folder or {kind}, and --restart removes only its own files: use another --out")
+
+
 @dataclass(frozen=True)
 class RunDirectory:
     """Files of one run (module docstring).  ``anchor``: the folder the caller owns above ``path``
@@ -395,13 +406,7 @@ class RunDirectory:
                                     f"{str(self.anchor)!r} and follows no link there: remove it or use another --out")
         if run_record(p) is not None:
             return
-        foreign = unowned_entries(p, owned)
-        if foreign:
-            shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
-            raise RunDirectoryError(
-                f"--out {str(p)!r} is not a soc_opt run directory (no config.json of a run) and not empty ({shown}); "
-                "soc_opt writes a run only into a new or empty folder or a run directory, and --restart "
-                "removes only a run's own files: use another --out")
+        refuse_foreign(p, unowned_entries(p, owned), "a soc_opt run directory", "config.json of a run")
 
     def has_checkpoint(self) -> bool:
         return os.path.lexists(self.path / CHECKPOINT) or os.path.lexists(self.path / PREVIOUS_CHECKPOINT)

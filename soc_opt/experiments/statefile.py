@@ -32,6 +32,7 @@ import dataclasses
 import hashlib
 import io
 import json
+import math
 import types
 import typing
 import zipfile
@@ -205,11 +206,13 @@ def _member_bytes(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int, name: 
     return dtype, shape[0], data
 
 
-def _needs(node, needs: dict, logical: list, name: str) -> None:
-    """For every array reference of the tree: the bytes its buffer must hold (``needs[key]``), and the
-    elements of all views (``logical[0]``, then ``(key, elements)`` per view); layouts are checked to be
-    lists of bounded non-negative integers.
-    Walked without recursion (the tree's depth is bounded when it is parsed)."""
+def _needs(node, name: str) -> tuple[dict[str, int], dict[str, int]]:
+    """For every array reference of the tree, by key: the bytes its buffer must hold, and the elements of
+    all views of it; layouts are checked to be lists of bounded non-negative integers.  Walked without
+    recursion (the tree's depth is bounded when it is parsed)."""
+    needs: dict[str, int] = {}
+    elements: dict[str, int] = {}
+    total = 0
     stack = [node]
     while stack:
         v = stack.pop()
@@ -219,22 +222,21 @@ def _needs(node, needs: dict, logical: list, name: str) -> None:
         if not isinstance(v, dict):
             continue
         if v.get("$") in ("array", "scalar") and isinstance(v.get("key"), str):
-            shape, strides = v.get("shape"), v.get("strides")
+            key, shape, strides = v["key"], v.get("shape"), v.get("strides")
             for what, lst in (("shape", shape), ("strides", strides)):
                 if not isinstance(lst, list) or len(lst) > 32 or not all(type(x) is int and 0 <= x < _MAX_INT for x in lst):
-                    raise StateFileError(f"{name}: array {v['key']!r} has an invalid {what} {str(lst)[:60]}")
-            size = 1
-            for n in shape:
-                size *= n
+                    raise StateFileError(f"{name}: array {key!r} has an invalid {what} {str(lst)[:60]}")
+            size = math.prod(shape)
             span = 0 if size == 0 else sum((n - 1) * s for n, s in zip(shape, strides))
-            needs[v["key"]] = max(needs.get(v["key"], 0), span)
-            logical[0] += size
-            logical.append((v["key"], size))
-            if logical[0] > MAX_STATE_BYTES:  # counted in elements here; bytes below
+            needs[key] = max(needs.get(key, 0), span)
+            elements[key] = elements.get(key, 0) + size
+            total += size
+            if total > MAX_STATE_BYTES:  # counted in elements here; in bytes once the dtypes are known
                 raise StateFileError(f"{name}: its arrays hold more than {MAX_STATE_BYTES} elements; not a state "
                                      "file soc_opt wrote")
             continue
         stack.extend(v.values())
+    return needs, elements
 
 
 def _read(data: bytes, name: str) -> tuple[dict, dict]:
@@ -271,9 +273,7 @@ def _read(data: bytes, name: str) -> tuple[dict, dict]:
                 tree = load_json(tree_b, f"{name} ({_TREE})")
             except ConfigError as e:
                 raise StateFileError(str(e)) from None
-            needs: dict[str, int] = {}
-            logical = [0]
-            _needs(tree, needs, logical, name)
+            needs, elements = _needs(tree, name)
             members, total = {}, 0
             for key, info in sorted(by_key.items(), key=lambda kv: int(kv[0][1:])):
                 dtype, length, raw = _member_bytes(zf, info, min(needs.get(key, 0) + 16, MAX_STATE_BYTES), name,
@@ -284,7 +284,7 @@ def _read(data: bytes, name: str) -> tuple[dict, dict]:
                 members[key] = np.frombuffer(bytearray(raw), dtype)
         except (zipfile.BadZipFile, EOFError, OSError, zlib.error, NotImplementedError) as e:
             raise StateFileError(f"{name} is truncated or damaged ({type(e).__name__}: {e})") from None
-    view_bytes = sum(size * members[key].itemsize for key, size in logical[1:] if key in members)
+    view_bytes = sum(size * members[key].itemsize for key, size in elements.items() if key in members)
     if view_bytes > MAX_STATE_BYTES:  # e.g. a zero-stride view expanding a small buffer
         raise StateFileError(f"{name}: its arrays span {view_bytes} bytes as views, more than {MAX_STATE_BYTES}; "
                              "not a state file soc_opt wrote")

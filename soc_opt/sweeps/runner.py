@@ -29,7 +29,7 @@ from typing import Callable
 
 from .. import files
 from ..experiments.run import same_settings
-from ..experiments.rundir import lock_directory, unowned_entries
+from ..experiments.rundir import lock_directory, refuse_foreign, unowned_entries
 from .spec import (
     ERROR,
     PROGRESS,
@@ -62,11 +62,7 @@ def check_sweep_dir(out: Path) -> None:
     rec = read_json(out / SWEEP_FILE) if os.path.lexists(out / SWEEP_FILE) else None
     if isinstance(rec, dict) and isinstance(rec.get("name"), str) and isinstance(rec.get("trials"), list):
         return
-    foreign = unowned_entries(out)
-    if foreign:
-        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
-        raise SweepError(f"--out {str(out)!r} is not a sweep directory (no sweep.json of a sweep) and not empty "
-                         f"({shown}); a sweep writes only into a new or empty folder or its own directory: use another --out")
+    refuse_foreign(out, unowned_entries(out), "a sweep directory", "sweep.json of a sweep", SweepError)
 
 
 def prepare_out(spec: SweepSpec, out: Path) -> dict[str, str]:
