@@ -148,6 +148,26 @@ def test_acceptance_on_without_a_rejection_takes_the_same_steps(task):
         np.testing.assert_array_equal(on.policy.K, off.policy.K)
 
 
+def test_samples_actual_improvement_adapts_the_multiplier_from_the_batch_means(task):
+    """``acceptance.actual = "samples"``: on an accepted step the GPS factor reads the measured mean
+    cost of the last accepted batch minus the new batch's (docs/math.md §12.2), not the fitted models'."""
+    cfg = _cfg("lqr-flm", iterations=5)
+    cfg = cfg.replace(baseline=cfg.baseline.replace(acceptance=cfg.baseline.acceptance.replace(actual="samples")))
+    state = run_method(get_method("lqr-flm"), task, cfg, 7)
+    rec = state.history
+    checked = 0
+    for prev, cur in zip(rec, rec[1:]):
+        if cur.extra["accepted"] != 1.0 or prev.extra["accepted"] != 1.0 or not np.isfinite(cur.extra["predicted_improvement"]):
+            continue
+        seen = prev.extra["test_cost"] - cur.extra["test_cost"]
+        expected = lqg.adapt_multiplier(prev.mult, cur.extra["predicted_improvement"], seen, cfg.baseline.kl)
+        assert cur.mult == pytest.approx(expected, rel=1e-12)
+        laplace = lqg.adapt_multiplier(prev.mult, cur.extra["predicted_improvement"], cur.extra["actual_improvement"],
+                                       cfg.baseline.kl)
+        checked += not np.isclose(laplace, expected, rtol=1e-9)
+    assert checked >= 1  # at least one step where the two rules differ, so the option is what was read
+
+
 @settings(max_examples=50, deadline=None)
 @given(c_a=st.floats(-1e3, 1e3), se_a=st.floats(0, 50), se_i=st.floats(0, 50),
        kappa=st.floats(0, 5), eps=st.floats(0, 0.5))

@@ -73,6 +73,10 @@ class AcceptanceConfig(Config):
               more than ``kappa`` standard errors, the multiplier is not lowered by the GPS rule (whose
               predicted and actual improvements come from fitted models, unreliable under sensor
               noise); off by default.
+    actual:   the actual improvement the GPS rule reads on an accepted step: "laplace" (default, §6: the
+              new samples' fitted model's expected cost, as the paper) or "samples" (the measured mean
+              cost of the last accepted batch minus the new batch's, the trust-region ratio's numerator
+              read from the samples the acceptance test already has).
     """
 
     enabled: bool = True
@@ -82,6 +86,7 @@ class AcceptanceConfig(Config):
     cost: Literal["measured", "true"] = "measured"
     ceiling: float = 0.5
     hold_when_improved: bool = False
+    actual: Literal["laplace", "samples"] = "laplace"
 
     _constraints = {
         "kappa": [Interval(0)],
@@ -89,6 +94,7 @@ class AcceptanceConfig(Config):
         "shrink": [Interval(0, 1, "neither")],
         "cost": [Options(("measured", "true"))],
         "ceiling": [Interval(0, 1, "right")],
+        "actual": [Options(("laplace", "samples"))],
     }
 
 

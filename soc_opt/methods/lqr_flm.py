@@ -197,7 +197,8 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
     if accept:
         mult = state.mult
         if cfg.adapt_multiplier and state.prev is not None:
-            mult = lqg.adapt_multiplier(mult, predicted, actual, cfg.kl)
+            seen = actual if acc_cfg.actual == "laplace" or acc is None else acc.cost_mean - c_i
+            mult = lqg.adapt_multiplier(mult, predicted, seen, cfg.kl)
             if (acc_cfg.hold_when_improved and acc is not None
                     and c_i < acc.cost_mean - acc_cfg.kappa * float(np.hypot(se_i, acc.cost_se))):
                 mult = max(mult, state.mult)  # the samples show a clear improvement: do not shrink
