@@ -445,7 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--write-certificates", dest="write_certificates", metavar="DIR",
                    help="run the counterexample searches and write their certificates to DIR")
     v.add_argument("--only", help="comma-separated claim keys (uniqueness, uniqueness_sigma, ltv, dpsoc, "
-                                  "em_lemma, cost_decrease, free_energy, hessian_impl)")
+                                  "em_lemma, cost_decrease, free_energy, hessian_impl, ecm, smoother)")
     v.add_argument("--rows", action="store_true", help="the older per-row table (claims 1-4, rows 1a..4e)")
     v.set_defaults(func=_cmd_verify)
 

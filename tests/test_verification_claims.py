@@ -8,13 +8,14 @@ one: wrong sign, dropped term) makes the row's verdict differ from the expected 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from soc_opt import mstep
+from soc_opt import estep, mstep
 from soc_opt.cli import main
 from soc_opt.models import LinearGaussianPolicy
 from soc_opt.verification import certificates, registry
@@ -137,6 +138,29 @@ def _log_partition_drops_logdet(monkeypatch):
     monkeypatch.setattr(fe, "log_partition", broken)
 
 
+def _maximize_perturbed_gains(monkeypatch):
+    """Mutant: the M-step's [K k] off by 1% (1.01 [K k]); Sigma untouched."""
+    orig = mstep.maximize
+
+    def broken(*a, **kw):
+        p = orig(*a, **kw)
+        return LinearGaussianPolicy(1.01 * p.K, 1.01 * p.k, p.cov)
+
+    monkeypatch.setattr(mstep, "maximize", broken)
+
+
+def _smoother_cov_times_1_1(monkeypatch):
+    """Mutant: the smoother's covariances P_t|T 10% too large (tests/test_verification_rows.py has the
+    cross-covariance and log p(Y) mutants too)."""
+    orig = estep.smooth
+
+    def broken(*a, **kw):
+        sm = orig(*a, **kw)
+        return dataclasses.replace(sm, cov=1.1 * np.asarray(sm.cov))
+
+    monkeypatch.setattr(estep, "smooth", broken)
+
+
 MUTANTS = {
     "uniqueness": _drop_offset,
     "uniqueness_sigma": _sigma_wrong_sign,
@@ -146,6 +170,8 @@ MUTANTS = {
     "cost_decrease": _exact_without_action_noise,
     "free_energy": _log_partition_drops_logdet,
     "hessian_impl": _drop_offset,
+    "ecm": _maximize_perturbed_gains,
+    "smoother": _smoother_cov_times_1_1,
 }
 
 

@@ -18,7 +18,10 @@ statement, expected verdict; ``checks``: the checks through the library's code p
 
 Modules: ``claims_uniqueness`` (claim 1), ``claims_em`` (claims 2 and 3),
 ``free_energy`` (claim 4 and its Gaussian closed forms), ``table`` (rendering),
-``common`` (the row type and shared helpers).  The instance generators live in
+``common`` (the row type and shared helpers); for the claims table ``checks`` (its rows, per instance
+and per row, and ``rescale_instance`` for the scale-invariance test), ``checks_ecm`` (the ECM row and
+the smoother-against-oracle row), ``oracle`` (dense conditioning of the joint Gaussian, docs/math.md §4)
+and ``hypotheses`` (the standing hypotheses ``P0 > 0``, ``So_k > 0``, checked up front).  The instance generators live in
 :mod:`soc_opt.testing` and are re-exported here.
 
 The functions are pure: no printing, no global state; ``format_table`` and
@@ -39,6 +42,7 @@ from .free_energy import (
     log_partition,
     tilted_gaussian,
 )
+from .hypotheses import HypothesisError, require_standing_hypotheses
 from .registry import CLAIMS, ClaimVerdict, format_verdicts, run_claims, verdicts_json
 from .table import format_table, to_json
 
@@ -49,6 +53,8 @@ __all__ = [
     "run_claims",
     "verdicts_json",
     "format_verdicts",
+    "HypothesisError",
+    "require_standing_hypotheses",
     # the older per-row table
     "ClaimResult",
     "run_all",

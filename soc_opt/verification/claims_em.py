@@ -19,6 +19,7 @@ from ..testing import (
     sample_model_trajectory,
 )
 from .common import ClaimResult, child_rng, mstep_module, tolist
+from .hypotheses import require_standing_hypotheses
 
 __all__ = ["claim2_em_monotone", "claim3_cost_decrease", "expected_stage_costs"]
 
@@ -95,6 +96,7 @@ def claim2_em_monotone(
         model = random_augmented_model(rng, n, m, T)
         gen = random_policy(rng, T, n, m)
         mu0, P0 = random_initial_state(rng, n)
+        require_standing_hypotheses(model, mu0, P0)
         Y = np.stack([sample_model_trajectory(rng, model, gen, mu0, P0)[1] for _ in range(sequences)])
         start = random_policy(rng, T, n, m)
         for label, objective, floor in _CLAIM2_VARIANTS:
@@ -268,6 +270,7 @@ def claim3_cost_decrease(seed: int = 0, instances: int = 20, *, rollouts: int = 
     for _ in range(instances):
         n, m, T, system, phi, s, a, y = claim3_instance(rng, rollouts)
         model = ls_augmented(s, a, y)
+        require_standing_hypotheses(model, system["mu0"], system["P0"])
         _, Y_model = sample_model_trajectory(rng, model, phi, system["mu0"], system["P0"])
         cache = {}
         for lab, y_mode in _CLAIM3_VARIANTS:

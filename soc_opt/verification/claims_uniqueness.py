@@ -19,6 +19,7 @@ from ..linalg import schur_pd_margin, unvec
 from ..models import AugmentedModel, LinearGaussianPolicy, Smoothed, symmetrize
 from ..testing import random_augmented_model, random_initial_state, random_policy, sample_model_trajectory
 from .common import ClaimResult, child_rng, logdet, mstep_module, tolist
+from .hypotheses import require_standing_hypotheses
 
 __all__ = ["claim1_uniqueness", "surrogate_hessian", "hessian_nd_margin", "step_hessian_nd_margin"]
 
@@ -89,6 +90,7 @@ def _claim1_instance(rng: np.random.Generator, *, b_rank_deficient: bool = False
     model = random_augmented_model(rng, n, m, T, b_rank=m - 1 if b_rank_deficient else None)
     policy = random_policy(rng, T, n, m)
     mu0, P0 = random_initial_state(rng, n)
+    require_standing_hypotheses(model, mu0, P0)
     _, y = sample_model_trajectory(rng, model, policy, mu0, P0)
     return model, policy, mu0, P0, y
 

@@ -19,8 +19,9 @@ from typing import Callable
 
 import numpy as np
 
-from . import checks
+from . import checks, checks_ecm
 from .common import child_rng
+from .hypotheses import STANDING
 
 __all__ = ["Claim", "ClaimVerdict", "CLAIMS", "HOLDS", "CORRECTED", "FAILS", "run_claims", "verdicts_json",
            "format_verdicts", "CERT_DIR"]
@@ -47,6 +48,10 @@ class Claim:
     #: of cost): it is then reported on its own line and cannot turn the verdict into "holds under
     #: corrected statement"
     corrected_is_about: str | None = None
+    #: hypotheses the check's statements rely on that the paper leaves implicit (docs/math.md §9.1): for the
+    #: rows that use P_j|T > 0, "P0 > 0 and So_k > 0" (hypotheses.STANDING); every instance is checked against
+    #: them up front (hypotheses.require_standing_hypotheses)
+    standing: str | None = None
 
 
 @dataclass(frozen=True)
@@ -141,8 +146,8 @@ CLAIMS: tuple[Claim, ...] = (
           "the per-step M-step maximiser [F_j e_j] of Lbar_j is unique",
           "none stated (the rank condition appears only in the proof)",
           "the [F_j e_j] equation has a unique solution iff H_j = B_j^T (So_j)^-1 B_j > 0 with the stacked "
-          "B_j = [B^d_j; B^y_j] (so m <= n+1); P_j|T > 0 is automatic under the model",
-          CORRECTED, f"{CERT_DIR}/uniqueness_n1_m2_T1.json", checks.uniqueness_gain),
+          "B_j = [B^d_j; B^y_j] (so m <= n+1); P_j|T > 0 is automatic under the model given P0 > 0 and So_k > 0",
+          CORRECTED, f"{CERT_DIR}/uniqueness_n1_m2_T1.json", checks.uniqueness_gain, standing=STANDING),
     Claim("uniqueness_sigma", "Theorem uniqueness (Sigma_j)", "docs/math.md §5",
           "the maximiser in Sigma_j is the unique stationary point of Lbar_j",
           "none stated",
@@ -159,7 +164,7 @@ CLAIMS: tuple[Claim, ...] = (
     Claim("dpsoc", "Proposition DPSOC", "docs/math.md §5",
           "the backward sweep j = T-1..0, phi_j = argmax Lbar_j with the future fixed, maximises sum_k Lbar_k",
           "smoothed moments fixed; B_j full column rank; feasible set {Sigma >= Sigma_min}",
-          None, HOLDS, None, checks.proposition_dpsoc),
+          None, HOLDS, None, checks.proposition_dpsoc, standing=STANDING),
     Claim("em_lemma", "EM lemma", "docs/math.md §5, §9.2",
           "exact EM never decreases log p(Y)",
           "exact M-step (action integrated out), capped inner iterations (generalized EM)",
@@ -178,6 +183,17 @@ CLAIMS: tuple[Claim, ...] = (
     Claim("hessian_impl", "Implementation: analytic M-step Hessian", "docs/math.md §5",
           "-(Stilde_j kron H_j) is the Hessian of mstep.surrogate in vec([K_j k_j])",
           "well-posed instances", None, HOLDS, None, _hessian_impl),
+    Claim("ecm", "ECM step (Sigma fixed)", "docs/math.md §5, §9.2",
+          "with Sigma held at Sigma^i, the surrogate M-step's maximiser over [K_j k_j] equals the maximiser of the "
+          "exact expected complete-data log-likelihood Q (Woodbury: B^T S^-1 = (I + H Sigma)^-1 B^T So^-1), so the "
+          "step is an ECM step and log p(Y) does not decrease",
+          "Sigma^(i+1) = Sigma^i (M-step floor = Sigma^i); H_j > 0 (stacked B_j of full column rank); smoothed "
+          "moments of the current policy",
+          None, HOLDS, None, checks_ecm.ecm_step, standing=STANDING),
+    Claim("smoother", "Implementation: E-step smoother = dense conditioning", "docs/math.md §4",
+          "estep.smooth's means, P_t|T, P_(t+1,t)|T and log p(Y) equal those of conditioning the joint Gaussian of "
+          "(s_0..s_T, y_0..y_(T-1)) on Y with dense linear algebra",
+          "small T (dense oracle)", None, HOLDS, None, checks_ecm.smoother_oracle, standing=STANDING),
 )
 
 _TAGS = {c.key: i + 10 for i, c in enumerate(CLAIMS)}
@@ -215,7 +231,8 @@ def verdicts_json(results: list[ClaimVerdict]) -> dict:
     for r in results:
         c = r.claim
         rows.append({"key": c.key, "label": c.label, "cite": c.cite, "statement": c.statement,
-                     "hypotheses": c.hypotheses, "corrected_statement": c.corrected, "expected": c.expected,
+                     "hypotheses": c.hypotheses, "standing_hypotheses": c.standing, "corrected_statement": c.corrected,
+                     "expected": c.expected,
                      "verdict": r.verdict, "as_expected": r.as_expected, "what_holds": r.what_holds,
                      "certificate": c.certificate if r.verdict != HOLDS else None,
                      "as_written": _outcome_json(r.as_written), "corrected": _outcome_json(r.corrected),
@@ -238,6 +255,8 @@ def format_verdicts(results: list[ClaimVerdict]) -> str:
             lines.append(f"{r.claim.label}: counterexample {r.claim.certificate}")
         if r.what_holds:
             lines.append(f"  [{r.claim.key}] {r.what_holds}")
+        if r.claim.standing:
+            lines.append(f"  [{r.claim.key}] standing hypotheses: {r.claim.standing}")
         for note in r.as_written.notes + (r.corrected.notes if r.corrected else []):
             lines.append(f"  [{r.claim.key}] {note}")
     return "\n".join(lines)
