@@ -186,7 +186,7 @@ def uniqueness_sigma(rng, instances: int, full: bool = False):
         n, m, T = int(rng.integers(1, 4)), int(rng.integers(1, 3)), int(rng.integers(1, 4))
         inst = draw_instance(rng, n, m, T)
         floor = random_spd_spectrum(rng, m, 0.05, 0.3)
-        new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=mstep.MStepConstraints(cov_floor=floor.tolist()))
+        new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=mstep.MStepConstraints(cov_floor=floor.tolist()), min_norm=False)
         L = lambda cov: np.asarray(mstep.surrogate(inst.model, inst.sm, inst.y, new.with_cov(cov)))  # noqa: E731
         h = 0.25 * float(np.linalg.eigvalsh(floor)[0])
         base = np.array(new.cov)
@@ -241,7 +241,7 @@ def lemma_ltv(rng, instances: int, full: bool = False):
         n, m, T = int(rng.integers(1, 4)), int(rng.integers(1, 3)), int(rng.integers(1, 5))
         inst = draw_instance(rng, n, m, T, shared_cov=True)
         args = (inst.model, inst.y, inst.mu0, inst.P0, inst.policy, inst.sm)
-        new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=mstep.MStepConstraints(cov_floor=0.05))
+        new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=mstep.MStepConstraints(cov_floor=0.05), min_norm=False)
         g = em_inequality_gap(*args, new)
         scale = max(1.0, abs(g["logp_old"]))
         ok = g["dlogp"] >= g["dL"] - INEQ_TOL * scale
@@ -254,7 +254,7 @@ def lemma_ltv(rng, instances: int, full: bool = False):
         co.add(margin >= -INEQ_TOL, margin, {"n": n, "m": m, "T": T, "mstep": g, "random": g2})
         # informative: the same lemma with Sigma held at Sigma^i
         fx = mstep.maximize(inst.model, inst.sm, inst.y,
-                            constraints=mstep.MStepConstraints(cov_floor=inst.policy.cov[0].tolist()))
+                            constraints=mstep.MStepConstraints(cov_floor=inst.policy.cov[0].tolist()), min_norm=False)
         g3 = em_inequality_gap(*args, fx)
         fixed[0] += 1
         fixed[1] += g3["dlogp"] >= g3["dL"] - INEQ_TOL * scale
@@ -280,7 +280,7 @@ def proposition_dpsoc(rng, instances: int, full: bool = False):
         n, m, T = int(rng.integers(1, 4)), int(rng.integers(1, 3)), int(rng.integers(2, 5))
         inst = draw_instance(rng, n, m, T)
         cons = mstep.MStepConstraints(cov_floor=0.1)
-        new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=cons)
+        new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=cons, min_norm=False)
         L = lambda p: np.asarray(mstep.surrogate(inst.model, inst.sm, inst.y, p))  # noqa: E731
         F = policy_F(new)
         L0 = L(new)
@@ -303,7 +303,7 @@ def proposition_dpsoc(rng, instances: int, full: bool = False):
             gain = float(np.sum(L(with_F(new, F + 0.1 * rng.standard_normal(F.shape), cov))) - np.sum(L0))
             worst = max(worst, gain / scale)
         if full:
-            cv = mstep.maximize(inst.model, inst.sm, inst.y, constraints=cons, method="cvxpy")
+            cv = mstep.maximize(inst.model, inst.sm, inst.y, constraints=cons, method="cvxpy", min_norm=False)
             worst = max(worst, float(np.abs(policy_F(cv) - F).max()) / max(1.0, float(np.abs(F).max())))
         out.add(worst <= 1e-6, worst, {"n": n, "m": m, "T": T, "worst": worst})
     return out, None
@@ -332,7 +332,7 @@ def theorem_cost_decrease(rng, instances: int, full: bool = False):
         mu0, P0 = system["mu0"], system["P0"]
         sm = estep.smooth(model, phi, Y, mu0, P0)
         cons = mstep.MStepConstraints(cov_floor=phi.cov[0].tolist())
-        new = mstep.maximize(model, sm, Y, constraints=cons)
+        new = mstep.maximize(model, sm, Y, constraints=cons, min_norm=False)
         g = em_inequality_gap(model, Y, mu0, P0, phi, sm, new)
         cost = lambda p: float(expected_stage_costs(sm, p, system["Qs"], system["s_star"], system["Qa"],  # noqa: E731
                                                     system["a_star"]).sum())
@@ -341,7 +341,7 @@ def theorem_cost_decrease(rng, instances: int, full: bool = False):
             rel = (V_new - V_old) / max(1.0, abs(V_old))
             aw.add(rel <= INEQ_TOL, rel, {"n": n, "m": m, "T": T, "EV_old": V_old, "EV_new": V_new, **g})
         ex = mstep.maximize(model, sm, Y, constraints=mstep.MStepConstraints(cov_floor=1e-3), objective="exact",
-                            previous=phi, config=cfg)
+                            previous=phi, config=cfg, min_norm=False)
         lp_ex = float(estep.smooth(model, ex, Y, mu0, P0).loglik)
         scale = max(1.0, abs(g["logp_old"]))
         margin = min(g["dlogp"] - g["dQ"], lp_ex - g["logp_old"]) / scale
