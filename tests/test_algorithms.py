@@ -1,19 +1,14 @@
-"""Tests for soc_opt/algorithms.py: LQR-FLM, DPSOC-EM, model-based iLQG (docs/math.md §7)."""
+"""Tests for soc_opt/methods/ (lqr_flm, dpsoc_em, ilqg, registry): LQR-FLM, DPSOC-EM, model-based iLQG (docs/math.md §7)."""
 
 import numpy as np
 import pytest
 
 from soc_opt import lqg
-from soc_opt.algorithms import (
-    DPSOCConfig,
-    EMConfig,
-    ILQGConfig,
-    LQRFLMConfig,
-    check_config,
-    ilqg,
-    run_algorithm,
-)
 from soc_opt.learning import fit
+from soc_opt.methods import registry
+from soc_opt.methods.config import DPSOCConfig, EMConfig, LQRFLMConfig
+from soc_opt.methods.ilqg import ILQGConfig, ilqg
+from soc_opt.methods.registry import check_config
 from soc_opt.tasks import load_task
 
 # Documented in docs/choices.md: LQR-FLM needs 3 iterations (10 samples each) on this problem.
@@ -28,7 +23,7 @@ def test_lqr_flm_reaches_known_model_lqr_cost_within_5_percent():
     J_lqr = lqg.expected_cost(dyn, cost, lqg.lqr(dyn, cost, task.mu0, task.P0), task.mu0, task.P0).sum()
     base = LQRFLMConfig(iterations=LQR_FLM_ITERATIONS_TO_5_PERCENT, samples=10, kl_budget=0.5, init_var=10.0,
                         fit=fit.FitConfig(prior="none"))
-    state = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
+    state = registry.run(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
     J = lqg.expected_cost(dyn, cost, state.policy, task.mu0, task.P0).sum()
     assert J >= J_lqr * (1 - 1e-9)  # LQR is optimal on the true model
     assert J <= 1.05 * J_lqr
@@ -37,7 +32,7 @@ def test_lqr_flm_reaches_known_model_lqr_cost_within_5_percent():
 def test_lqr_flm_lowers_the_cost_on_linear2d():
     task = load_task("linear2d", overrides={"T": 20})
     base = LQRFLMConfig(iterations=4, samples=8, kl_budget=0.5, init_var=10.0)
-    state = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=1)
+    state = registry.run(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=1)
     costs = [np.mean(r.cost) for r in state.history]
     assert costs[-1] < costs[0]
     assert state.best.mean_cost == min(costs)
@@ -49,7 +44,7 @@ def test_dpsoc_em_runs_its_em_phase_at_the_switch(y_mode):
     task = load_task("linear2d", overrides={"T": 15})
     cfg = DPSOCConfig(i_switch=2, baseline=LQRFLMConfig(iterations=3, samples=6, init_var=10.0),
                       em=EMConfig(n_em=2, y_mode=y_mode))
-    state = run_algorithm(task, "dpsoc-em", cfg, seed=0)
+    state = registry.run(task, "dpsoc-em", cfg, seed=0)
     phases = [(r.iteration, r.phase) for r in state.history]
     assert phases == [(0, "baseline"), (1, "baseline"), (2, "em"), (2, "em"), (2, "baseline")]
     em = [r for r in state.history if r.phase == "em"]
@@ -62,7 +57,7 @@ def test_dpsoc_em_runs_its_em_phase_at_the_switch(y_mode):
 
 
 def test_em_update_respects_the_covariance_floor_and_raises_the_surrogate():
-    from soc_opt.algorithms import em_update
+    from soc_opt.methods.dpsoc_em import em_update
 
     task = load_task("linear2d", overrides={"T": 15})
     cfg = DPSOCConfig(i_switch=0, baseline=LQRFLMConfig(iterations=1, samples=8), em=EMConfig(cov_floor_scale=0.5))
@@ -79,8 +74,8 @@ def test_em_update_respects_the_covariance_floor_and_raises_the_surrogate():
 def test_dpsoc_em_and_lqr_flm_share_the_iterations_before_the_switch():
     task = load_task("linear2d", overrides={"T": 15})
     cfg = DPSOCConfig(i_switch=2, baseline=LQRFLMConfig(iterations=3, samples=6, init_var=10.0))
-    a = run_algorithm(task, "lqr-flm", cfg, seed=4)
-    b = run_algorithm(task, "dpsoc-em", cfg, seed=4)
+    a = registry.run(task, "lqr-flm", cfg, seed=4)
+    b = registry.run(task, "dpsoc-em", cfg, seed=4)
     for ra, rb in zip(a.history[:2], b.history[:2]):
         np.testing.assert_array_equal(ra.cost, rb.cost)
 
@@ -98,7 +93,7 @@ def test_ilqg_lowers_the_cost_at_every_accepted_iteration_on_the_arm():
 def test_unknown_method_is_rejected():
     task = load_task("linear2d", overrides={"T": 5})
     with pytest.raises(ValueError, match="unknown method"):
-        run_algorithm(task, "ppo", DPSOCConfig(baseline=LQRFLMConfig(iterations=1, samples=2), i_switch=0))
+        registry.run(task, "ppo", DPSOCConfig(baseline=LQRFLMConfig(iterations=1, samples=2), i_switch=0))
 
 
 def test_dpsoc_em_rejects_a_switch_outside_the_run_before_sampling():
@@ -108,7 +103,7 @@ def test_dpsoc_em_rejects_a_switch_outside_the_run_before_sampling():
     check_config("lqr-flm", cfg)  # the baseline never switches
     task = load_task("linear2d", overrides={"T": 5})
     with pytest.raises(ValueError, match="i_switch"):
-        run_algorithm(task, "dpsoc-em", cfg.replace(baseline=LQRFLMConfig(iterations=1, samples=2)), seed=0)
+        registry.run(task, "dpsoc-em", cfg.replace(baseline=LQRFLMConfig(iterations=1, samples=2)), seed=0)
     with pytest.raises(ValueError, match="i_switch: must be >= 0"):
         DPSOCConfig(i_switch=-1)
 
@@ -117,7 +112,7 @@ def test_em_records_keep_the_metrics_columns_in_their_order():
     """metrics.csv columns of an EM record: recursion index, diagnostics, then the phase timings."""
     task = load_task("linear2d", overrides={"T": 10})
     cfg = DPSOCConfig(i_switch=0, baseline=LQRFLMConfig(iterations=1, samples=4, init_var=10.0))
-    state = run_algorithm(task, "dpsoc-em", cfg, seed=0)
+    state = registry.run(task, "dpsoc-em", cfg, seed=0)
     em = next(r for r in state.history if r.phase == "em")
     keys = list(em.summary())
     em_block = ["em_recursion", "surrogate_old", "surrogate_new", "loglik_old", "loglik_new",
@@ -132,7 +127,7 @@ def test_em_records_keep_the_metrics_columns_in_their_order():
 
 def test_em_update_passes_its_mstep_config_to_the_m_step(monkeypatch):
     from soc_opt import mstep
-    from soc_opt.algorithms import em_update
+    from soc_opt.methods.dpsoc_em import em_update
     from soc_opt.mstep import recipe
 
     task = load_task("linear2d", overrides={"T": 10})
@@ -162,7 +157,7 @@ def test_loop_kl_tolerance_comes_from_the_config_with_the_loop_default():
 
 
 def test_paper_scale_is_the_default_scale():
-    from soc_opt.algorithms import PAPER, with_paper_scale
+    from soc_opt.methods.config import PAPER, with_paper_scale
 
     cfg = DPSOCConfig()
     assert (cfg.baseline.iterations, cfg.baseline.samples, cfg.i_switch) == tuple(PAPER) == (14, 20, 4)

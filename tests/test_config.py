@@ -73,8 +73,8 @@ def test_invalid_toml_is_reported_with_the_file(tmp_path):
 
 
 def _run_configs():
-    from soc_opt.algorithms import DPSOCConfig
     from soc_opt.config_doc import LIBRARY, config_tables, resolve_config_class
+    from soc_opt.methods.config import DPSOCConfig
 
     return [cls for _, cls in config_tables(DPSOCConfig)] + [resolve_config_class(path) for path, _ in LIBRARY]
 
@@ -113,8 +113,8 @@ def test_docs_configuration_md_is_the_generated_reference():
 
 
 def test_configs_check_themselves_when_built_in_python_naming_key_and_value():
-    from soc_opt.algorithms import EMConfig, LQRFLMConfig
     from soc_opt.lqg import KLStepConfig
+    from soc_opt.methods.config import EMConfig, LQRFLMConfig
     from soc_opt.noise.aware import NoiseConfig
 
     cases = [
@@ -135,8 +135,8 @@ def test_configs_check_themselves_when_built_in_python_naming_key_and_value():
 
 
 def test_every_kl_step_solver_is_accepted_from_toml(tmp_path):
-    from soc_opt.algorithms import DPSOCConfig
     from soc_opt.lqg import KL_METHODS
+    from soc_opt.methods.config import DPSOCConfig
 
     for name in KL_METHODS:
         path = tmp_path / f"{name}.toml"
@@ -145,7 +145,7 @@ def test_every_kl_step_solver_is_accepted_from_toml(tmp_path):
 
 
 def test_a_bad_value_in_a_toml_file_names_the_file_the_table_path_and_the_value(tmp_path):
-    from soc_opt.algorithms import DPSOCConfig
+    from soc_opt.methods.config import DPSOCConfig
 
     path = tmp_path / "bad.toml"
     path.write_text("[baseline.kl]\nmult_min = 0.0\n")

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig
 from soc_opt.experiments.run import run_experiment
+from soc_opt.methods.config import DPSOCConfig, EMConfig, LQRFLMConfig
 from soc_opt.tasks import load_task
 
 
@@ -111,8 +111,8 @@ def test_door_report_plots_the_minimum_hinge_angle_per_iteration(tmp_path):
 
 
 def test_evaluation_uses_the_configured_seed_stream(task):
-    from soc_opt.algorithms import EvalConfig
     from soc_opt.experiments.compare import evaluate_policy
+    from soc_opt.methods.config import EvalConfig
 
     policy = task.initial_policy(1.0)
     a = evaluate_policy(task, policy, 3, seed=2)

@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig
 from soc_opt.config import Config, ConfigError
 from soc_opt.config_doc import config_tables
 from soc_opt.experiments.run import CheckpointError, RunDirectoryError, load_run_config, run_experiment
+from soc_opt.methods.config import DPSOCConfig, EMConfig, LQRFLMConfig
 from soc_opt.tasks import LinearTask, SimulationError, TaskConfig, load_task
 from soc_opt.tasks.config import TERM_TYPES, LinearConfig, MetricConfig
 
@@ -277,7 +277,7 @@ import json, os, signal, sys
 from pathlib import Path
 args = json.loads(sys.argv[1])
 import soc_opt.experiments.rundir as rundir
-from soc_opt.algorithms import DPSOCConfig
+from soc_opt.methods.config import DPSOCConfig
 from soc_opt.experiments.run import RunDirectoryError, run_experiment
 from soc_opt.tasks import load_task
 task = load_task(args.get("task", "linear2d"), overrides=args["task_overrides"])

@@ -14,8 +14,10 @@ pytest.importorskip("gymnasium.envs.mujoco")
 
 from gymnasium.envs.mujoco import MujocoEnv  # noqa: E402
 
-from soc_opt.algorithms import DPSOCConfig, ILQGConfig, LQRFLMConfig, ilqg, run_algorithm  # noqa: E402
 from soc_opt.config import ConfigError  # noqa: E402
+from soc_opt.methods import registry  # noqa: E402
+from soc_opt.methods.config import DPSOCConfig, LQRFLMConfig  # noqa: E402
+from soc_opt.methods.ilqg import ILQGConfig, ilqg  # noqa: E402
 from soc_opt.models import LinearGaussianPolicy  # noqa: E402
 from soc_opt.tasks import load_task  # noqa: E402
 
@@ -160,7 +162,7 @@ def test_rollout_costs_and_states_equal_the_environment_stepped_with_the_same_ac
 def test_gym_task_runs_two_lqr_flm_iterations():
     task = load_task("gym:InvertedDoublePendulum-v5", overrides={"T": 20, "rho2": 1e-3})
     cfg = DPSOCConfig(i_switch=0, baseline=LQRFLMConfig(iterations=2, samples=6, init_var=0.1))
-    state = run_algorithm(task, "lqr-flm", cfg, seed=0)
+    state = registry.run(task, "lqr-flm", cfg, seed=0)
     assert state.iteration == 2 and len(state.history) == 2
     for rec in state.history:
         assert np.isfinite(rec.cost).all() and rec.kl >= 0

@@ -1,5 +1,5 @@
 """The kinematic estimator in the loop (soc_opt/noise/kinematic/loop.py; its wiring in
-soc_opt/algorithms.py and the [baseline.noise] knob, docs/math.md §11.3)."""
+soc_opt/methods/ and the [baseline.noise] knob, docs/math.md §11.3)."""
 
 import dataclasses
 from pathlib import Path
@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from soc_opt.algorithms import DPSOCConfig, LQRFLMConfig, run_algorithm
 from soc_opt.config import ConfigError
+from soc_opt.methods import registry
+from soc_opt.methods.config import DPSOCConfig, LQRFLMConfig
 from soc_opt.noise.aware import NoiseConfig
 from soc_opt.noise.kinematic.filter import KinematicFilteredPolicy
 from soc_opt.tasks import load_task
@@ -29,8 +30,8 @@ def test_at_zero_noise_the_kinematic_loop_is_the_paper_loop():
     """rho^2 = 0: smoothed states = measured, filter = identity, same start: the paper's iterations."""
     task = load_task("peg", overrides={"rho2": 0.0, "T": 30})
     base = LQRFLMConfig(iterations=2, samples=6, init_var=1.0)
-    paper = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=1)
-    kin = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base.replace(noise=NoiseConfig(estimator="kinematic")),
+    paper = registry.run(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=1)
+    kin = registry.run(task, "lqr-flm", DPSOCConfig(baseline=base.replace(noise=NoiseConfig(estimator="kinematic")),
                                                       i_switch=0), seed=1)
     assert isinstance(kin.policy, KinematicFilteredPolicy)
     np.testing.assert_array_equal(kin.policy.policy.K, paper.policy.K)
@@ -42,7 +43,7 @@ def test_at_zero_noise_the_kinematic_loop_is_the_paper_loop():
 def test_dpsoc_em_with_the_kinematic_estimator_returns_a_filtered_em_policy():
     task = load_task("peg", overrides={"T": 30})
     base = LQRFLMConfig(iterations=2, samples=8, init_var=1.0, noise=NoiseConfig(estimator="kinematic"))
-    st = run_algorithm(task, "dpsoc-em", DPSOCConfig(baseline=base, i_switch=1), seed=0)
+    st = registry.run(task, "dpsoc-em", DPSOCConfig(baseline=base, i_switch=1), seed=0)
     phases = [r.phase for r in st.history]
     assert "em" in phases
     assert isinstance(st.policy, KinematicFilteredPolicy)
@@ -56,7 +57,7 @@ def test_innovation_kl_model_runs_the_kl_step_on_the_innovation_form():
     task = load_task("peg", overrides={"T": 30})
     noise = NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"kl_model": "innovation"}})
     base = LQRFLMConfig(iterations=2, samples=8, init_var=1.0, noise=noise)
-    st = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
+    st = registry.run(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
     assert isinstance(st.policy, KinematicFilteredPolicy)
     # the innovation form's initial distribution is that of the estimate, not the known start
     assert not np.allclose(st.prev.model.P0, 1e-6 * np.eye(task.n))
@@ -76,7 +77,7 @@ def test_the_kinematic_strategy_keeps_no_per_iteration_state():
     strategy = resolve(task, noise)
     assert isinstance(strategy, KinematicEstimator)
     base = LQRFLMConfig(iterations=2, samples=6, init_var=1.0, noise=noise)
-    st = run_algorithm(task, "dpsoc-em", DPSOCConfig(baseline=base, i_switch=1), seed=0)
+    st = registry.run(task, "dpsoc-em", DPSOCConfig(baseline=base, i_switch=1), seed=0)
     assert isinstance(st.policy, KinematicFilteredPolicy)
     assert resolve(task, noise) is strategy
     assert set(vars(strategy)) == {"task", "cfg", "_noise"}
@@ -93,7 +94,7 @@ def test_fit_filter_acts_on_the_kalman_filter_of_the_smoothed_state_fit():
     noise = NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"filter": "fit"}})
     base = LQRFLMConfig(iterations=2, samples=8, init_var=1.0, noise=noise)
     for method, i_switch in (("lqr-flm", 0), ("dpsoc-em", 1)):
-        st = run_algorithm(task, method, DPSOCConfig(baseline=base, i_switch=i_switch), seed=0)
+        st = registry.run(task, method, DPSOCConfig(baseline=base, i_switch=i_switch), seed=0)
         assert type(st.policy) is FilteredPolicy and isinstance(st.policy.filter, KalmanFilter)
         assert (st.policy.filter.T, st.policy.filter.n, st.policy.filter.m) == (30, task.n, task.m)
         assert not np.allclose(st.prev.model.P0, 1e-6 * np.eye(task.n))
@@ -109,7 +110,7 @@ def test_structured_dynamics_gives_gains_on_the_joint_state_only():
     task = load_task("peg", overrides={"T": 30})
     noise = NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"dynamics": "structured"}})
     base = LQRFLMConfig(iterations=2, samples=8, init_var=1.0, noise=noise)
-    st = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
+    st = registry.run(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
     zidx = st.policy.filter.zidx
     sites = np.setdiff1d(np.arange(task.n), zidx)
     K = st.policy.policy.K
@@ -124,7 +125,7 @@ def test_posterior_moments_change_the_fit_not_the_zero_noise_loop():
     plain = NoiseConfig.from_dict({"estimator": "kinematic", "kinematic": {"fit_moments": "means"}})
     for rho2, same in ((0.0, True), (0.1, False)):
         task = load_task("peg", overrides={"rho2": rho2, "T": 30})
-        runs = [run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=LQRFLMConfig(iterations=2, samples=8, init_var=1.0,
+        runs = [registry.run(task, "lqr-flm", DPSOCConfig(baseline=LQRFLMConfig(iterations=2, samples=8, init_var=1.0,
                                                                                    noise=nc), i_switch=0), seed=1)
                 for nc in (noise, plain)]
         assert np.array_equal(runs[0].policy.policy.K, runs[1].policy.policy.K) == same
@@ -271,7 +272,7 @@ def test_the_loop_hands_each_iteration_the_batch_its_sampler_was_learned_from():
         seen.clear()
         KinematicEstimator.estimate = spy
         try:
-            run_algorithm(task, method, DPSOCConfig(baseline=LQRFLMConfig(iterations=3, samples=5, init_var=1.0,
+            registry.run(task, method, DPSOCConfig(baseline=LQRFLMConfig(iterations=3, samples=5, init_var=1.0,
                                                                           noise=nc), i_switch=i_switch), seed=0)
         finally:
             KinematicEstimator.estimate = orig
@@ -355,7 +356,7 @@ def test_slide_only_object_with_constant_coordinates_runs_for_several_iterations
     task = load_task(SLIDER)
     base = LQRFLMConfig(iterations=4, samples=20, init_var=1.0, noise=NoiseConfig(estimator="kinematic"))
     assert base.fit.prior_warm_start
-    st = run_algorithm(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
+    st = registry.run(task, "lqr-flm", DPSOCConfig(baseline=base, i_switch=0), seed=0)
     assert [r.iteration for r in st.history] == [0, 1, 2, 3]
     assert all(np.isfinite(r.cost).all() for r in st.history)
     z = [task.state_labels.index(f"{p}.{c}") for p in ("tip", "puck_c") for c in ("z", "vz")]
@@ -366,7 +367,7 @@ def test_slide_only_object_with_constant_coordinates_runs_for_several_iterations
 def test_gym_mujoco_task_runs_with_the_kinematic_estimator():
     task = load_task("gym:Reacher-v5", overrides={"T": 20})
     base = LQRFLMConfig(iterations=2, samples=4, init_var=1.0, noise=NoiseConfig(estimator="kinematic"))
-    st = run_algorithm(task, "dpsoc-em", DPSOCConfig(baseline=base, i_switch=1), seed=0)
+    st = registry.run(task, "dpsoc-em", DPSOCConfig(baseline=base, i_switch=1), seed=0)
     assert "em" in [r.phase for r in st.history]
     assert isinstance(st.policy, KinematicFilteredPolicy)
     assert all(np.isfinite(r.cost).all() for r in st.history)

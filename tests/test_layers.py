@@ -87,3 +87,25 @@ def test_the_private_name_check_sees_an_injected_private_import(tmp_path):
     target.write_text(target.read_text() + "\nfrom ..estep import _private_helper  # noqa\n")
     assert any(h.startswith("soc_opt/bench/estep.py:") and h.endswith("estep._private_helper")
                for h in _private_imports(dst))
+
+
+def test_the_algorithms_shim_is_retired():
+    """``soc_opt.algorithms`` re-exported ``soc_opt.methods`` wholesale (issue 33): it is gone, nothing imports
+    it, and the one star re-export left in the package is the documented ``soc_opt.ilqg``.
+
+    The module is looked up on the package's own path: an editable install of another checkout in the same
+    environment may map an absent top-level submodule to that checkout."""
+    import importlib.machinery
+    import re
+
+    import soc_opt
+
+    assert importlib.machinery.PathFinder.find_spec("soc_opt.algorithms", soc_opt.__path__) is None
+    pattern = re.compile(r"^\s*(from soc_opt\.algorithms import|import soc_opt\.algorithms|from soc_opt import algorithms"
+                         r"|from \.+algorithms import|from \.+ import algorithms)", re.M)
+    users = [str(p.relative_to(ROOT)) for folder in ("soc_opt", "tests", "examples")
+             for p in sorted((ROOT / folder).rglob("*.py")) if pattern.search(p.read_text())]
+    assert users == []
+    star = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "soc_opt").rglob("*.py")
+                  if re.search(r"^from \S+ import \*", p.read_text(), re.M))
+    assert star == ["soc_opt/ilqg.py"]

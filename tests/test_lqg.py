@@ -891,3 +891,22 @@ def test_coupling_model_applies_the_inverse_on_the_free_steps():
     d = _CouplingModel(h, active, (rho, a))(q)
     np.testing.assert_allclose(hess @ d[free], q[free], rtol=1e-12, atol=1e-12)
     assert np.all(d[active] == 0.0)
+
+
+def test_kl_step_local_is_kl_step_on_the_local_models_fields():
+    """``kl_step_local(LocalModel(dyn, cost, mu0, P0), ref, nu)`` is ``kl_step(dyn, cost, ref, nu, mu0, P0)``
+    bit for bit (the loop's form; issue 33), for a total and a per-step budget; anything but a
+    ``LocalModel`` is refused."""
+    from soc_opt.lqg import LocalModel, kl_step_local
+    from soc_opt.testing import random_kl_step_problem
+
+    dyn, cost, ref, mu0, P0 = random_kl_step_problem(np.random.default_rng(33), n=3, m=2, T=6)
+    for nu in (0.4, np.full(6, 0.1)):
+        a = kl_step(dyn, cost, ref, nu, mu0, P0)
+        b = kl_step_local(LocalModel(dyn, cost, mu0, P0), ref, nu)
+        for x, y in ((a.policy.K, b.policy.K), (a.policy.k, b.policy.k), (a.policy.cov, b.policy.cov), (a.eta, b.eta),
+                     (a.kl, b.kl)):
+            assert np.array_equal(x, y)
+        assert a.expected_cost == b.expected_cost and a.n_backward == b.n_backward
+    with pytest.raises(TypeError, match="LocalModel"):
+        kl_step_local((dyn, cost, mu0, P0), ref, 0.4)

@@ -42,7 +42,7 @@ def _cfg(method, iterations=5, samples=6, i_switch=2, enabled=True):
 
 def _damage_call(monkeypatch, which: set[int]):
     """Make the KL steps numbered ``which`` (0-based, in call order) return a wrecked policy."""
-    real = lqg.kl_step
+    real = lqg.kl_step_local  # the loop's call
     calls = []
 
     def kl_step(*args, **kwargs):
@@ -54,7 +54,7 @@ def _damage_call(monkeypatch, which: set[int]):
             res = res._replace(policy=bad)
         return res
 
-    monkeypatch.setattr(lqg, "kl_step", kl_step)
+    monkeypatch.setattr(lqg, "kl_step_local", kl_step)
     return calls
 
 
@@ -233,7 +233,7 @@ def test_a_run_with_rejections_resumed_from_its_checkpoint_equals_the_uninterrup
 def test_a_retry_below_the_dual_s_resolution_samples_the_accepted_policy_again(task, monkeypatch):
     """Rejections shrink the budget; when the dual cannot reach it (KL at eta_max above the budget) the
     retry is the zero step: the accepted policy's own gains, sampled again, not a crash."""
-    real = lqg.kl_step
+    real = lqg.kl_step_local  # the loop's call
     calls = []
 
     def kl_step(*args, **kwargs):
@@ -245,7 +245,7 @@ def test_a_retry_below_the_dual_s_resolution_samples_the_accepted_policy_again(t
             res = res._replace(policy=LinearGaussianPolicy(res.policy.K, res.policy.k + 200.0, res.policy.cov))
         return res
 
-    monkeypatch.setattr(lqg, "kl_step", kl_step)
+    monkeypatch.setattr(lqg, "kl_step_local", kl_step)
     cfg = _cfg("lqr-flm", iterations=4)
     state = run_method(get_method("lqr-flm"), task, cfg, 0)
     rec = {r.iteration: r for r in state.history}

@@ -7,10 +7,10 @@ import re
 
 import pytest
 
-from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig
 from soc_opt.experiments.compare import compare
 from soc_opt.experiments.progress import Progress, resolve_mode
 from soc_opt.experiments.run import run_experiment
+from soc_opt.methods.config import DPSOCConfig, EMConfig, LQRFLMConfig
 from soc_opt.tasks import load_task
 
 

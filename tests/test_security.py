@@ -176,6 +176,30 @@ def test_convert_checkpoint_with_trust_turns_a_genuine_old_run_into_one_that_res
     assert "already finished" in capsys.readouterr().out
 
 
+def test_convert_checkpoint_finds_the_classes_of_the_retired_algorithms_module(finished, tmp_path, capsys):
+    """Pickles written before the methods package name their run-state and configuration classes
+    ``soc_opt.algorithms.<Class>``; that module is gone (issue 33) and the converter still finds them."""
+    from soc_opt.experiments.rundir import decode_checkpoint
+
+    d = tmp_path / "old"
+    shutil.copytree(finished, d)
+    state = decode_checkpoint(d / "checkpoint.npz")
+    for new, old in (("checkpoint.npz", "checkpoint.pkl"), ("checkpoint.prev.npz", "checkpoint.prev.pkl")):
+        payload = pickle.dumps(decode_checkpoint(d / new), protocol=0)  # GLOBAL opcodes: "module\nname\n"
+        assert b"csoc_opt.methods.state\nRunState\n" in payload
+        for name in (b"RunState", b"IterationRecord", b"BestPolicy", b"PreviousStep", b"EMDiagnostics"):
+            payload = payload.replace(b"csoc_opt.methods.state\n" + name + b"\n", b"csoc_opt.algorithms\n" + name + b"\n")
+        (d / old).write_bytes(payload)
+        (d / new).unlink()
+    assert b"csoc_opt.algorithms\nRunState\n" in (d / "checkpoint.pkl").read_bytes()
+    assert main(["convert-checkpoint", "--trust", str(d)]) == 0
+    assert "2 checkpoints converted" in capsys.readouterr().out
+    assert "soc_opt.algorithms" not in sys.modules  # found through the converter's table, not an import
+    back = decode_checkpoint(d / "checkpoint.npz")
+    np.testing.assert_array_equal(back.policy.K, state.policy.K)
+    assert back.iteration == state.iteration and back.rng_state == state.rng_state
+
+
 # ------------------------------------------------------------------ issue 31: the file system, bounded reads, contracts
 # Each test below failed on the main branch before issue 31 (the behaviour it checks did not exist).
 

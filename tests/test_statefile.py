@@ -12,10 +12,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig
 from soc_opt.experiments.run import run_experiment
 from soc_opt.experiments.statefile import StateFileError, decode_state, encode_state, peek_state
 from soc_opt.lqg.moments import expected_cost
+from soc_opt.methods.config import DPSOCConfig, EMConfig, LQRFLMConfig
 from soc_opt.noise.aware import NoiseConfig
 from soc_opt.tasks import load_task
 

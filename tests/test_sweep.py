@@ -18,11 +18,11 @@ import time
 import numpy as np
 import pytest
 
-from soc_opt.algorithms import IterationRecord, RunState
 from soc_opt.cli import main
 from soc_opt.experiments.run import run_experiment
 from soc_opt.experiments.rundir import decode_checkpoint
 from soc_opt.linalg import single_thread_blas
+from soc_opt.methods.state import IterationRecord, RunState
 from soc_opt.sweeps.runner import ProgressBoard, run_sweep
 from soc_opt.sweeps.spec import SweepError, TrialDiverged, check_finite, load_sweep, sweep_from_dict
 from soc_opt.tasks import BUILTIN_TASKS, load_task

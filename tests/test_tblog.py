@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from soc_opt import cli
-from soc_opt.algorithms import DPSOCConfig, EMConfig, LQRFLMConfig
 from soc_opt.experiments.progress import Progress
 from soc_opt.experiments.run import run_experiment
 from soc_opt.experiments.tblog import MISSING_MESSAGE, available
+from soc_opt.methods.config import DPSOCConfig, EMConfig, LQRFLMConfig
 from soc_opt.tasks import load_task
 
 needs_tensorboardx = pytest.mark.skipif(not available(), reason="tensorboardX not installed (test extra)")

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from soc_opt import algorithms
-from soc_opt.algorithms import DPSOCConfig
 from soc_opt.experiments.compare import evaluate_policy, spreads
+from soc_opt.methods import registry
+from soc_opt.methods.config import DPSOCConfig
 from soc_opt.tasks import load_task
 
 
@@ -51,10 +51,10 @@ def main() -> None:
             rows[meth].append({k: summary["per_seed"][meth][k][idx[seed]] for k in ("cost", "state_spread", "action_spread")})
         fork = pickle.loads((out / f"seed_{seed}" / "fork_state.pkl").read_bytes())
         kept = cfg.replace(em=cfg.em.replace(cov_floor_scale=1.0))
-        st = algorithms.run_algorithm(task, "dpsoc-em", kept, seed=seed, state=fork)
+        st = registry.run(task, "dpsoc-em", kept, seed=seed, state=fork)
         rows["em-sigma-kept"].append(spreads(task, evaluate(st.policy, seed)))
         halved = dataclasses.replace(fork, policy=fork.policy.with_cov(0.5 * np.asarray(fork.policy.cov)))
-        st = algorithms.run_algorithm(task, "lqr-flm", cfg, seed=seed, state=halved)
+        st = registry.run(task, "lqr-flm", cfg, seed=seed, state=halved)
         rows["halve-sigma"].append(spreads(task, evaluate(st.policy, seed)))
         print(f"seed {seed}: " + ", ".join(f"{m} cost {rows[m][-1]['cost']:.4g}" for m in rows), flush=True)
     (out / "ablation.json").write_text(json.dumps({"seeds": args.seeds, "rows": rows}, indent=1))

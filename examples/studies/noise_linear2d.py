@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from soc_opt import algorithms
 from soc_opt.experiments.run import fork_state, load_run_config
+from soc_opt.methods import registry
 from soc_opt.noise.aware import NoiseConfig
 from soc_opt.noise.estimator import FilteredPolicy, kalman_filter, measurement_noise
 from soc_opt.noise.lqg_reference import expected_cost, task_reference
@@ -54,14 +54,14 @@ def run_variant(task, cfg, seed, methods):
 
     out = {}
     try:
-        out["lqr-flm"] = algorithms.run_algorithm(task, "lqr-flm", cfg, seed=seed, on_iteration=keep)
+        out["lqr-flm"] = registry.run(task, "lqr-flm", cfg, seed=seed, on_iteration=keep)
     except Exception as e:  # a failed run is a result too (e.g. the KL step on a diverging model)
         out["lqr-flm"] = e
     if "dpsoc-em" in methods:
         try:
             if not fork:
                 raise RuntimeError("LQR-FLM failed before the switch") from None
-            out["dpsoc-em"] = algorithms.run_algorithm(task, "dpsoc-em", cfg, seed=seed, state=fork[0])
+            out["dpsoc-em"] = registry.run(task, "dpsoc-em", cfg, seed=seed, state=fork[0])
         except Exception as e:
             out["dpsoc-em"] = e
     return {m: out[m] for m in methods}

@@ -28,7 +28,8 @@ def run(envs=ENVS, iterations: int = 10, samples: int = 20, seed: int = 0, task_
     task is ``gym:<EnvId>`` as loaded by :func:`soc_opt.tasks.load_task`.  A failing
     environment gives a row with ``error`` set instead of raising.
     """
-    from ..algorithms import DPSOCConfig, LQRFLMConfig, run_algorithm
+    from ..methods import registry
+    from ..methods.config import DPSOCConfig, LQRFLMConfig
     from ..tasks import load_task
 
     rows = []
@@ -41,7 +42,7 @@ def run(envs=ENVS, iterations: int = 10, samples: int = 20, seed: int = 0, task_
                                                                 init_var=init_var, kl_budget=kl_budget))
             t0 = time.perf_counter()
             e0 = task.reward.evaluations
-            state = run_algorithm(task, "lqr-flm", cfg, seed=seed)
+            state = registry.run(task, "lqr-flm", cfg, seed=seed)
             elapsed = time.perf_counter() - t0
             costs = [float(np.mean(r.cost)) for r in state.history]
             row.update(

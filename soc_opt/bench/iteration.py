@@ -18,10 +18,10 @@ import numpy as np
 
 
 def _timed_run(task, method: str, cfg, seed: int):
-    from ..algorithms import run_algorithm
+    from ..methods import registry
 
     stamps = [time.perf_counter()]
-    state = run_algorithm(task, method, cfg, seed=seed, on_iteration=lambda _s: stamps.append(time.perf_counter()))
+    state = registry.run(task, method, cfg, seed=seed, on_iteration=lambda _s: stamps.append(time.perf_counter()))
     return state, np.diff(stamps)
 
 
@@ -36,9 +36,9 @@ def run(task: str = "peg", seed: int = 0, iterations: int | None = None, samples
     """Rows ``{method, phase, median_s, min_s, max_s, first_s, n}``: ``median/min/max`` over
     iterations 2..n, ``first_s`` the first iteration.  ``iterations``/``samples`` override the
     paper's (for a quick check)."""
-    from ..algorithms import PAPER
     from ..experiments.run import load_run_config
     from ..linalg import single_thread_blas
+    from ..methods.config import PAPER
     from ..tasks import load_task
 
     t = load_task(task)

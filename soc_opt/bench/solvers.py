@@ -38,7 +38,7 @@ import warnings
 
 import numpy as np
 
-from ..mstep import MStepConstraints, maximize_moments
+from ..mstep import MStepConstraints, maximize_moments, maximize_moments_result
 from ..mstep.objectives import moment_stats
 from .mstep import random_instance
 
@@ -268,8 +268,8 @@ def _run_library(rows, base, insts, kind, solver, refs):
 
     def call(inst):
         cons = _constraints(kind, m, inst["b"], inst["delta"])
-        return maximize_moments(inst["model"], inst["mom"], constraints=cons, method="cvxpy", solver=solver,
-                                previous=inst["prev"], return_result=True)
+        return maximize_moments_result(inst["model"], inst["mom"], constraints=cons, method="cvxpy", solver=solver,
+                                       previous=inst["prev"], min_norm=False)
 
     t0 = _clock()
     try:  # warm-up: builds (or fetches) the cached DPP problem; reported as build time
@@ -357,7 +357,7 @@ def _closed_form_rows(rows, base, insts, kind, refs):
     for i, inst in enumerate(insts):
         cons = _constraints(kind, base["m"])
         t0 = _clock()
-        pol = maximize_moments(inst["model"], inst["mom"], constraints=cons)
+        pol = maximize_moments(inst["model"], inst["mom"], constraints=cons, min_norm=False)
         per = (_clock() - t0) / base["T"]
         for k in range(base["T"]):
             Q, r = inst["data"][k]

@@ -36,11 +36,22 @@ def legacy_files(directory: str | Path) -> list[Path]:
 _MOVED = {"soc_opt.estimator": "soc_opt.noise.estimator", "soc_opt.mixture": "soc_opt.learning.mixture",
           "soc_opt.fit": "soc_opt.learning.fit", "soc_opt.noise_aware": "soc_opt.noise.aware"}
 
+#: The classes the old ``soc_opt.algorithms`` module defined (before the methods package; the
+#: module is gone since issue 33) and the modules that hold them now.
+_MOVED_FROM_ALGORITHMS = {
+    **dict.fromkeys(("PaperScale", "LoopKLStepConfig", "LQRFLMConfig", "EMConfig", "EvalConfig", "DPSOCConfig"),
+                    "soc_opt.methods.config"),
+    **dict.fromkeys(("BestPolicy", "PreviousStep", "EMDiagnostics", "IterationRecord", "RunState"),
+                    "soc_opt.methods.state"),
+}
+
 
 class _RenamingUnpickler(pickle.Unpickler):
     """An unpickler that finds the classes of old pickles at their current modules."""
 
     def find_class(self, module: str, name: str):
+        if module == "soc_opt.algorithms":
+            module = _MOVED_FROM_ALGORITHMS.get(name, module)
         return super().find_class(_MOVED.get(module, module), name)
 
 

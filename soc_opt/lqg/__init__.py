@@ -18,7 +18,8 @@ Lagrangian and sign convention.  ``L(p, eta) = sum_k E[l_k] + sum_k eta_k (KL_k 
 
 Modules (each imports only from those below it):
 
-* :mod:`.step`: the entry :func:`kl_step` and its closed-form path (``method="closed_form"``).
+* :mod:`.step`: the entries :func:`kl_step` and :func:`kl_step_local` (on a :class:`LocalModel`) and
+  the closed-form path (``method="closed_form"``).
 * :mod:`.casadi_nlp`: ``method="casadi"``, the NLP solved by IPOPT in its ``"symbolic"``
   formulation, and the IPOPT driver; :mod:`.structured_nlp`: the ``"structured"`` formulation.
 * :mod:`.dual`: the scalar and vector dual solvers over the multipliers ``eta``.
@@ -40,7 +41,7 @@ about 40 ms / 8 backward passes, per-step budgets about 80 ms / 16 passes
 from .backward import lqr
 from .moments import expected_cost, forward, kl_divergence
 from .problem import KLStepConfig, KLStepResult, Marginals, SolverError
-from .step import KL_METHODS, kl_step
+from .step import KL_METHODS, kl_step, kl_step_local
 from .step_size import LocalModel, adapt_multiplier, laplace_improvements
 
 __all__ = [
@@ -54,6 +55,7 @@ __all__ = [
     "kl_divergence",
     "lqr",
     "kl_step",
+    "kl_step_local",
     "KL_METHODS",
     "adapt_multiplier",
     "laplace_improvements",

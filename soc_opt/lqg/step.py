@@ -1,4 +1,6 @@
-"""The KL-constrained LQG step (docs/math.md §6): the entry :func:`kl_step` and its closed-form path.
+"""The KL-constrained LQG step (docs/math.md §6): the entries :func:`kl_step` (the model's pieces as
+arguments) and :func:`kl_step_local` (the same step on a :class:`~soc_opt.lqg.step_size.LocalModel`),
+and the closed-form path.
 
 ``method="closed_form"`` solves the dual over the multipliers (:mod:`.dual`) with one backward
 pass per trial multiplier (:mod:`.backward`); ``method="casadi"`` solves the primal NLP with
@@ -18,6 +20,7 @@ from .casadi_nlp import kl_step_casadi
 from .dual import dual_objective, solve_scalar, solve_vector
 from .fatrop_nlp import kl_step_fatrop
 from .problem import KLProblem, KLStepConfig, KLStepResult, check_dims, check_init, check_nu, policy_from
+from .step_size import LocalModel
 
 
 def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: LinearGaussianPolicy, nu, mu0, P0,
@@ -49,6 +52,18 @@ def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: Li
     if solve is None:
         raise ValueError(f"unknown method {method!r}; use one of {', '.join(map(repr, KL_METHODS))}")
     return solve(KLProblem(dynamics, cost, reference, mu0, P0), nu_arr, scalar, nu_out, config, eta0)
+
+
+def kl_step_local(model: LocalModel, reference: LinearGaussianPolicy, nu, *, method: str = "closed_form",
+                  config: KLStepConfig | None = None, eta0=None) -> KLStepResult:
+    """:func:`kl_step` on a fitted :class:`~soc_opt.lqg.step_size.LocalModel` (dynamics, cost expansion,
+    ``mu0``, ``P0``): ``kl_step(model.dynamics, model.cost, reference, nu, model.mu0, model.P0, ...)``,
+    the same arithmetic and the same :class:`KLStepResult`.  The form the loop uses (the model it
+    solved on is also what :func:`~soc_opt.lqg.step_size.laplace_improvements` reads)."""
+    if not isinstance(model, LocalModel):
+        raise TypeError(f"model must be a LocalModel (dynamics, cost, mu0, P0), got {type(model).__name__}")
+    return kl_step(model.dynamics, model.cost, reference, nu, model.mu0, model.P0, method=method, config=config,
+                   eta0=eta0)
 
 
 def _closed_form(prob: KLProblem, nu, scalar, nu_out, config, eta0) -> KLStepResult:

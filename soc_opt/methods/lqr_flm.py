@@ -129,7 +129,7 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
 
     t0 = time.perf_counter()
     nu = _budget(cfg, task.T, mult)
-    res = lqg.kl_step(local.dynamics, local.cost, ref, nu, local.mu0, local.P0, method=cfg.kl_method, config=cfg.kl)
+    res = lqg.kl_step_local(local, ref, nu, method=cfg.kl_method, config=cfg.kl)
     timings["lqg"] = time.perf_counter() - t0
 
     rec = record(
@@ -216,11 +216,9 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
 
     t0 = time.perf_counter()
     nu = _budget(cfg, task.T, mult)
-    model = step.model
     floor = False
     try:
-        res = lqg.kl_step(model.dynamics, model.cost, step.reference, nu, model.mu0, model.P0,
-                          method=cfg.kl_method, config=cfg.kl)
+        res = lqg.kl_step_local(step.model, step.reference, nu, method=cfg.kl_method, config=cfg.kl)
         gains, kl, eta_mean, predicted_cost = res.policy, float(np.sum(res.kl)), float(np.mean(res.eta)), float(res.expected_cost)
     except lqg.SolverError as e:
         if "not reachable" not in str(e) or not mult < 1.0:

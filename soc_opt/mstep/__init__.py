@@ -3,9 +3,9 @@
 Every public name is importable from ``soc_opt.mstep``.  Modules, each importing only those
 listed after it:
 
-* :mod:`~soc_opt.mstep.maximize` -- entry points :func:`maximize` / :func:`maximize_moments`,
-  :class:`MStepResult`, the surrogate's closed-form maximisers and the time-varying sweep /
-  time-invariant variant.
+* :mod:`~soc_opt.mstep.maximize` -- entry points :func:`maximize` / :func:`maximize_moments` (the
+  policy) and :func:`maximize_result` / :func:`maximize_moments_result` (the :class:`MStepResult`),
+  the surrogate's closed-form maximisers and the time-varying sweep / time-invariant variant.
 * :mod:`~soc_opt.mstep.exact_em` -- inner EM iterations for ``objective="exact"``.
 * :mod:`~soc_opt.mstep.cvx` -- the CVXPY (DPP) problems: factored, Kronecker and spectral forms,
   the entropy floor as an SDP, caching, solver settings, duals.
@@ -27,7 +27,7 @@ from __future__ import annotations
 from .config import MSTEP_METHODS, MSTEP_OBJECTIVES, MSTEP_SOLVERS, MSTEP_VARIANTS, MStepConfig
 from .constraints import MStepConstraints
 from .errors import ClosedFormUnavailableError, InfeasibleConstraintsError, NonUniqueMaximizerError, SolverError
-from .maximize import MStepResult, maximize, maximize_moments
+from .maximize import MStepResult, maximize, maximize_moments, maximize_moments_result, maximize_result
 from .objectives import (
     LOG_2PI,
     GradHess,
@@ -60,5 +60,7 @@ __all__ = [
     "exact_objective_from_moments",
     "surrogate_grad_hess",
     "maximize",
+    "maximize_result",
     "maximize_moments",
+    "maximize_moments_result",
 ]

@@ -1,5 +1,8 @@
-"""The M-step's entry points :func:`maximize` and :func:`maximize_moments` (docs/math.md §5), and the
-surrogate's closed-form maximisers.
+"""The M-step's entry points (docs/math.md §5) and the surrogate's closed-form maximisers.
+
+:func:`maximize` (from smoothed states) and :func:`maximize_moments` (from precomputed moments)
+return the policy; :func:`maximize_result` and :func:`maximize_moments_result` take the same
+arguments and return the :class:`MStepResult` (one return type per function).
 
 Time-varying sweep and time-invariant variant
 ---------------------------------------------
@@ -41,12 +44,12 @@ from .objectives import (
     ti_normal_equations,
 )
 
-__all__ = ["MStepResult", "maximize", "maximize_moments"]
+__all__ = ["MStepResult", "maximize", "maximize_result", "maximize_moments", "maximize_moments_result"]
 
 
 @dataclass(frozen=True)
 class MStepResult:
-    """Everything an M-step produced (``maximize_moments(..., return_result=True)``).
+    """Everything an M-step produced (:func:`maximize_result`, :func:`maximize_moments_result`).
 
     Fields:
         policy: the maximiser.
@@ -87,11 +90,13 @@ def maximize(
     variant: str = "time_varying",
     objective: str = "surrogate",
     previous: LinearGaussianPolicy | None = None,
-    min_norm: bool = False,
+    min_norm: bool = True,
     config: MStepConfig | None = None,
-    return_result: bool = False,
-) -> LinearGaussianPolicy | MStepResult:
+) -> LinearGaussianPolicy:
     """The DP M-step (docs/math.md §5): maximise ``Lbar_k`` (or the exact objective) over the feasible set.
+
+    Returns the maximiser; :func:`maximize_result` takes the same arguments and returns the
+    :class:`MStepResult` (objective values, solver statuses, duals, exact-EM history).
 
     Args:
         model: the augmented model (``Ao, co, So``).
@@ -107,22 +112,43 @@ def maximize(
         objective: ``"surrogate"`` (the paper's ``Lbar``) or ``"exact"`` (action integrated out,
             inner EM started from ``previous``; the time-invariant variant starts from the time
             average of ``previous``).  The number of inner iterations and convergence are in the
-            :class:`MStepResult`.
+            :class:`MStepResult` of :func:`maximize_result`.
         previous: the current policy; trust-region centre and exact-EM starting point.
-        min_norm: return the minimum-norm maximiser when it is not unique (closed form only).
+        min_norm: return the minimum-norm maximiser when it is not unique (closed form only; the
+            default, as in the EM loop's :class:`~soc_opt.mstep.recipe.MStepRecipe`); ``False``
+            raises :class:`NonUniqueMaximizerError` instead.
         config: :class:`MStepConfig` (tolerances, solver options).
-        return_result: return an :class:`MStepResult` instead of just the policy.
 
     Raises:
-        NonUniqueMaximizerError: ``B_k`` rank deficient or ``P_k`` singular (names the step).
+        NonUniqueMaximizerError: ``B_k`` rank deficient or ``P_k`` singular (names the step) with
+            ``min_norm=False`` or ``method="cvxpy"``.
         InfeasibleConstraintsError: empty constraint set.
         ClosedFormUnavailableError: ``method="closed_form"`` with a set needing CVXPY.
         SolverError: CVXPY failed (status and step in the message).
         ShapeError: inconsistent shapes.
     """
-    return maximize_moments(model, moments(smoothed, y), constraints=constraints, method=method, solver=solver,
-                            variant=variant, objective=objective, previous=previous, min_norm=min_norm,
-                            config=config, return_result=return_result)
+    return _maximize(model, moments(smoothed, y), constraints, method, solver, variant, objective, previous,
+                     min_norm, config, False)
+
+
+def maximize_result(
+    model: AugmentedModel,
+    smoothed: Smoothed,
+    y: np.ndarray,
+    *,
+    constraints: MStepConstraints | None = None,
+    method: str = "closed_form",
+    solver: str | None = None,
+    variant: str = "time_varying",
+    objective: str = "surrogate",
+    previous: LinearGaussianPolicy | None = None,
+    min_norm: bool = True,
+    config: MStepConfig | None = None,
+) -> MStepResult:
+    """:func:`maximize` returning everything the M-step produced (:class:`MStepResult`); the same
+    arguments, the same policy (``maximize_result(...).policy``)."""
+    return _maximize(model, moments(smoothed, y), constraints, method, solver, variant, objective, previous,
+                     min_norm, config, True)
 
 
 def maximize_moments(
@@ -135,11 +161,35 @@ def maximize_moments(
     variant: str = "time_varying",
     objective: str = "surrogate",
     previous: LinearGaussianPolicy | None = None,
-    min_norm: bool = False,
+    min_norm: bool = True,
     config: MStepConfig | None = None,
-    return_result: bool = False,
-) -> LinearGaussianPolicy | MStepResult:
+) -> LinearGaussianPolicy:
     """The M-step from precomputed :class:`Moments` (see :func:`maximize`)."""
+    return _maximize(model, mom, constraints, method, solver, variant, objective, previous, min_norm, config, False)
+
+
+def maximize_moments_result(
+    model: AugmentedModel,
+    mom: Moments,
+    *,
+    constraints: MStepConstraints | None = None,
+    method: str = "closed_form",
+    solver: str | None = None,
+    variant: str = "time_varying",
+    objective: str = "surrogate",
+    previous: LinearGaussianPolicy | None = None,
+    min_norm: bool = True,
+    config: MStepConfig | None = None,
+) -> MStepResult:
+    """The M-step from precomputed :class:`Moments` returning its :class:`MStepResult` (see
+    :func:`maximize_result`)."""
+    return _maximize(model, mom, constraints, method, solver, variant, objective, previous, min_norm, config, True)
+
+
+def _maximize(model: AugmentedModel, mom: Moments, constraints, method, solver, variant, objective, previous,
+              min_norm: bool, config, want_result: bool) -> LinearGaussianPolicy | MStepResult:
+    """The one implementation; ``want_result`` only decides what is returned (the policy, or the
+    policy with its objective values and solver diagnostics), never how it is computed."""
     cfg = config if config is not None else MStepConfig()
     for key, value, allowed in (("method", method, MSTEP_METHODS), ("variant", variant, MSTEP_VARIANTS),
                                 ("objective", objective, MSTEP_OBJECTIVES)):
@@ -162,7 +212,7 @@ def maximize_moments(
 
     if objective == "exact":
         policy, hist, it, conv = run_exact_em(model, mom, rc, cfg, method, solver, variant, previous, min_norm)
-        if not return_result:
+        if not want_result:
             return policy
         return MStepResult(policy, hist[-1], history=hist, iterations=it, converged=conv)
 
@@ -194,7 +244,7 @@ def maximize_moments(
     # without a PD guarantee require_pd_covariance only let us through with allow_singular=True
     policy = LinearGaussianPolicy(np.array(F[..., :n]), np.array(F[..., n]), np.array(Sigma),
                                   allow_singular=not pd_guaranteed(rc))
-    if not return_result:
+    if not want_result:
         return policy
     return MStepResult(policy, surrogate_from_moments(model, mom, policy), **extra)
 

@@ -24,8 +24,9 @@ Its gradient in ``F`` is ``R - H F Stilde``; its Hessian in ``vec(F)`` (column-m
 ``-(Stilde kron H)``, negative definite iff ``H > 0`` (``B`` full column rank) and ``Stilde > 0``
 (equivalently ``P_k > 0``: ``P_k`` is the Schur complement of the corner 1 in ``Stilde``).
 Hence the closed form ``F = H^{-1} R Stilde^{-1}`` (Cholesky solves).  When it is not unique a
-:class:`NonUniqueMaximizerError` names the step and the failed condition; ``min_norm=True``
-returns ``H^+ R Stilde^+``, the minimum Frobenius-norm maximiser (``(S kron H)^+ = S^+ kron H^+``).
+:class:`NonUniqueMaximizerError` names the step and the failed condition (``min_norm=False``);
+``min_norm=True`` (the default) returns ``H^+ R Stilde^+``, the minimum Frobenius-norm maximiser
+(``(S kron H)^+ = S^+ kron H^+``).
 The time-invariant variant's normal equations ``sum_k H_k F Stilde_k = sum_k R_k`` read
 ``(sum_k Stilde_k kron H_k) vec F = vec(sum_k R_k)`` (the paper's ``M = sum_k M_k``).
 

@@ -259,7 +259,7 @@ def uniqueness_sigma_case(case: SigmaCase) -> CaseResult:
     the action's units."""
     inst, floor = case.inst, case.floor
     n, m, T = inst.model.n, inst.model.m, inst.model.T
-    new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=mstep.MStepConstraints(cov_floor=floor.tolist()))
+    new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=mstep.MStepConstraints(cov_floor=floor.tolist()), min_norm=False)
     L = lambda cov: np.asarray(mstep.surrogate(inst.model, inst.sm, inst.y, new.with_cov(cov)))  # noqa: E731
     h = 0.25 * float(np.linalg.eigvalsh(floor)[0])
     base = np.array(new.cov)
@@ -339,7 +339,7 @@ def ltv_case(case: LtvCase) -> CaseResult:
     inst = case.inst
     n, m, T = inst.model.n, inst.model.m, inst.model.T
     args = (inst.model, inst.y, inst.mu0, inst.P0, inst.policy, inst.sm)
-    new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=mstep.MStepConstraints(cov_floor=case.floor))
+    new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=mstep.MStepConstraints(cov_floor=case.floor), min_norm=False)
     g = em_inequality_gap(*args, new)
     scale = max(1.0, abs(g["logp_old"]))
     ok = g["dlogp"] >= g["dL"] - INEQ_TOL * scale
@@ -349,7 +349,7 @@ def ltv_case(case: LtvCase) -> CaseResult:
     margin = min(g["dlogp"] - g["dQ"], g2["dlogp"] - g2["dQ"]) / scale
     # informative: the same lemma with Sigma held at Sigma^i
     fx = mstep.maximize(inst.model, inst.sm, inst.y,
-                        constraints=mstep.MStepConstraints(cov_floor=inst.policy.cov[0].tolist()))
+                        constraints=mstep.MStepConstraints(cov_floor=inst.policy.cov[0].tolist()), min_norm=False)
     g3 = em_inequality_gap(*args, fx)
     return CaseResult(ok, (g["dlogp"] - g["dL"]) / scale, {"n": n, "m": m, "T": T, **g},
                       margin >= -INEQ_TOL, margin, {"n": n, "m": m, "T": T, "mstep": g, "random": g2},
@@ -405,7 +405,7 @@ def dpsoc_case(case: DpsocCase, full: bool = False) -> CaseResult:
     inst = case.inst
     n, m, T = inst.model.n, inst.model.m, inst.model.T
     cons = mstep.MStepConstraints(cov_floor=case.floor)
-    new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=cons)
+    new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=cons, min_norm=False)
     L = lambda p: np.asarray(mstep.surrogate(inst.model, inst.sm, inst.y, p))  # noqa: E731
     F = policy_F(new)
     u = f_units(inst)
@@ -430,7 +430,7 @@ def dpsoc_case(case: DpsocCase, full: bool = False) -> CaseResult:
         gain = float(np.sum(L(with_F(new, F + 0.1 * dF * u, cov))) - np.sum(L0))
         worst = max(worst, gain / scale)
     if full:
-        cv = mstep.maximize(inst.model, inst.sm, inst.y, constraints=cons, method="cvxpy")
+        cv = mstep.maximize(inst.model, inst.sm, inst.y, constraints=cons, method="cvxpy", min_norm=False)
         worst = max(worst, float(np.abs((policy_F(cv) - F) / u).max()) / max(1.0, float(np.abs(F / u).max())))
     return CaseResult(worst <= 1e-6, worst, {"n": n, "m": m, "T": T, "worst": worst})
 
@@ -480,7 +480,7 @@ def theorem_cost_decrease(rng, instances: int, full: bool = False):
         mu0, P0 = system["mu0"], system["P0"]
         sm = estep.smooth(model, phi, Y, mu0, P0)
         cons = mstep.MStepConstraints(cov_floor=phi.cov[0].tolist())
-        new = mstep.maximize(model, sm, Y, constraints=cons)
+        new = mstep.maximize(model, sm, Y, constraints=cons, min_norm=False)
         g = em_inequality_gap(model, Y, mu0, P0, phi, sm, new)
         cost = lambda p: float(expected_stage_costs(sm, p, system["Qs"], system["s_star"], system["Qa"],  # noqa: E731
                                                     system["a_star"]).sum())
@@ -489,7 +489,7 @@ def theorem_cost_decrease(rng, instances: int, full: bool = False):
             rel = (V_new - V_old) / max(1.0, abs(V_old))
             aw.add(rel <= INEQ_TOL, rel, {"n": n, "m": m, "T": T, "EV_old": V_old, "EV_new": V_new, **g})
         ex = mstep.maximize(model, sm, Y, constraints=mstep.MStepConstraints(cov_floor=1e-3), objective="exact",
-                            previous=phi, config=cfg)
+                            previous=phi, config=cfg, min_norm=False)
         lp_ex = float(estep.smooth(model, ex, Y, mu0, P0).loglik)
         scale = max(1.0, abs(g["logp_old"]))
         margin = min(g["dlogp"] - g["dQ"], lp_ex - g["logp_old"]) / scale

@@ -44,7 +44,7 @@ def _em_run(model, policy, Y, mu0, P0, *, objective: str, constraints, iteration
     for _ in range(iterations):
         policy = ms.maximize(
             model, sm, Y, constraints=constraints, method="closed_form", variant="time_varying",
-            objective=objective, previous=policy, config=config,
+            objective=objective, previous=policy, config=config, min_norm=False,
         )
         sm = smooth(model, policy, Y, mu0, P0)
         lls.append(float(np.sum(sm.loglik)))
@@ -296,7 +296,7 @@ def _claim3_accumulate(r: dict, ms, model, phi, system: dict, baseline, floor, r
     Y, sm, V_old, L_old = baseline
     try:
         new = ms.maximize(model, sm, Y, constraints=_cov_floor_constraints(floor), method="closed_form",
-                          variant="time_varying", objective="surrogate", previous=phi)
+                          variant="time_varying", objective="surrogate", previous=phi, min_norm=False)
     except Exception as exc:
         r["errors"] += 1
         if r["ce"] is None:
