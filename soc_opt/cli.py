@@ -142,6 +142,17 @@ def _final_evaluation(task, method: str, cfg, seed: int, state, out: Path) -> st
     if not meth.sample_based:
         note = (f"; {method} plans on the noise-free model and its iterations are scored without sensor noise, "
                 f"this evaluation acts on the raw measurements (rho^2 = {rho2:g})")
+        ilqg_cfg = getattr(cfg, "ilqg", None)
+        if ilqg_cfg is not None and getattr(state, "x", None) is not None and rho2 > 0:
+            from .methods.ilqg import filtered_policy
+
+            fp = filtered_policy(task, state, ilqg_cfg)  # feedback on a Kalman filter of its own model
+            ro_f = evaluate_policy(task, fp, samples, seed, cfg.baseline.workers, cfg.evaluation)
+            ro_fm = evaluate_policy(task, mean_action(fp), samples, seed, cfg.baseline.workers, cfg.evaluation)
+            atomic_write_bytes(out / "final_eval_filtered.npz", npz_bytes(**ro_f.to_dict()))
+            atomic_write_bytes(out / "final_eval_filtered_mean_action.npz", npz_bytes(**ro_fm.to_dict()))
+            note += (f"; acting on a Kalman filter of its linearised model: sampled {score(ro_f)}, "
+                     f"mean action {score(ro_fm)}")
         u = getattr(state, "u", None)
         if u is not None:  # the nominal actions without feedback: what sensor noise cannot reach
             T, m = u.shape

@@ -90,6 +90,52 @@ def test_ilqg_lowers_the_cost_at_every_accepted_iteration_on_the_arm():
     assert policy.K.shape == (task.T, task.m, task.n)
 
 
+def test_ilqg_linearises_with_its_finite_difference_step(monkeypatch):
+    """``[ilqg] fd_eps`` is the step ``task.linearize`` receives (a linear task, whose linearisation is exact,
+    is called without one)."""
+    from soc_opt.methods import ilqg as ilqg_mod
+
+    task = load_task("peg", overrides={"T": 5})
+    seen = []
+    real = task.linearize
+    monkeypatch.setattr(task, "linearize", lambda x, u, cov=0.0, eps=1e-6: seen.append(eps) or real(x, u, cov, eps))
+    st = ilqg_mod.initial_ilqg_state(task, ILQGConfig(fd_eps=3e-3))
+    ilqg_mod.ilqg_iteration(task, ILQGConfig(fd_eps=3e-3), st)
+    assert seen == [3e-3]
+    lin = load_task("linear2d", overrides={"T": 5})
+    st = ilqg_mod.initial_ilqg_state(lin, ILQGConfig())
+    assert ilqg_mod.ilqg_iteration(lin, ILQGConfig(), st).history[-1].accepted
+
+
+def test_ilqg_opens_the_door_from_zero_actions():
+    """With the default finite-difference step iLQG opens the door from zero torques (min hinge <= -0.95);
+    with 1e-6 the contact Jacobians (norm up to 7e13) stop it near -0.5 (docs/results/acceptance.md §5)."""
+    task = load_task("door")
+    policy, costs = ilqg(task, cfg=ILQGConfig(iterations=25))
+    ro = task.rollouts(policy.mean_policy(), 1, np.random.default_rng(0), noise=False)
+    assert task.metrics(ro)["min_hinge"] <= -0.95
+    assert costs[-1] < 5.0
+
+
+def test_ilqg_acting_on_its_kalman_filter_opens_the_door_under_the_paper_s_sensor_noise():
+    """At rho^2 = 0.1 the iterate's feedback on the raw measurement does not move the door; read on the
+    Kalman filter of its own linearisation (known start) its mean action opens it (docs/results/acceptance.md §5)."""
+    from soc_opt.methods.ilqg import filtered_policy, ilqg_iteration, initial_ilqg_state
+    from soc_opt.noise.aware import mean_action
+
+    task = load_task("door", overrides={"rho2": 0.1})
+    cfg = ILQGConfig(iterations=25)
+    st = initial_ilqg_state(task, cfg)
+    while st.iteration < cfg.iterations and st.status == "running":
+        st = ilqg_iteration(task, cfg, st)
+    fp = filtered_policy(task, st, cfg)
+    assert (fp.T, fp.n, fp.m) == (task.T, task.n, task.m)
+    np.testing.assert_array_equal(fp.filter.mu0, st.x[0])
+    raw = task.metrics(task.rollouts(st.policy.mean_policy(), 10, np.random.default_rng(3)))["min_hinge"]
+    filt = task.metrics(task.rollouts(mean_action(fp), 10, np.random.default_rng(3)))["min_hinge"]
+    assert raw > -0.3 and filt <= -0.95, (raw, filt)
+
+
 def test_unknown_method_is_rejected():
     task = load_task("linear2d", overrides={"T": 5})
     with pytest.raises(ValueError, match="unknown method"):

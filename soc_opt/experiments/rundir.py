@@ -93,7 +93,8 @@ _ITER_FILE = r"iter_\d{3,}\.npz"
 #: Files a run writes at the top of its directory (removed by ``RunDirectory.clear``).
 RUN_FILES = ("config.json", "task.json", "metrics.csv", "metrics.json", "costs.npz", "best_policy.npz",
              CHECKPOINT, PREVIOUS_CHECKPOINT, *LEGACY_FILES[:2], "policy.npz", "final_eval.npz",
-             "final_policy.npz", "final_eval_mean_action.npz", "final_eval_open_loop.npz", "cost_per_iteration.png",
+             "final_policy.npz", "final_eval_mean_action.npz", "final_eval_open_loop.npz", "final_eval_filtered.npz",
+             "final_eval_filtered_mean_action.npz", "cost_per_iteration.png",
              "ee_trajectories.png", "filmstrip.png")
 
 
