@@ -24,7 +24,10 @@ Ramps over ``k = 0..T-1`` with ``t_k = (k + 1) / T`` (the GPS definitions):
 * ``quadratic``:  ``r_k = t_k^2``
 * ``final_only``: ``r_k = 0`` except ``r_{T-1} = 1``
 
-and afterwards ``r_{T-1} *= final_multiplier`` (default 1).
+and afterwards ``r_{T-1} *= final_multiplier`` (default 1).  A ``window = (w0, w1)``
+(fractions of the horizon, ``0 <= w0 < w1 <= 1``) keeps the term on stages
+``ceil(w0 T) <= k < ceil(w1 T)`` only (``r_k = 0`` elsewhere): a cost in phases, e.g. reach a
+point first and push from it afterwards.
 
 :class:`CostSum` adds terms, returns the derivatives ``lx (T,n)``, ``lu (T,m)``,
 ``lxx (T,n,n)``, ``luu (T,m,m)``, ``lux (T,m,n)`` at a trajectory, and
@@ -46,6 +49,7 @@ from .models import QuadraticCost, ShapeError, check_array, symmetrize
 __all__ = [
     "RAMPS",
     "ramp",
+    "window_mask",
     "Derivatives",
     "CostTerm",
     "PointCost",
@@ -78,10 +82,30 @@ def ramp(kind: str, T: int, final_multiplier: float = 1.0) -> np.ndarray:
     return r
 
 
+def window_mask(window: tuple[float, float] | None, T: int) -> np.ndarray:
+    """``(T,)`` 0/1 mask of the stages ``ceil(w0 T) <= k < ceil(w1 T)`` of ``window = (w0, w1)``
+    (all ones for ``None``)."""
+    if window is None:
+        return np.ones(T)
+    w0, w1 = window
+    k = np.arange(T)
+    return ((k >= np.ceil(w0 * T - 1e-9)) & (k < np.ceil(w1 * T - 1e-9))).astype(float)
+
+
+def check_window(name: str, window) -> tuple[float, float] | None:
+    """``window`` as a ``(w0, w1)`` tuple with ``0 <= w0 < w1 <= 1`` (or ``None``); errors name the term."""
+    if window is None:
+        return None
+    w = tuple(float(v) for v in window)
+    if len(w) != 2 or not (0.0 <= w[0] < w[1] <= 1.0):
+        raise ValueError(f"{name}: window must be two fractions of the horizon 0 <= w0 < w1 <= 1, got {list(window)}")
+    return w
+
+
 @lru_cache(maxsize=256)
-def _ramp_cached(kind: str, T: int, final_multiplier: float) -> np.ndarray:
-    """:func:`ramp`, computed once per ``(kind, T, final_multiplier)`` (read-only: it is shared)."""
-    r = ramp(kind, T, final_multiplier)
+def _ramp_cached(kind: str, T: int, final_multiplier: float, window: tuple[float, float] | None = None) -> np.ndarray:
+    """:func:`ramp` times :func:`window_mask`, computed once per arguments (read-only: it is shared)."""
+    r = ramp(kind, T, final_multiplier) * window_mask(window, T)
     r.flags.writeable = False
     return r
 
@@ -130,17 +154,19 @@ class CostTerm(ABC):
 
     name = "term"
 
-    def __init__(self, n: int, m: int, *, ramp: str = "constant", final_multiplier: float = 1.0, weight: float = 1.0):
+    def __init__(self, n: int, m: int, *, ramp: str = "constant", final_multiplier: float = 1.0, weight: float = 1.0,
+                 window: tuple[float, float] | None = None):
         if ramp not in RAMPS:
             raise ValueError(f"{self.name} cost: unknown ramp {ramp!r}; allowed: {', '.join(RAMPS)}")
         self.n, self.m = int(n), int(m)
         self.ramp = ramp
+        self.window = check_window(f"{self.name} cost", window)
         self.final_multiplier = float(final_multiplier)
         self.weight = float(weight)
 
     def multipliers(self, T: int) -> np.ndarray:
-        """``weight * r (T,)``."""
-        return self.weight * _ramp_cached(self.ramp, T, self.final_multiplier)
+        """``weight * r (T,)`` (``r``: the ramp, zero outside the ``window``)."""
+        return self.weight * _ramp_cached(self.ramp, T, self.final_multiplier, self.window)
 
     def stage(self, s_k, a_k, k: int, T: int) -> np.float64:
         """``weight * r_k * l_k(s_k, a_k)`` of one stage ``k`` of a horizon-``T`` trajectory, in O(1).
@@ -155,7 +181,7 @@ class CostTerm(ABC):
 
     def _stage(self, s1, a1, k: int, T: int) -> np.float64:
         """:meth:`stage` of checked one-row arrays ``s1 (1, n)``, ``a1 (1, m)``."""
-        return self._value(s1, a1)[0] * (self.weight * _ramp_cached(self.ramp, T, self.final_multiplier)[k])
+        return self._value(s1, a1)[0] * (self.weight * _ramp_cached(self.ramp, T, self.final_multiplier, self.window)[k])
 
     def _split(self, s, a):
         s = np.asarray(s, dtype=float)

@@ -251,3 +251,32 @@ def test_one_stage_cost_rejects_a_trajectory_or_a_stage_outside_the_horizon():
         term.stage(s, a, 0, T)
     with pytest.raises(ValueError, match="stage 6 outside 0..5"):
         term.stage(s[0], a[0], T, T)
+
+
+@pytest.mark.parametrize("window", [(0.0, 0.5), (0.3, 1.0), (0.25, 0.75)])
+def test_window_keeps_a_term_on_its_stages_only(window):
+    """A windowed term equals the unwindowed one on stages ``ceil(w0 T) <= k < ceil(w1 T)`` and is
+    zero elsewhere, in value and every derivative, batched and one stage at a time."""
+    T_ = 20
+    rng = np.random.default_rng(3)
+    s, a = rng.standard_normal((T_ + 1, N)), rng.standard_normal((T_, M_))
+    kw = dict(target=rng.normal(size=3), l1=0.3, l2=2.0, ramp="linear", final_multiplier=2.0)
+    full = PointCost(N, M_, [0, 1, 2], **kw)
+    win = PointCost(N, M_, [0, 1, 2], window=window, **kw)
+    on = (np.arange(T_) >= np.ceil(window[0] * T_)) & (np.arange(T_) < np.ceil(window[1] * T_))
+    assert 0 < on.sum() < T_
+    np.testing.assert_array_equal(win(s, a), np.where(on, full(s, a), 0.0))
+    d_full, d_win = full.derivatives(s, a), win.derivatives(s, a)
+    for f in ("l", "lx", "lu", "lxx", "luu", "lux"):
+        x_full, x_win = getattr(d_full, f), getattr(d_win, f)
+        mask = on.reshape((T_,) + (1,) * (x_full.ndim - 1))
+        np.testing.assert_array_equal(x_win, np.where(mask, x_full, 0.0))
+    batched = win(s, a)
+    for k in range(T_):
+        assert np.array_equal(win.stage(s[k], a[k], k, T_), batched[k])
+
+
+def test_window_must_be_an_increasing_pair_of_fractions():
+    for bad in [(0.5, 0.5), (0.6, 0.2), (-0.1, 0.5), (0.0, 1.5), (0.1, 0.2, 0.3)]:
+        with pytest.raises(ValueError, match="window must be two fractions"):
+            TorqueCost(N, M_, window=bad)

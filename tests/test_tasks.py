@@ -406,6 +406,41 @@ def test_task_toml_with_relative_model_path(tmp_path):
     assert t.n == 10 and t.m == 2 and t.actuated == ["m1", "m2"]
 
 
+def test_pkg_model_reads_an_mjcf_file_shipped_in_an_installed_package(tmp_path):
+    """``model = "pkg:<package>/<path>"``: the MJCF file inside an installed package (here
+    Gymnasium's raw reacher.xml, not its environment), hashed into the provenance like any file."""
+    pytest.importorskip("gymnasium")
+    t = load_task(problems_dir() / "reacher" / "reacher_mjcf.toml")
+    assert (t.n, t.m, t.kind) == (10, 2, "mujoco")
+    import hashlib
+
+    import gymnasium
+
+    shipped = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets", "reacher.xml")
+    with open(shipped, "rb") as f:
+        assert t.provenance["model_files"]["reacher.xml"] == hashlib.sha256(f.read()).hexdigest()
+
+
+def test_pkg_model_outside_its_package_or_missing_is_refused_naming_it(tmp_path):
+    pytest.importorskip("gymnasium")
+    with pytest.raises(ConfigError, match="leaves the package directory"):
+        build_task(_two_link_config(model="pkg:gymnasium/../numpy/__init__.py"))
+    with pytest.raises(ConfigError, match="'no_such_package_xyz' is not an installed package"):
+        build_task(_two_link_config(model="pkg:no_such_package_xyz/model.xml"))
+    with pytest.raises(ConfigError, match="has no file 'envs/mujoco/assets/nothing.xml'"):
+        build_task(_two_link_config(model="pkg:gymnasium/envs/mujoco/assets/nothing.xml"))
+    with pytest.raises(ConfigError, match="expected pkg:<package>/<path"):
+        build_task(_two_link_config(model="pkg:gymnasium"))
+
+
+def test_cost_window_is_read_from_the_task_and_checked():
+    t = build_task(_two_link_config(cost=[{"type": "torque", "wu": 1.0, "window": [0.5, 1.0]}]), xml=TWO_LINK)
+    (term,) = t.cost_terms.terms
+    assert term.window == (0.5, 1.0)
+    with pytest.raises(ConfigError, match="window must be two fractions"):
+        build_task(_two_link_config(cost=[{"type": "torque", "window": [0.7, 0.2]}]), xml=TWO_LINK)
+
+
 # ----------------------------------------------------------------- config errors
 
 
@@ -710,3 +745,59 @@ def test_a_misplaced_or_misshaped_target_offset_is_refused_naming_it(tmp_path, t
 
     with pytest.raises(ConfigError, match=says):
         _peg_with_term(tmp_path, term)
+
+
+def test_push_task_puck_rests_until_the_cage_touches_it_and_its_back_wall_pushes_it_forward():
+    """problems/push: n = 36, m = 7; with zero torque the puck does not move (it slides on damped joints,
+    not on the table); placed against the inside of the cage's back wall it is pushed out along the
+    cage's opening (the tool's local +x), between the side walls."""
+    task = load_task(problems_dir() / "push" / "push.toml")
+    assert (task.n, task.m) == (36, 7)
+    ro = task.rollouts(LinearGaussianPolicy(np.zeros((task.T, task.m, task.n)), np.zeros((task.T, task.m)),
+                                            np.broadcast_to(1e-12 * np.eye(task.m), (task.T, task.m, task.m))),
+                       1, np.random.default_rng(0))
+    puck = [task.state_labels.index(f"puck_centre.{c}") for c in "xy"]
+    np.testing.assert_allclose(ro.x[0, :, puck].T, np.broadcast_to(ro.x[0, 0, puck], (task.T + 1, 2)), atol=1e-9)
+
+    m = mujoco.MjModel.from_xml_path(str(problems_dir() / "push" / "arm7_push.xml"))
+    d = mujoco.MjData(m)
+    d.qpos[:7] = task.config.q0[:7]
+    mujoco.mj_forward(m, d)
+    cage, rear = d.site("cage").xpos.copy(), d.site("cage_rear").xpos.copy()
+    ahead = (cage - rear)[:2] / np.linalg.norm((cage - rear)[:2])       # the opening's direction
+    start = rear[:2] + 0.025 * ahead                                    # 1 cm into the back wall
+    d.qpos[7:9] = start - np.array([0.1, 0.25])                         # the puck body's slides
+    m.body("puck").pos[2] = cage[2]                                     # at the cage's height
+    m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_ACTUATION
+    arm = d.qpos[:7].copy()
+    for _ in range(50):
+        d.qpos[:7], d.qvel[:7] = arm, 0.0                               # the tool held still
+        mujoco.mj_step(m, d)
+    moved = d.site("puck_centre").xpos[:2] - start
+    assert moved @ ahead > 0.008                                        # pushed out of the back wall
+    assert abs(moved @ np.array([-ahead[1], ahead[0]])) < 0.5 * (moved @ ahead)
+
+
+def test_push_task_cage_can_follow_the_straight_push_at_puck_height_with_its_heading():
+    """Reachability of problems/push: within the joint limits, inverse kinematics puts the cage centre
+    at puck height on every point of the straight line from the puck's start to the goal, with the
+    tool's tail 0.25 m behind it on that line (the heading of the push)."""
+    m = mujoco.MjModel.from_xml_path(str(problems_dir() / "push" / "arm7_push.xml"))
+    d = mujoco.MjData(m)
+    start, goal = np.array([0.10, 0.25]), np.array([0.05, 0.58])
+    u = (goal - start) / np.linalg.norm(goal - start)
+    lo, hi = m.jnt_range[:7, 0].copy(), m.jnt_range[:7, 1].copy()
+    free = ~m.jnt_limited[:7].astype(bool)
+    lo[free], hi[free] = -np.pi, np.pi
+    q = np.clip(np.array([-0.13, -0.05, -1.55, -1.86, 1.70, -0.05, 0.16]), lo, hi)
+
+    def residual(q, cage, tail):
+        d.qpos[:7] = q
+        mujoco.mj_kinematics(m, d)
+        return np.r_[d.site("cage").xpos - cage, d.site("tool_tail").xpos - tail]
+
+    for lam in np.linspace(0.0, 1.0, 6):
+        p = start + lam * (goal - start)
+        cage, tail = np.r_[p, -0.38], np.r_[p - 0.25 * u, -0.38]
+        q = least_squares(residual, q, args=(cage, tail), bounds=(lo, hi), xtol=1e-12, ftol=1e-12).x
+        assert np.abs(residual(q, cage, tail)).max() < 2e-3, lam

@@ -22,6 +22,7 @@ from __future__ import annotations
 from .base import RolloutNoise, SimulationError, Task
 from .config import (
     GYM_PREFIX,
+    PKG_PREFIX,
     TERM_TYPES,  # noqa: F401 (public: the cost term kinds)
     FloatOrList,  # noqa: F401
     GymConfig,
@@ -50,6 +51,7 @@ __all__ = [
     "LinearConfig",
     "GymConfig",
     "GYM_PREFIX",
+    "PKG_PREFIX",
     "PointTermConfig",
     "TorqueTermConfig",
     "StateTermConfig",

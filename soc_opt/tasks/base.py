@@ -125,7 +125,7 @@ class TaskBase:
 
     def _build_term(self, i: int, t: Config):
         key = f"cost[{i}]"
-        common = dict(ramp=t.ramp, final_multiplier=t.final_multiplier, weight=t.weight)
+        common = dict(ramp=t.ramp, final_multiplier=t.final_multiplier, weight=t.weight, window=t.window)
         try:
             if isinstance(t, PointTermConfig):
                 if bool(t.sites) == bool(t.indices):

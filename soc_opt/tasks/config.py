@@ -24,11 +24,15 @@ __all__ = [
     "LinearConfig",
     "GymConfig",
     "GYM_PREFIX",
+    "PKG_PREFIX",
     "TaskConfig",
 ]
 
 #: Prefix of a task name or ``model`` naming a Gymnasium environment (``gym:<EnvId>``; docs/gym.md).
 GYM_PREFIX = "gym:"
+#: Prefix of a ``model`` naming an MJCF file shipped inside an installed Python package
+#: (``pkg:<package>/<path inside the package>``, e.g. ``pkg:gymnasium/envs/mujoco/assets/reacher.xml``).
+PKG_PREFIX = "pkg:"
 
 Ramp = Literal["constant", "linear", "quadratic", "final_only"]
 FloatOrList = float | tuple[float, ...]
@@ -65,6 +69,7 @@ class PointTermConfig(Config):
     ramp: Ramp = "constant"
     final_multiplier: float = 1.0
     weight: float = 1.0
+    window: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -76,6 +81,7 @@ class TorqueTermConfig(Config):
     ramp: Ramp = "constant"
     final_multiplier: float = 1.0
     weight: float = 1.0
+    window: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -92,6 +98,7 @@ class StateTermConfig(Config):
     ramp: Ramp = "constant"
     final_multiplier: float = 1.0
     weight: float = 1.0
+    window: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -109,6 +116,7 @@ class QuadraticTermConfig(Config):
     ramp: Ramp = "constant"
     final_multiplier: float = 1.0
     weight: float = 1.0
+    window: tuple[float, float] | None = None
 
 
 TERM_TYPES: dict[str, type[Config]] = {
@@ -197,8 +205,9 @@ class GymConfig(Config):
 class TaskConfig(Config):
     """A task: model, horizon, state definition, cost terms, noise, metric (see ``docs/tasks.md``).
 
-    ``model``: an MJCF file relative to the config, or ``"gym:<EnvId>"`` for a Gymnasium
-    MuJoCo environment (options in ``[gym]``; ``docs/gym.md``).
+    ``model``: an MJCF file relative to the config, ``"pkg:<package>/<path>"`` for an MJCF file
+    inside an installed Python package (e.g. Gymnasium's raw ``reacher.xml``), or ``"gym:<EnvId>"``
+    for a Gymnasium MuJoCo environment (options in ``[gym]``; ``docs/gym.md``).
 
     ``cost`` is a list of tables, each with a ``type`` key selecting
     :class:`PointTermConfig`, :class:`TorqueTermConfig`, :class:`StateTermConfig`

@@ -8,15 +8,16 @@ file the model reads (:func:`mjcf_files`), and for a task TOML its path, text an
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from ..config import ConfigError, read_toml
-from .config import GYM_PREFIX, TaskConfig
+from .config import GYM_PREFIX, PKG_PREFIX, TaskConfig
 from .linear import LinearTask
 from .mujoco import MujocoTask, import_mujoco
 
-__all__ = ["BUILTIN_TASKS", "build_task", "load_task", "mjcf_files"]
+__all__ = ["BUILTIN_TASKS", "build_task", "load_task", "mjcf_files", "package_file"]
 
 
 def problems_dir() -> Path:
@@ -25,6 +26,32 @@ def problems_dir() -> Path:
     checkout.  Every reader of those files goes through this function."""
     installed = Path(__file__).resolve().parents[1] / "problems"
     return installed if installed.is_dir() else Path(__file__).resolve().parents[2] / "problems"
+
+
+def package_file(model: str) -> Path:
+    """The file named by ``pkg:<package>/<path inside the package>`` (a ``model`` of a task TOML).
+
+    The package is found without importing it (``importlib.util.find_spec``); the path must stay
+    inside the package's directory (no ``..`` out of it, no absolute path).  Errors name the package
+    or the file.
+    """
+    rest = model[len(PKG_PREFIX):] if model.startswith(PKG_PREFIX) else model
+    package, _, inner = rest.partition("/")
+    if not package or not inner:
+        raise ConfigError(f"model {model!r}: expected {PKG_PREFIX}<package>/<path inside the package>")
+    try:
+        spec = importlib.util.find_spec(package)
+    except (ImportError, ValueError) as e:
+        raise ConfigError(f"model {model!r}: package {package!r} cannot be found ({e})") from e
+    if spec is None or not spec.submodule_search_locations:
+        raise ConfigError(f"model {model!r}: {package!r} is not an installed package")
+    root = Path(next(iter(spec.submodule_search_locations))).resolve()
+    path = (root / inner).resolve()
+    if Path(inner).is_absolute() or not path.is_relative_to(root):
+        raise ConfigError(f"model {model!r}: the path leaves the package directory {str(root)!r}")
+    if not path.is_file():
+        raise ConfigError(f"model {model!r}: package {package!r} has no file {inner!r}")
+    return path
 
 
 BUILTIN_TASKS = {"linear2d": "linear2d/linear2d.toml", "peg": "peg/peg.toml", "door": "door/door.toml"}
@@ -119,7 +146,7 @@ def build_task(config: TaskConfig | dict, base_dir: str | Path | None = None, *,
     else:
         if not config.model:
             raise ConfigError("model: a MuJoCo task needs 'model' (an MJCF file path relative to the config)")
-        path = Path(config.model)
+        path = package_file(config.model) if config.model.startswith(PKG_PREFIX) else Path(config.model)
         if not path.is_absolute():
             path = Path(base_dir or ".") / path
         if not path.is_file():
