@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 __all__ = ["Config", "ConfigError", "Interval", "Options", "config_error", "read_toml", "check_finite", "IMPLIED_WHEN_ABSENT",
-           "check_depth", "MAX_DEPTH", "MAX_TOML_BYTES", "PLUGIN_TABLES"]
+           "check_depth", "MAX_DEPTH", "MAX_TOML_BYTES", "PLUGIN_TABLES", "plugin_settings"]
 
 C = TypeVar("C", bound="Config")
 
@@ -318,8 +318,9 @@ def check_depth(value: Any, name: str, limit: int = MAX_DEPTH) -> Any:
 PLUGIN_TABLES = "plugin_tables"
 
 
-def _plugin_settings(cls) -> dict[str, type]:
-    """``name -> Config class`` of the plug-in tables of config class ``cls`` (``{}`` without ``_plugins``)."""
+def plugin_settings(cls) -> dict[str, type]:
+    """``name -> Config class`` of the plug-in tables of config class ``cls`` in registration order (``{}`` for a
+    class without plug-in tables)."""
     table = getattr(cls, "_plugins", None)
     if table is None:
         return {}
@@ -333,7 +334,7 @@ def _plugin_settings(cls) -> dict[str, type]:
 def _canonical_plugin_tables(cls, given) -> tuple:
     """``given`` (pairs or a mapping of plug-in name to its config or table) as stored: checked against the
     registered plug-ins, converted from tables, defaults dropped, sorted by name."""
-    settings = _plugin_settings(cls)
+    settings = plugin_settings(cls)
     items = dict(given.items() if isinstance(given, dict) else given)
     out = []
     for name, value in items.items():
@@ -355,7 +356,7 @@ class _ConfigMeta(type):
     ``dataclasses.replace(cfg, ilqg=...)``): they are gathered into its :data:`PLUGIN_TABLES` field."""
 
     def __call__(cls, *args, **kwargs):
-        settings = _plugin_settings(cls) if kwargs else {}
+        settings = plugin_settings(cls) if kwargs else {}
         given = {k: kwargs.pop(k) for k in list(kwargs) if k in settings}
         if given:
             kwargs[PLUGIN_TABLES] = {**dict(kwargs.get(PLUGIN_TABLES, ())), **given}
@@ -419,13 +420,18 @@ class Config(metaclass=_ConfigMeta):
         """A plug-in table read as an attribute (``cfg.ilqg``): :meth:`section`."""
         if name.startswith("_") or name == PLUGIN_TABLES:
             raise AttributeError(name)
-        if name in _plugin_settings(type(self)):
+        if name in plugin_settings(type(self)):
             return self.section(name)
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
+    @classmethod
+    def plugin_registry(cls):
+        """The :class:`soc_opt.plugins.Registry` whose plug-ins' settings are tables of this class, or None."""
+        return cls._plugins
+
     def section(self, name: str) -> "Config":
         """The plug-in table ``name`` (its defaults when not set); ``KeyError`` for an unregistered name."""
-        settings = _plugin_settings(type(self))
+        settings = plugin_settings(type(self))
         if name not in settings:
             raise KeyError(f"{type(self).__name__} has no plug-in table {name!r}; registered: {', '.join(settings)}")
         return dict(getattr(self, PLUGIN_TABLES, ())).get(name) or settings[name]()
@@ -435,9 +441,9 @@ class Config(metaclass=_ConfigMeta):
         if not isinstance(data, dict):
             raise ConfigError(f"{_path or cls.__name__}: expected a table, got {type(data).__name__}")
         hints = typing.get_type_hints(cls)
-        plugin_settings = _plugin_settings(cls)
+        tables = plugin_settings(cls)
         fields = {f.name: f for f in dataclasses.fields(cls) if f.init and f.name != PLUGIN_TABLES}
-        fields.update(dict.fromkeys(plugin_settings))
+        fields.update(dict.fromkeys(tables))
         unknown = sorted(set(data) - set(fields))
         if unknown:
             where = f" in [{_path}]" if _path else ""
@@ -448,7 +454,7 @@ class Config(metaclass=_ConfigMeta):
         kwargs = {}
         for name, value in data.items():
             path = f"{_path}.{name}" if _path else name
-            kwargs[name] = _check_type(path, value, plugin_settings.get(name) or hints[name])
+            kwargs[name] = _check_type(path, value, tables.get(name) or hints[name])
         try:
             return cls(**kwargs)
         except ConfigError as e:
@@ -482,7 +488,7 @@ class Config(metaclass=_ConfigMeta):
             if v is None:
                 continue
             out[f.name] = v
-        for name in _plugin_settings(type(self)):
+        for name in plugin_settings(type(self)):
             out[name] = self.section(name).to_dict()
         return out
 

@@ -17,7 +17,7 @@ import types
 import typing
 from typing import Any
 
-from .config import PLUGIN_TABLES, Config
+from .config import PLUGIN_TABLES, Config, plugin_settings
 
 __all__ = ["LIBRARY", "config_tables", "describe", "render"]
 
@@ -49,9 +49,7 @@ def config_tables(root: type[Config], prefix: str = "") -> list[tuple[str, type[
     table of ``root`` (after the fields), depth first."""
     out = [(prefix, root)]
     hints = typing.get_type_hints(root)
-    nested = [(f.name, hints[f.name]) for f in dataclasses.fields(root)]
-    if root._plugins is not None:
-        nested += list(root._plugins.settings().items())
+    nested = [(f.name, hints[f.name]) for f in dataclasses.fields(root)] + list(plugin_settings(root).items())
     for name, tp in nested:
         if isinstance(tp, type) and issubclass(tp, Config):
             out += config_tables(tp, f"{prefix}.{name}" if prefix else name)
@@ -114,9 +112,9 @@ def describe(cls: type[Config], where: str) -> str:
     for f in dataclasses.fields(cls):
         if f.init and f.name != PLUGIN_TABLES:
             lines.append(f"| `{f.name}` | {_type_name(hints[f.name])} | `{_toml_value(_default(f))}` |")
-    if cls._plugins is not None:
-        for name, tp in cls._plugins.settings().items():
-            lines.append(f"| `{name}` | {_type_name(tp)}, settings of the {cls._plugins.kind} `{name}` | `(table)` |")
+    for name, tp in plugin_settings(cls).items():
+        kind = cls.plugin_registry().kind
+        lines.append(f"| `{name}` | {_type_name(tp)}, settings of the {kind} `{name}` | `(table)` |")
     return "\n".join(lines) + "\n"
 
 
