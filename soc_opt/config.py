@@ -17,6 +17,15 @@ declared style (as scikit-learn's ``_parameter_constraints``):
 
 Every failure is one :class:`ConfigError` whose message starts with the key and names the value
 (``from_dict`` prefixes the table path, ``from_toml`` the file).
+
+**Plug-in tables.**  A config whose class names a plug-in table in ``_plugins`` (a
+:class:`soc_opt.plugins.Registry`) also holds, beside its fields, one table per registered plug-in
+that declares ``settings``, named after the plug-in (the run configuration's ``[ilqg]``, the noise
+table's ``[baseline.noise.kinematic]``).  They are read as attributes (``cfg.ilqg``) or with
+:meth:`Config.section`, given as keyword arguments (``NoiseConfig(kinematic=KinematicConfig(...))``,
+``cfg.replace(ilqg=...)``), loaded from and written to TOML/JSON like nested configs, and kept in the
+field :data:`PLUGIN_TABLES` (only the tables that differ from their defaults, so that equal settings
+compare equal whatever is registered).
 """
 
 from __future__ import annotations
@@ -30,7 +39,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 __all__ = ["Config", "ConfigError", "Interval", "Options", "config_error", "read_toml", "check_finite", "IMPLIED_WHEN_ABSENT",
-           "check_depth", "MAX_DEPTH", "MAX_TOML_BYTES"]
+           "check_depth", "MAX_DEPTH", "MAX_TOML_BYTES", "PLUGIN_TABLES", "plugin_settings"]
 
 C = TypeVar("C", bound="Config")
 
@@ -305,6 +314,60 @@ def check_depth(value: Any, name: str, limit: int = MAX_DEPTH) -> Any:
     return value
 
 
+#: The field of a config with plug-in tables that holds them: ``((name, config), ...)`` sorted by name.
+PLUGIN_TABLES = "plugin_tables"
+
+
+def plugin_settings(cls) -> dict[str, type]:
+    """``name -> Config class`` of the plug-in tables of config class ``cls`` in registration order (``{}`` for a
+    class without plug-in tables)."""
+    table = getattr(cls, "_plugins", None)
+    if table is None:
+        return {}
+    out = table.settings()
+    clash = sorted(set(out) & {f.name for f in dataclasses.fields(cls)})
+    if clash:
+        raise ConfigError(f"{table.kind} {clash[0]!r}: its settings table would hide the field {clash[0]!r} of {cls.__name__}")
+    return out
+
+
+def _canonical_plugin_tables(cls, given) -> tuple:
+    """``given`` (pairs or a mapping of plug-in name to its config or table) as stored: checked against the
+    registered plug-ins, converted from tables, defaults dropped, sorted by name."""
+    settings = plugin_settings(cls)
+    items = dict(given.items() if isinstance(given, dict) else given)
+    out = []
+    for name, value in items.items():
+        if name not in settings:
+            raise config_error(name, f"no registered plug-in of {cls.__name__} has settings named {name!r}; "
+                               f"known: {', '.join(sorted(settings)) or 'none'}")
+        tp = settings[name]
+        if isinstance(value, dict):
+            value = tp.from_dict(value, _path=name)
+        if not isinstance(value, tp):
+            raise config_error(name, f"expected {tp.__name__}, got {type(value).__name__} {value!r}")
+        if value != tp():
+            out.append((name, value))
+    return tuple(sorted(out, key=lambda kv: kv[0]))
+
+
+class _ConfigMeta(type):
+    """Lets a config with plug-in tables take them as keyword arguments (``NoiseConfig(kinematic=...)``,
+    ``dataclasses.replace(cfg, ilqg=...)``): they are gathered into its :data:`PLUGIN_TABLES` field."""
+
+    def __call__(cls, *args, **kwargs):
+        settings = plugin_settings(cls) if kwargs else {}
+        given = {k: kwargs.pop(k) for k in list(kwargs) if k in settings}
+        if given:
+            kwargs[PLUGIN_TABLES] = {**dict(kwargs.get(PLUGIN_TABLES, ())), **given}
+        return super().__call__(*args, **kwargs)
+
+
+def _resolve_plugin_tables(cfg) -> None:
+    if PLUGIN_TABLES in cfg.__dataclass_fields__:
+        object.__setattr__(cfg, PLUGIN_TABLES, _canonical_plugin_tables(type(cfg), getattr(cfg, PLUGIN_TABLES)))
+
+
 #: Dotted key suffix -> ``(value, when)``: the value implied by the key's absence from a recorded
 #: configuration (a run directory's ``config.json``, a sweep's ``trial.json``) when the table holding the
 #: key's section has the entries ``when`` (the section is in use), declared by each class's
@@ -315,7 +378,7 @@ IMPLIED_WHEN_ABSENT: dict[str, tuple[Any, dict]] = {}
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(metaclass=_ConfigMeta):
     """Base class: a frozen dataclass with strict ``from_dict`` / ``from_toml`` / ``to_dict``.
 
     ``_constraints`` (a class attribute, ``{field: [Interval | Options | None, ...]}``) declares
@@ -329,6 +392,9 @@ class Config:
     #: what such a run did; a record without the field ran with ``value`` if the table holding ``section``
     #: has the entries ``when`` (:data:`IMPLIED_WHEN_ABSENT`).
     _implied_when_absent: typing.ClassVar[dict[str, tuple[Any, dict]]] = {}
+    #: A :class:`soc_opt.plugins.Registry` whose plug-ins' ``settings`` are tables of this config (module
+    #: docstring, "Plug-in tables"); such a class declares the field :data:`PLUGIN_TABLES`.
+    _plugins: typing.ClassVar[Any] = None
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -336,6 +402,7 @@ class Config:
         own = cls.__dict__.get("__post_init__")
         if own is not None and not getattr(own, "_checks_finite", False):
             def __post_init__(self, _own=own):
+                _resolve_plugin_tables(self)
                 check_finite(self)
                 check_constraints(self)
                 _own(self)
@@ -345,15 +412,38 @@ class Config:
             cls.__post_init__ = __post_init__
 
     def __post_init__(self):
+        _resolve_plugin_tables(self)
         check_finite(self)
         check_constraints(self)
+
+    def __getattr__(self, name: str):
+        """A plug-in table read as an attribute (``cfg.ilqg``): :meth:`section`."""
+        if name.startswith("_") or name == PLUGIN_TABLES:
+            raise AttributeError(name)
+        if name in plugin_settings(type(self)):
+            return self.section(name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    @classmethod
+    def plugin_registry(cls):
+        """The :class:`soc_opt.plugins.Registry` whose plug-ins' settings are tables of this class, or None."""
+        return cls._plugins
+
+    def section(self, name: str) -> "Config":
+        """The plug-in table ``name`` (its defaults when not set); ``KeyError`` for an unregistered name."""
+        settings = plugin_settings(type(self))
+        if name not in settings:
+            raise KeyError(f"{type(self).__name__} has no plug-in table {name!r}; registered: {', '.join(settings)}")
+        return dict(getattr(self, PLUGIN_TABLES, ())).get(name) or settings[name]()
 
     @classmethod
     def from_dict(cls: type[C], data: dict, _path: str = "") -> C:
         if not isinstance(data, dict):
             raise ConfigError(f"{_path or cls.__name__}: expected a table, got {type(data).__name__}")
         hints = typing.get_type_hints(cls)
-        fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+        tables = plugin_settings(cls)
+        fields = {f.name: f for f in dataclasses.fields(cls) if f.init and f.name != PLUGIN_TABLES}
+        fields.update(dict.fromkeys(tables))
         unknown = sorted(set(data) - set(fields))
         if unknown:
             where = f" in [{_path}]" if _path else ""
@@ -364,7 +454,7 @@ class Config:
         kwargs = {}
         for name, value in data.items():
             path = f"{_path}.{name}" if _path else name
-            kwargs[name] = _check_type(path, value, hints[name])
+            kwargs[name] = _check_type(path, value, tables.get(name) or hints[name])
         try:
             return cls(**kwargs)
         except ConfigError as e:
@@ -385,8 +475,11 @@ class Config:
             raise ConfigError(f"{path}: {e}") from e
 
     def to_dict(self) -> dict:
+        """The TOML/JSON table: every field, then every registered plug-in table (``None`` values left out)."""
         out = {}
         for f in dataclasses.fields(self):
+            if f.name == PLUGIN_TABLES:
+                continue
             v = getattr(self, f.name)
             if isinstance(v, Config):
                 v = v.to_dict()
@@ -395,6 +488,8 @@ class Config:
             if v is None:
                 continue
             out[f.name] = v
+        for name in plugin_settings(type(self)):
+            out[name] = self.section(name).to_dict()
         return out
 
     def replace(self: C, **changes) -> C:

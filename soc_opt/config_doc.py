@@ -3,9 +3,9 @@
 ``soc-opt config-doc --out docs/configuration.md`` (or :func:`render`) writes it: the TOML layout
 of a run configuration, then one section per :class:`~soc_opt.config.Config` class with its
 docstring and a table of every field (key, type, default).  The run configuration's tables are
-found by walking :class:`~soc_opt.methods.config.DPSOCConfig`'s nested configs, so a sub-config added
-there appears here without editing this module; library-only configs are listed in
-:data:`LIBRARY`.
+found by walking :class:`~soc_opt.methods.config.DPSOCConfig`'s nested configs and the plug-in tables of
+the registered methods and estimators (:mod:`soc_opt.plugins`), so a sub-config added there or a plug-in's
+own settings appear here without editing this module; library-only configs are listed in :data:`LIBRARY`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import types
 import typing
 from typing import Any
 
-from .config import Config
+from .config import PLUGIN_TABLES, Config, plugin_settings
 
 __all__ = ["LIBRARY", "config_tables", "describe", "render"]
 
@@ -45,13 +45,14 @@ def _public_path(cls: type) -> str:
 
 
 def config_tables(root: type[Config], prefix: str = "") -> list[tuple[str, type[Config]]]:
-    """``(TOML table, class)`` of ``root`` and of every nested Config field, depth first."""
+    """``(TOML table, class)`` of ``root``, of every nested Config field and of every registered plug-in
+    table of ``root`` (after the fields), depth first."""
     out = [(prefix, root)]
     hints = typing.get_type_hints(root)
-    for f in dataclasses.fields(root):
-        tp = hints[f.name]
+    nested = [(f.name, hints[f.name]) for f in dataclasses.fields(root)] + list(plugin_settings(root).items())
+    for name, tp in nested:
         if isinstance(tp, type) and issubclass(tp, Config):
-            out += config_tables(tp, f"{prefix}.{f.name}" if prefix else f.name)
+            out += config_tables(tp, f"{prefix}.{name}" if prefix else name)
     return out
 
 
@@ -109,8 +110,11 @@ def describe(cls: type[Config], where: str) -> str:
     hints = typing.get_type_hints(cls)
     lines += ["| key | type | default |", "|---|---|---|"]
     for f in dataclasses.fields(cls):
-        if f.init:
+        if f.init and f.name != PLUGIN_TABLES:
             lines.append(f"| `{f.name}` | {_type_name(hints[f.name])} | `{_toml_value(_default(f))}` |")
+    for name, tp in plugin_settings(cls).items():
+        kind = cls.plugin_registry().kind
+        lines.append(f"| `{name}` | {_type_name(tp)}, settings of the {kind} `{name}` | `(table)` |")
     return "\n".join(lines) + "\n"
 
 

@@ -92,12 +92,16 @@ def test_every_config_field_is_documented_in_its_class_docstring():
 def test_configuration_reference_lists_every_field_with_its_default():
     import dataclasses
 
+    from soc_opt.config import PLUGIN_TABLES, plugin_settings
     from soc_opt.config_doc import render
 
     text = render()
     for cls in _run_configs():
         for f in dataclasses.fields(cls):
-            assert f"| `{f.name}` |" in text, f"{cls.__name__}.{f.name} missing from the reference"
+            if f.name != PLUGIN_TABLES:  # the plug-in tables are listed by their names
+                assert f"| `{f.name}` |" in text, f"{cls.__name__}.{f.name} missing from the reference"
+        for name in plugin_settings(cls):
+            assert f"| `{name}` | table (" in text, f"plug-in table {name} of {cls.__name__} missing from the reference"
     assert "| `kl_rtol` | float | `1e-06` |" in text  # the loop's tolerance, [baseline.kl]
     assert "| `kl_rtol` | float | `1e-10` |" in text  # the library's, lqg.KLStepConfig
 

@@ -109,3 +109,27 @@ def test_the_algorithms_shim_is_retired():
     star = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "soc_opt").rglob("*.py")
                   if re.search(r"^from \S+ import \*", p.read_text(), re.M))
     assert star == ["soc_opt/ilqg.py"]
+
+
+_CORE_IMPORTS_OF_PLUGINS = {  # what the core imported before issue 33 made plug-ins own their settings and state
+    "experiments/statefile.py": "from ..methods import ilqg",
+    "methods/config.py": "from .ilqg import ILQGConfig",
+    "noise/aware.py": "from .kinematic.config import KinematicConfig",
+    "experiments/run.py": "from ..methods.registry import get_method",
+}
+
+
+def test_the_core_importing_a_plug_in_breaks_the_plug_in_contract(tmp_path):
+    """The forbidden contract "The core imports no plug-in" of pyproject.toml: each of the imports the core
+    used to make (a plug-in's config or state type, the registry that imports them all) is reported."""
+    root = _copy(tmp_path)
+    for module, line in _CORE_IMPORTS_OF_PLUGINS.items():
+        path = root / "soc_opt" / module
+        path.write_text(path.read_text() + f"\n{line}  # injected by the test\n")
+    out = _lint(root)
+    assert out.returncode != 0, out.stdout
+    report = out.stdout.split("The core imports no plug-in", 1)[1]
+    assert "BROKEN" in report.splitlines()[0]
+    for module in _CORE_IMPORTS_OF_PLUGINS:
+        name = "soc_opt." + module.removesuffix(".py").replace("/", ".")
+        assert f"{name} -> soc_opt." in report, (name, report)  # the injected line, reported as a direct import

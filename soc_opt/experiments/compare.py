@@ -19,11 +19,9 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from .. import files
+from .. import files, plugins
 from ..config import ConfigError
-from ..methods.config import DPSOCConfig, EvalConfig, with_task_init_var
-from ..methods.dpsoc_em import DPSOC_EM
-from ..methods.lqr_flm import LQR_FLM, acceptance_limit
+from ..methods.config import DPSOCConfig, EvalConfig, acceptance_limit, with_task_init_var
 from ..methods.state import RunState
 from ..models import LinearGaussianPolicy, Rollouts
 from ..noise.aware import mean_action
@@ -48,9 +46,10 @@ if TYPE_CHECKING:
 
 __all__ = ["compare", "evaluate_policy", "spreads", "point_names", "point_targets", "action_names"]
 
-#: The compared pair: the baseline and the method forked from its state at ``i_switch`` (registry names).
-BASELINE, FORKED = LQR_FLM, DPSOC_EM
-METHODS = (BASELINE.name, FORKED.name)
+#: The compared pair: the baseline and the method forked from its state at ``i_switch`` (registry names,
+#: looked up in :data:`soc_opt.plugins.METHODS`).
+BASELINE, FORKED = "lqr-flm", "dpsoc-em"
+METHODS = (BASELINE, FORKED)
 
 
 def point_names(task) -> list[str] | None:
@@ -124,7 +123,7 @@ def compare(
     ``progress``: a :class:`soc_opt.experiments.progress.Progress` (a bar over the seeds above each run's
     bar over its iterations, or plain lines), a callable printing lines, or ``None``.
     """
-    FORKED.check_config(cfg)
+    plugins.METHODS.lookup(FORKED).check_config(cfg)
     cfg = with_task_init_var(cfg, task)  # the task's init_var unless the configuration sets one
     progress = as_progress(progress)
     out = Path(out)
@@ -175,8 +174,8 @@ def _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, re
                           per_seed, histories, eval_ro, eval_mean, restart)
             if seeds_bar is not None:
                 final = {m: float(np.mean(per_seed[m]["cost"][-1])) for m in METHODS}
-                seeds_bar.advance(f"seed {seed}: final cost LQR-FLM {final[BASELINE.name]:.4g}, "
-                                  f"DPSOC-EM {final[FORKED.name]:.4g}",
+                seeds_bar.advance(f"seed {seed}: final cost LQR-FLM {final[BASELINE]:.4g}, "
+                                  f"DPSOC-EM {final[FORKED]:.4g}",
                                   **{f"cost {m}": v for m, v in final.items()})
     finally:
         if seeds_bar is not None:
@@ -201,7 +200,7 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
             files.write_bytes(_p, encode_checkpoint(st), anchor=out)
 
     # Baseline, with a copy of its state kept at i_switch for DPSOC-EM to start from.
-    base = run_experiment(task, BASELINE.name, cfg, seed, sdir / BASELINE.name, task_name=task_name,
+    base = run_experiment(task, BASELINE, cfg, seed, sdir / BASELINE, task_name=task_name,
                           progress=progress, on_iteration=keep_fork, bar_level=level, restart=restart, anchor=out)
     try:
         fork = decode_checkpoint(fork_path) if os.path.lexists(fork_path) else None
@@ -210,18 +209,18 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
     if fork is None or fork.iteration != cfg.i_switch:
         # i_switch == 0, a baseline resumed past i_switch without its fork, or a damaged fork:
         # replay the deterministic baseline prefix in memory.
-        st = BASELINE.initial_state(task, cfg, seed)
+        baseline = plugins.METHODS.lookup(BASELINE)
+        st = baseline.initial_state(task, cfg, seed)
         while st.iteration < cfg.i_switch:
-            st = BASELINE.iterate(task, cfg, st)
+            st = baseline.iterate(task, cfg, st)
         files.write_bytes(fork_path, encode_checkpoint(st), anchor=out)
         fork = st
     em = run_experiment(
-        task, FORKED.name, cfg, seed, sdir / FORKED.name, task_name=task_name, progress=progress,
+        task, FORKED, cfg, seed, sdir / FORKED, task_name=task_name, progress=progress,
         start_state=fork_state(fork), bar_level=level, restart=restart, anchor=out,
     )
-    for method, st in ((BASELINE, base), (FORKED, em)):
-        meth = method.name
-        policy = method.final_policy(cfg, st)
+    for meth, st in ((BASELINE, base), (FORKED, em)):
+        policy = plugins.METHODS.lookup(meth).final_policy(cfg, st)
         ro = evaluate_policy(task, policy, eval_samples, seed, workers, cfg.evaluation)
         ro_mean = evaluate_policy(task, mean_action(policy), eval_samples, seed, workers, cfg.evaluation)
         eval_ro[meth].append(ro)
@@ -288,7 +287,7 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean
     acts = {m: np.concatenate([ro.a for ro in eval_ro[m]]) for m in METHODS}
     figs["Actions per actuator of the final policies (over samples and time)"] = report.plot_actions(
         acts, out / "actions.png", f"{name}: actions per actuator", names=action_names(task))
-    first_metrics = metric_hist[BASELINE.name][0][0] if metric_hist[BASELINE.name] and metric_hist[BASELINE.name][0] else {}
+    first_metrics = metric_hist[BASELINE][0][0] if metric_hist[BASELINE] and metric_hist[BASELINE][0] else {}
     extra_tables = {}
     for key in first_metrics:
         vals = {m: np.array([[row[key] for row in seed_rows] for seed_rows in metric_hist[m]]) for m in METHODS}
@@ -314,7 +313,7 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean
                                                  f"{fvl[m][i]['ratio']:.3g}" + (" **worse**" if fvl[m][i]["worse"] else ""))]
          for i, seed in enumerate(seeds)])
     em_rows = []
-    for seed, hist in zip(seeds, histories[FORKED.name]):
+    for seed, hist in zip(seeds, histories[FORKED]):
         for r in hist:
             if r.em is not None:
                 e = r.em

@@ -25,8 +25,8 @@ import numpy as np
 from ..config import ConfigError, read_toml
 from ..methods.base import run_method
 from ..methods.config import DPSOCConfig, with_task_init_var
-from ..methods.registry import METHODS, get_method
 from ..methods.state import RunState
+from ..plugins import METHODS
 from ..tasks.loading import problems_dir
 from .environment import environment, environment_differences
 from .progress import Progress, as_progress
@@ -42,6 +42,13 @@ __all__ = ["EXPERIMENTS", "load_run_config", "RunDirectory", "RunDirectoryError"
 
 #: Default run configurations of the built-in tasks: ``EXPERIMENTS / "<task>.toml"``.
 EXPERIMENTS = problems_dir() / "experiments"
+
+
+def get_method(name: str):
+    """The registered method ``name`` (:data:`soc_opt.plugins.METHODS`); ``ConfigError`` naming the known ones."""
+    return METHODS.lookup(name)
+
+
 def _read_run_config(path: Path, method: str) -> DPSOCConfig:
     """A run configuration file; an iLQG file in the old top-level layout gets a hint."""
     data = read_toml(path)

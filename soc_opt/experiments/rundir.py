@@ -66,7 +66,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .. import files
+from .. import files, plugins
 from ..config import IMPLIED_WHEN_ABSENT, ConfigError
 from .statefile import MAX_STATE_BYTES, MAX_TREE_BYTES, StateFileError, decode_state, encode_state, peek_state
 
@@ -156,7 +156,9 @@ _UNUSED = object()
 def _implied(key: str, grandparent: Any):
     """The value :data:`soc_opt.config.IMPLIED_WHEN_ABSENT` gives a recorded key ``key`` (a dotted path) by
     its absence, ``_UNUSED`` when its condition, on the ``grandparent`` table holding the key's section, does
-    not hold (the section is not in use), or ``_NOTHING`` (a key the table does not declare)."""
+    not hold (the section is not in use), or ``_NOTHING`` (a key the table does not declare).  The plug-ins
+    are loaded first: their settings classes declare entries too."""
+    plugins.load_all()
     for suffix, (value, when) in IMPLIED_WHEN_ABSENT.items():
         if key == suffix or key.endswith("." + suffix):
             gp = grandparent if isinstance(grandparent, dict) else {}
@@ -170,8 +172,9 @@ def differences(old: Any, new: Any, prefix: str = "", _parent: Any = None) -> li
     The full resolved configurations are compared: a key missing on either side is a difference, not a
     match (issue 31), except a key only in ``new`` that :data:`soc_opt.config.IMPLIED_WHEN_ABSENT` declares
     (an option added after runs were recorded, e.g. ``kinematic.gains``, absent meaning ``"nominal"`` when
-    ``estimator = "kinematic"``): it is compared with the value its absence implies.  Lists of tables are
-    compared entry by entry.
+    ``estimator = "kinematic"``): it is compared with the value its absence implies; likewise the settings
+    table of a plug-in registered after the run was recorded, unused unless that plug-in is the one its
+    table selects (:func:`_plugin_table_implied`).  Lists of tables are compared entry by entry.
     """
     if isinstance(old, dict) and isinstance(new, dict):
         out = []
@@ -181,6 +184,8 @@ def differences(old: Any, new: Any, prefix: str = "", _parent: Any = None) -> li
         for k in sorted(new.keys() - old.keys()):
             key = f"{prefix}.{k}" if prefix else str(k)
             implied = _implied(key, _parent)
+            if implied is _NOTHING:
+                implied = _plugin_table_implied(k, new)
             if implied is _UNUSED:
                 continue
             if implied is _NOTHING:
@@ -192,6 +197,18 @@ def differences(old: Any, new: Any, prefix: str = "", _parent: Any = None) -> li
             and any(isinstance(v, dict) for v in old)):
         return [d for i, (a, b) in enumerate(zip(old, new)) for d in differences(a, b, f"{prefix}[{i}]")]
     return [] if old == new else [f"{prefix}: {_short(old)} -> {_short(new)}"]
+
+
+def _plugin_table_implied(name: str, table: dict):
+    """What the absence of plug-in ``name``'s settings table from a recorded ``table`` implies, when ``table``
+    selects one plug-in (``estimator = ...``, :attr:`soc_opt.plugins.Registry.selector`): ``_UNUSED`` when
+    another one is selected (a plug-in registered after the run was recorded changes nothing it did), its
+    defaults when it is; ``_NOTHING`` for a key that is no such table."""
+    for registry in (plugins.METHODS, plugins.ESTIMATORS):
+        settings = registry.settings()
+        if registry.selector is not None and registry.selector in table and name in settings:
+            return settings[name]().to_dict() if table[registry.selector] == name else _UNUSED
+    return _NOTHING
 
 
 def _task_settings(record: dict) -> dict:

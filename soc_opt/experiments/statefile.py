@@ -8,7 +8,8 @@ A checkpoint (``checkpoint.npz``, ``checkpoint.prev.npz``, ``fork_state.npz``) i
 - ``__tree__``: UTF-8 JSON (as a ``uint8`` array) describing the structure: JSON numbers,
   strings, ``null`` and booleans as they are, and ``{"$": kind, ...}`` nodes for tuples,
   lists, dicts with string keys, arrays (a reference to ``aN`` plus its layout) and the
-  objects of an explicit schema (:func:`schema`: the run state and the types it holds);
+  objects of an explicit schema (:func:`schema`: the core run state and the types it holds, plus
+  the ``state_types`` every registered method and estimator declares, :mod:`soc_opt.plugins`);
 - ``__sha256__``: the SHA-256 of the tree and of every array (name, dtype, shape, bytes).
 
 Reading never imports or calls anything named by the file: the type names of object nodes are
@@ -41,10 +42,11 @@ from typing import Any
 
 import numpy as np
 
+from .. import plugins
 from ..config import ConfigError
 from ..files import load_json
 
-__all__ = ["StateFileError", "schema", "FORMAT", "VERSION", "encode_state", "decode_state", "peek_state"]
+__all__ = ["StateFileError", "schema", "FORMAT", "VERSION", "encode_state", "decode_state", "peek_state", "RECORD_MARK"]
 
 FORMAT = "soc_opt state"
 VERSION = 2
@@ -56,32 +58,42 @@ class StateFileError(ValueError):
     """A state file is damaged, not a state file, or holds something outside the schema."""
 
 
-def _schema() -> dict[str, type]:
+def _core_types() -> list[type]:
     from .. import models
     from ..learning import mixture
     from ..lqg import step_size
-    from ..methods import ilqg
-    from ..methods import state as algorithms
+    from ..methods import state
     from ..noise import estimator
-    from ..noise.kinematic import filter as kinematic
 
-    classes = [algorithms.RunState, algorithms.IterationRecord, algorithms.EMDiagnostics, algorithms.BestPolicy,
-               algorithms.PreviousStep, algorithms.AcceptedPolicy, models.LinearGaussianPolicy, models.LinearGaussianDynamics,
-               models.QuadraticCost, models.Rollouts, estimator.FilteredPolicy, estimator.KalmanFilter,
-               step_size.LocalModel, mixture.MixturePrior, mixture.VBState, ilqg.ILQGState, ilqg.ILQGRecord,
-               kinematic.KinematicFilter, kinematic.KinematicFilteredPolicy]
-    return {c.__name__: c for c in classes}
+    return [state.RunState, state.IterationRecord, state.EMDiagnostics, state.BestPolicy, state.PreviousStep,
+            state.AcceptedPolicy, models.LinearGaussianPolicy, models.LinearGaussianDynamics, models.QuadraticCost,
+            models.Rollouts, estimator.FilteredPolicy, estimator.KalmanFilter, step_size.LocalModel,
+            mixture.MixturePrior, mixture.VBState]
 
 
-_SCHEMA: dict[str, type] = {}
+def _schema() -> dict[str, type]:
+    out: dict[str, type] = {}
+    for cls in [*_core_types(), *plugins.METHODS.state_types(), *plugins.ESTIMATORS.state_types()]:
+        known = out.setdefault(cls.__name__, cls)
+        if known is not cls:
+            raise StateFileError(f"two state types are named {cls.__name__!r} ({known.__module__}.{known.__qualname__} "
+                                 f"and {cls.__module__}.{cls.__qualname__}); a state file names types by their class name")
+    return out
+
+
+_SCHEMA: dict[tuple[int, int], dict[str, type]] = {}
 
 
 def schema() -> dict[str, type]:
-    """The types a state file may hold, by name: the run states and everything they contain
-    (built on first use: the modules defining them import this one indirectly)."""
-    if not _SCHEMA:
-        _SCHEMA.update(_schema())
-    return _SCHEMA
+    """The types a state file may hold, by name: the core run state and everything it contains, and the
+    ``state_types`` of every registered method and estimator (rebuilt when a plug-in is registered)."""
+    key = (plugins.METHODS.version, plugins.ESTIMATORS.version)
+    if key not in _SCHEMA:
+        plugins.load_all()
+        key = (plugins.METHODS.version, plugins.ESTIMATORS.version)
+        _SCHEMA.clear()
+        _SCHEMA[key] = _schema()
+    return _SCHEMA[key]
 
 
 def _is_namedtuple(cls) -> bool:
@@ -143,7 +155,8 @@ def _encode(v: Any, arrays: dict, where: str):
             raise TypeError(f"{where}: dict keys must be strings, got {bad[0]!r}")
         return {"$": "dict", "items": {k: _encode(x, arrays, f"{where}.{k}") for k, x in v.items()}}
     raise TypeError(f"{where}: a {cls.__module__}.{cls.__qualname__} cannot be stored in a state file "
-                    "(add its class to soc_opt.experiments.statefile's schema)")
+                    "(not in the state file's schema: declare its class in the state_types of the method or estimator "
+                    "that saves it, soc_opt.plugins)")
 
 
 def _digest(tree: bytes, arrays: dict) -> str:
@@ -353,7 +366,8 @@ def _decode_object(v: dict, arrays: dict, where: str):
     name, fields = v.get("type"), v.get("fields")
     cls = schema().get(name) if isinstance(name, str) else None
     if cls is None:
-        raise _bad(where, f"type {name!r} is not part of the run state schema")
+        raise _bad(where, f"type {name!r} is not part of the run state schema (the method or estimator that "
+                   "declares it in its state_types is not registered)")
     if not isinstance(fields, dict):
         raise _bad(where, f"{name} without a field table")
     names = _fields(cls)
@@ -384,8 +398,9 @@ def _decode_object(v: dict, arrays: dict, where: str):
 
 
 _HINTS: dict[type, dict] = {}
-#: Types whose float fields are records of what happened (may be NaN or infinite); elsewhere floats are finite.
-_RECORDS = ("IterationRecord", "EMDiagnostics", "ILQGRecord")
+#: A class attribute: ``True`` on a state type whose float fields are records of what happened (they may be NaN
+#: or infinite, e.g. ``IterationRecord``); elsewhere floats are finite.
+RECORD_MARK = "nonfinite_floats"
 
 
 def _hints(cls) -> dict:
@@ -432,7 +447,7 @@ def _conforms(value, hint, finite: bool) -> bool:
 
 def _check_fields(obj, cls, where: str) -> None:
     """Every field of a decoded object of schema type ``cls`` against its annotation (docs/security.md)."""
-    finite = cls.__name__ not in _RECORDS
+    finite = not getattr(cls, RECORD_MARK, False)
     for f, hint in _hints(cls).items():
         if f.startswith("_") or f not in _fields(cls):
             continue

@@ -4,16 +4,17 @@ A method is an object with a name, the run-configuration sections it reads, and 
 on an explicit state (docs/math.md §7): ``initial_state`` then ``iterate`` until ``finished``.
 Everything that used to be a ``method == "..."`` branch in the drivers is one of the hooks below;
 :class:`MethodBase` gives the defaults of a sample-based method, so a new method overrides only
-what differs.  Register an instance in :data:`soc_opt.methods.registry.METHODS`.
+what differs.  A method owns its settings (``settings``: a Config class, the run configuration's
+table named after the method) and its saved state (``state_types``: the classes a checkpoint of it
+holds beyond :mod:`soc_opt.methods.state`); register an instance with one line in
+:mod:`soc_opt.methods.registry` (the table :data:`soc_opt.plugins.METHODS`).
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Protocol, runtime_checkable
-
-from ..config import ConfigError
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Protocol, runtime_checkable
 
 if TYPE_CHECKING:
     from ..tasks import Task
@@ -30,6 +31,11 @@ class Method(Protocol):
     seeded:     whether the seed is part of a run's identity (False for a deterministic method).
     sample_based: whether it learns from sampled rollouts (``soc-opt compare`` and sweeps run these).
     cost_phase: the ``IterationRecord.phase`` of the records drawn as "cost per iteration".
+    settings:   its own configuration (a :class:`soc_opt.config.Config` subclass, documented defaults),
+                the table ``[NAME]`` of the run configuration, read as ``cfg.section(NAME)`` (or
+                ``cfg.NAME``); ``None``: it reads only shared sections.
+    state_types: the classes its state holds that :mod:`soc_opt.methods.state` does not define (frozen
+                dataclasses or named tuples): the state file's schema accepts them.
     """
 
     name: str
@@ -37,6 +43,8 @@ class Method(Protocol):
     seeded: bool
     sample_based: bool
     cost_phase: str
+    settings: type | None
+    state_types: tuple[type, ...]
 
     def check_config(self, cfg) -> None:
         """Method-specific checks of a run configuration (``ConfigError`` naming the key)."""
@@ -86,6 +94,8 @@ class MethodBase(ABC):
     seeded: bool = True
     sample_based: bool = False
     cost_phase: str = "baseline"
+    settings: ClassVar[type | None] = None
+    state_types: ClassVar[tuple[type, ...]] = ()
 
     def check_config(self, cfg) -> None:
         pass
@@ -129,8 +139,3 @@ def run_method(method: Method, task, cfg, seed: int = 0, state=None,
         if on_iteration is not None:
             on_iteration(state)
     return state
-
-
-def unknown_method(name, known) -> ConfigError:
-    """The error for a method name not in the registry."""
-    return ConfigError(f"unknown method {name!r}; use one of {', '.join(map(repr, known))}")

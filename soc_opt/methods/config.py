@@ -1,16 +1,21 @@
 """The run configuration (docs/math.md §7): one TOML file holds every method's sections.
 
-:class:`DPSOCConfig` is the whole file; :class:`LQRFLMConfig` (``[baseline]``), :class:`EMConfig`
-(``[em]``), :class:`EvalConfig` (``[evaluation]``) and :class:`~soc_opt.methods.ilqg.ILQGConfig`
-(``[ilqg]``) its sections.  Which sections a method reads is declared by the method itself
-(:attr:`soc_opt.methods.base.Method.sections`); method-specific checks run through the registry
-(:func:`soc_opt.methods.registry.check_config`), so this module knows no method by name.
+:class:`DPSOCConfig` is the whole file.  Its fields are the sections the sample-based loop shares:
+:class:`LQRFLMConfig` (``[baseline]``), :class:`EMConfig` (``[em]``), :class:`EvalConfig`
+(``[evaluation]``); every registered method that declares ``settings`` adds its own table named after
+it (iLQG's ``[ilqg]``, :class:`soc_opt.methods.ilqg.ILQGConfig`), assembled from
+:data:`soc_opt.plugins.METHODS` (:mod:`soc_opt.config`, "Plug-in tables"); likewise each estimator's
+options under ``[baseline.noise.NAME]``.  Which sections a method reads is declared by the method
+itself (:attr:`soc_opt.methods.base.Method.sections`); method-specific checks run through the
+registry, so this module imports no method.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
+
+import numpy as np
 
 from .. import lqg
 from ..config import Config, Interval, Options
@@ -19,10 +24,10 @@ from ..learning.fit import COST_MODES
 from ..lqg import KL_METHODS
 from ..mstep.recipe import MStepRecipe
 from ..noise.aware import NoiseConfig
-from .ilqg import ILQGConfig
+from ..plugins import METHODS
 
 __all__ = ["PaperScale", "PAPER", "LoopKLStepConfig", "AcceptanceConfig", "LQRFLMConfig", "EMConfig", "EvalConfig", "DPSOCConfig",
-           "with_paper_scale", "with_task_init_var"]
+           "with_paper_scale", "with_task_init_var", "acceptance_limit"]
 
 
 class PaperScale(NamedTuple):
@@ -100,6 +105,12 @@ class AcceptanceConfig(Config):
 
 #: The acceptance table of a run recorded before acceptance existed: those runs took every step.
 AS_WRITTEN = AcceptanceConfig(enabled=False)
+
+
+def acceptance_limit(cfg: AcceptanceConfig, c_a: float, se_a: float, se: float) -> float:
+    """The largest mean cost a batch with standard error ``se`` may have against a reference batch of
+    mean ``c_a`` and standard error ``se_a`` (docs/math.md §12.1): ``c_a + kappa sqrt(se^2 + se_a^2) + eps |c_a|``."""
+    return c_a + cfg.kappa * float(np.hypot(se, se_a)) + cfg.eps * abs(c_a)
 
 
 @dataclass(frozen=True)
@@ -208,16 +219,22 @@ class DPSOCConfig(Config):
     baseline:   the LQR-FLM configuration (iterations = total baseline iterations).
     em:         the EM phase configuration.
     evaluation: evaluation of the final policies (``soc-opt compare``).
-    ilqg:       model-based iLQG (``soc-opt run --method ilqg``), :class:`soc_opt.methods.ilqg.ILQGConfig`.
+
+    Plus one table per registered method that declares ``settings``, named after the method
+    (:data:`soc_opt.plugins.METHODS`): ``[ilqg]`` (model-based iLQG, ``soc-opt run --method ilqg``,
+    :class:`soc_opt.methods.ilqg.ILQGConfig`), read as ``cfg.ilqg`` or ``cfg.section("ilqg")``.
+    plugin_tables: where those tables are kept (the ones that differ from their defaults, by name); give
+                a table by its name instead (TOML, keyword argument, ``replace``).
     """
 
     i_switch: int = PAPER.i_switch
     baseline: LQRFLMConfig = field(default_factory=LQRFLMConfig)
     em: EMConfig = field(default_factory=EMConfig)
     evaluation: EvalConfig = field(default_factory=EvalConfig)
-    ilqg: ILQGConfig = field(default_factory=ILQGConfig)
+    plugin_tables: tuple = ()
 
     _constraints = {"i_switch": [Interval(0)]}
+    _plugins = METHODS
 
 
 def with_paper_scale(cfg: DPSOCConfig) -> DPSOCConfig:

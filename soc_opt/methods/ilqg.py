@@ -21,7 +21,7 @@ import io
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Literal
+from typing import TYPE_CHECKING, Callable, ClassVar, Literal
 
 import numpy as np
 
@@ -132,6 +132,8 @@ class ILQGRecord:
     timings: dict[str, float]
     phase: Literal["ilqg"] = "ilqg"
     em: None = None
+
+    nonfinite_floats: ClassVar[bool] = True  # a record: state files accept NaN/inf here
 
     def summary(self) -> dict:
         """The ``metrics.csv`` row; ``cost_mean`` is the cost of the single noise-free rollout."""
@@ -376,6 +378,8 @@ class ILQG(MethodBase):
     seeded = False
     sample_based = False
     cost_phase = "ilqg"
+    settings = ILQGConfig  # the [ilqg] table
+    state_types = (ILQGState, ILQGRecord)
 
     def check_task(self, task: Task, cfg=None) -> None:
         check_task(task)

@@ -29,7 +29,7 @@ from ..noise import aware as noise_aware
 from ..noise.estimator import FilteredPolicy
 from ..noise.strategy import Estimates, NoiseStrategy, resolve, strategy_class
 from .base import MethodBase
-from .config import AcceptanceConfig, LQRFLMConfig, with_paper_scale
+from .config import AcceptanceConfig, LQRFLMConfig, acceptance_limit, with_paper_scale
 from .state import AcceptedPolicy, IterationRecord, PreviousStep, RunState, improved, record, state_rng
 
 if TYPE_CHECKING:
@@ -157,12 +157,6 @@ def acceptance_cost(cfg: AcceptanceConfig, rec: IterationRecord) -> tuple[float,
     acceptance test reads (``cfg.cost``: measured or true states; docs/math.md §12.1)."""
     c = np.asarray(rec.cost if cfg.cost == "true" else rec.cost_measured, float)
     return float(np.mean(c)), float(np.std(c, ddof=1) / np.sqrt(c.size)) if c.size > 1 else float("inf")
-
-
-def acceptance_limit(cfg: AcceptanceConfig, c_a: float, se_a: float, se: float) -> float:
-    """The largest mean cost a batch with standard error ``se`` may have against a reference batch of
-    mean ``c_a`` and standard error ``se_a`` (§12.1): ``c_a + kappa sqrt(se^2 + se_a^2) + eps |c_a|``."""
-    return c_a + cfg.kappa * float(np.hypot(se, se_a)) + cfg.eps * abs(c_a)
 
 
 def acceptance_threshold(cfg: AcceptanceConfig, se: float, accepted: AcceptedPolicy | None) -> float:

@@ -1,15 +1,17 @@
-"""The one table of methods: the CLI, experiments, ``soc-opt compare`` and sweeps read it.
+"""The methods, one registry line each: the CLI, experiments, ``soc-opt compare`` and sweeps read them.
 
-A new method is one module defining a :class:`~soc_opt.methods.base.Method` (usually a subclass
-of :class:`~soc_opt.methods.base.MethodBase`) plus one line in :data:`METHODS`; tests and scripts
-can also call :func:`register`.
+Importing this module fills :data:`soc_opt.plugins.METHODS` (the core reads that table and never
+this module; the table imports it on first use).  A new method is one module defining a
+:class:`~soc_opt.methods.base.Method` (usually a subclass of :class:`~soc_opt.methods.base.MethodBase`;
+its own settings as ``settings``, the ``[NAME]`` table of the run configuration, and the classes of
+its saved state as ``state_types``) plus one line here; tests and scripts can also call :func:`register`.
 """
 
 from __future__ import annotations
 
 from typing import Callable
 
-from ..config import ConfigError
+from ..plugins import METHODS
 from .base import Method, run_method
 from .dpsoc_em import DPSOC_EM
 from .ilqg import ILQG_METHOD
@@ -17,30 +19,22 @@ from .lqr_flm import LQR_FLM
 
 __all__ = ["METHODS", "get_method", "register", "check_config", "sections_of", "sample_based", "run"]
 
-#: Every method by name (the order is the CLI's).
-METHODS: dict[str, Method] = {
-    DPSOC_EM.name: DPSOC_EM,
-    LQR_FLM.name: LQR_FLM,
-    ILQG_METHOD.name: ILQG_METHOD,
-}
+# Every method by name (the order is the CLI's).
+METHODS.register(DPSOC_EM)
+METHODS.register(LQR_FLM)
+METHODS.register(ILQG_METHOD)
 
 
 def get_method(name: str) -> Method:
     """The registered method ``name``; :class:`ConfigError` listing the known ones otherwise."""
-    method = METHODS.get(name)
-    if method is None:
-        raise ConfigError(f"unknown method {name!r}; use one of {', '.join(map(repr, METHODS))}")
-    return method
+    return METHODS.lookup(name)
 
 
 def register(method: Method, *, replace: bool = False) -> Method:
     """Add ``method`` to :data:`METHODS` (``replace`` to overwrite a name); returns it."""
     if not isinstance(method, Method):
         raise TypeError(f"{method!r} does not implement the Method protocol (soc_opt.methods.base.Method)")
-    if method.name in METHODS and not replace:
-        raise ValueError(f"a method named {method.name!r} is already registered")
-    METHODS[method.name] = method
-    return method
+    return METHODS.register(method, replace=replace)
 
 
 def check_config(name: str, cfg) -> None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal, NamedTuple
+from typing import TYPE_CHECKING, ClassVar, Literal, NamedTuple
 
 import numpy as np
 
@@ -86,6 +86,8 @@ class EMDiagnostics:
     time_estep: float
     time_mstep: float
 
+    nonfinite_floats: ClassVar[bool] = True  # a record: state files accept NaN/inf here
+
     def summary(self) -> dict:
         """The metrics columns of the recursion (``em_recursion`` first, then the fields)."""
         out = dataclasses.asdict(self)
@@ -111,6 +113,8 @@ class IterationRecord:
     timings: dict[str, float]
     extra: dict[str, float] = field(default_factory=dict)
     em: EMDiagnostics | None = None
+
+    nonfinite_floats: ClassVar[bool] = True  # a record: state files accept NaN/inf here
 
     def summary(self) -> dict:
         return {

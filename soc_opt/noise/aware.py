@@ -37,7 +37,7 @@ the *measured* ``s_0``, so the true ``x_0`` has covariance ``task.P0 - R = 1e-6 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -54,6 +54,7 @@ from ..models import (
     Rollouts,
     symmetrize,
 )
+from ..plugins import ESTIMATORS
 from .estimator import (
     FilteredPolicy,
     KalmanFilter,
@@ -65,7 +66,6 @@ from .estimator import (
     kalman_filter,
     measurement_noise,
 )
-from .kinematic.config import KinematicConfig
 from .noisefit import condition_joint, correct_joint, noise_action_cov, smooth_states
 
 __all__ = [
@@ -91,23 +91,13 @@ __all__ = [
 ]
 
 
-#: The estimators of ``[baseline.noise] estimator``: name -> ``"module:Class"`` of its
-#: :class:`soc_opt.noise.strategy.NoiseStrategy` (imported when a run resolves it).  A new
-#: estimator is one class and one line here.
-ESTIMATORS: dict[str, str] = {
-    "none": "soc_opt.noise.strategy:MeasuredState",
-    "kalman": "soc_opt.noise.strategy:KalmanEstimator",
-    "kinematic": "soc_opt.noise.kinematic_strategy:KinematicEstimator",
-}
-
-
 @dataclass(frozen=True)
 class NoiseConfig(Config):
     """Noise-aware variants of LQR-FLM and DPSOC-EM (docs/math.md §10; ``docs/noise.md`` §10).
 
     Defaults select the paper's methods (no correction, no estimator).
 
-    estimator:       a name in :data:`ESTIMATORS`: ``"none"`` (the policy acts on the measured
+    estimator:       a name in :data:`soc_opt.plugins.ESTIMATORS`: ``"none"`` (the policy acts on the measured
                      ``s_k``: the paper), ``"kalman"`` (it acts on ``xhat_k`` of a time-varying
                      Kalman filter built from the iteration's fitted model; KL step on the
                      innovation form) or ``"kinematic"`` (MuJoCo tasks; docs/math.md §11: the
@@ -148,8 +138,14 @@ class NoiseConfig(Config):
     time_window:     ``h``: the noise-aware fits pool the tuple moments of the steps ``k-h..k+h``
                      (:func:`pool_moments`); ``0``: per step (docs/math.md §2's time-varying fit), ``h >= T``:
                      one time-invariant model.  Needs a ``fit_correction``.
-    kinematic:       parameters of ``estimator = "kinematic"``
-                     (:class:`soc_opt.noise.kinematic.config.KinematicConfig`).
+
+    Plus one table per registered estimator that declares ``settings``, named after it
+    (:data:`soc_opt.plugins.ESTIMATORS`): ``[baseline.noise.kinematic]``, the parameters of
+    ``estimator = "kinematic"`` (:class:`soc_opt.noise.kinematic.config.KinematicConfig`), read as
+    ``cfg.kinematic`` or ``cfg.section("kinematic")``.  The estimator's own rules between these options
+    and its table run from its ``check_config`` (:class:`soc_opt.noise.strategy.NoiseStrategy`).
+    plugin_tables: where those tables are kept (the ones that differ from their defaults, by name); give
+                a table by its name instead (TOML, keyword argument, ``replace``).
     """
 
     estimator: str = "none"
@@ -163,10 +159,10 @@ class NoiseConfig(Config):
     expand_at: Literal["measured", "smoothed"] = "measured"
     prior_data: Literal["measured", "smoothed"] = "measured"
     pool: Literal["union", "anchored"] = "union"
-    kinematic: KinematicConfig = field(default_factory=KinematicConfig)
+    plugin_tables: tuple = ()
 
     _constraints = {
-        "estimator": [Options(lambda: ESTIMATORS)],
+        "estimator": [Options(lambda: tuple(ESTIMATORS))],
         "fit_correction": [Options(("none", "moments", "ssm_em"))],
         "min_reliability": [Interval(0.0, 1.0, "right")],
         "filter_w_floor": [Interval(0.0)],
@@ -178,14 +174,12 @@ class NoiseConfig(Config):
         "prior_data": [Options(("measured", "smoothed"))],
         "pool": [Options(("union", "anchored"))],
     }
+    _plugins = ESTIMATORS
 
     def __post_init__(self):
-        if self.estimator == "kinematic":
-            other = {"fit_correction": "none", "expand_at": "measured", "prior_data": "measured", "time_window": 0}
-            bad = [f"{k} = {getattr(self, k)!r}" for k, v in other.items() if getattr(self, k) != v]
-            if bad:
-                raise config_error("estimator", f"'kinematic' learns from its own smoothed states; {', '.join(bad)} "
-                                   "cannot be combined with it (leave them at their defaults)")
+        check = getattr(ESTIMATORS[self.estimator], "check_config", None)
+        if check is not None:
+            check(self)
         if self.prior_data == "smoothed" and self.fit_correction != "ssm_em":
             raise config_error("prior_data", "'smoothed' fits the prior on smoothed states and needs "
                                f"fit_correction = 'ssm_em' (got {self.fit_correction!r})")

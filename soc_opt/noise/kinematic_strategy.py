@@ -6,19 +6,22 @@ prior, fit, cost expansion, the EM phase's cost observations) then works on the 
 (:attr:`Estimates.learn`), and the new policy acts on the batch's online filter
 (:attr:`Estimates.filter`, a :class:`~soc_opt.noise.kinematic.filter.KinematicFilteredPolicy`).
 Everything per batch travels in the :class:`~soc_opt.noise.strategy.Estimates`; the strategy
-holds none of it.  Registered in :data:`soc_opt.noise.aware.ESTIMATORS`.
+holds none of it.  Its options are :class:`~soc_opt.noise.kinematic.config.KinematicConfig`
+(``[baseline.noise.kinematic]``); registered in :mod:`soc_opt.noise.registry`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..config import config_error
 from ..learning import fit
 from ..lqg import LocalModel
 from ..models import symmetrize
 from . import aware as noise_aware
 from .kinematic import loop as kinematic_loop
 from .kinematic import model as kinematic_model
+from .kinematic.config import KinematicConfig
 from .kinematic.dynamics import structured_dynamics, structured_prior, with_dynamics
 from .kinematic.filter import KinematicFilter, KinematicFilteredPolicy
 from .strategy import EMModel, Estimates, LoopModel, NoiseStrategy, kalman_em_model, kalman_lqg_model
@@ -55,6 +58,18 @@ class KinematicEstimator(NoiseStrategy):
     """
 
     name = "kinematic"
+    settings = KinematicConfig
+    state_types = (KinematicFilter, KinematicFilteredPolicy)
+
+    @classmethod
+    def check_config(cls, cfg) -> None:
+        """The shared options that change what the learner fits (fit correction, expansion point, prior
+        data, time window) must stay at their defaults: it learns from its own smoothed states."""
+        other = {"fit_correction": "none", "expand_at": "measured", "prior_data": "measured", "time_window": 0}
+        bad = [f"{k} = {getattr(cfg, k)!r}" for k, v in other.items() if getattr(cfg, k) != v]
+        if bad:
+            raise config_error("estimator", f"'kinematic' learns from its own smoothed states; {', '.join(bad)} "
+                               "cannot be combined with it (leave them at their defaults)")
 
     @classmethod
     def check_task(cls, task, cfg) -> None:

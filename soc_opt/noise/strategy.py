@@ -23,20 +23,20 @@ The loop hands the :class:`Estimates` of a batch to that batch's ``fit``, ``lqg_
 ``em_model`` and fits on :meth:`Estimates.data`; a strategy keeps no per-iteration state (it is
 shared by the whole run, and a run resumed in a new process must equal the uninterrupted one).
 
-The estimator (``NoiseConfig.estimator``) picks the class from
-:data:`soc_opt.noise.aware.ESTIMATORS`; the fit correction, expansion point and prior data are
+The estimator (``NoiseConfig.estimator``) picks the class from :data:`soc_opt.plugins.ESTIMATORS`
+(filled by :mod:`soc_opt.noise.registry`); the fit correction, expansion point and prior data are
 options every estimator shares through :class:`NoiseStrategy`.  Adding an estimator is one new
 class (a subclass of :class:`NoiseStrategy` overriding what differs, usually ``lqg_model``,
-``em_model`` and ``gains``) and one entry ``"name": "module:Class"`` in ``ESTIMATORS``.  The
-defaults (:class:`MeasuredState`, no correction) are the paper's methods, bit for bit.
+``em_model`` and ``gains``; its own options as ``settings``, the ``[baseline.noise.NAME]`` table,
+and the classes of its saved state as ``state_types``) and one registry line.  The defaults
+(:class:`MeasuredState`, no correction) are the paper's methods, bit for bit.
 """
 
 from __future__ import annotations
 
-import importlib
 import types
 import weakref
-from typing import TYPE_CHECKING, Any, Callable, Mapping, NamedTuple
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Mapping, NamedTuple
 
 import numpy as np
 
@@ -44,6 +44,7 @@ from ..config import ConfigError
 from ..learning import fit
 from ..lqg import LocalModel
 from ..models import AugmentedModel, LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost, Rollouts
+from ..plugins import ESTIMATORS
 from . import aware as noise_aware
 from .estimator import FilteredPolicy
 
@@ -117,9 +118,21 @@ class NoiseStrategy:
     to learn from and its filter in the :class:`Estimates`); ``estimate``, ``fit`` and
     ``expansion_point`` implement the options shared by all estimators.  Nothing per iteration
     is kept on the object: it lives in the :class:`Estimates` of the batch.
+
+    As a plug-in (:mod:`soc_opt.plugins`) the class declares ``name``, ``settings`` (its own options,
+    a :class:`~soc_opt.config.Config` subclass read as ``cfg.section(name)`` from the
+    ``[baseline.noise.NAME]`` table; ``None``: none) and ``state_types`` (the classes its policies and
+    filters add to a checkpoint).
     """
 
     name = ""
+    settings: ClassVar[type | None] = None
+    state_types: ClassVar[tuple[type, ...]] = ()
+
+    @classmethod
+    def check_config(cls, cfg: NoiseConfig) -> None:
+        """Raise ``ConfigError`` (via :func:`soc_opt.config.config_error`) if the shared options of ``cfg``
+        cannot be combined with this estimator (run when a ``NoiseConfig`` selecting it is built)."""
 
     @classmethod
     def check_task(cls, task, cfg: NoiseConfig) -> None:
@@ -219,13 +232,12 @@ def kalman_em_model(noise, cfg: NoiseConfig, model, where: str = "") -> EMModel:
 
 
 def strategy_class(name: str) -> type[NoiseStrategy]:
-    """The class registered for estimator ``name`` in :data:`soc_opt.noise.aware.ESTIMATORS`."""
-    ref = noise_aware.ESTIMATORS.get(name)
-    if ref is None:
-        raise ConfigError(f"estimator: unknown estimator {name!r}; use one of "
-                          f"{', '.join(map(repr, noise_aware.ESTIMATORS))}")
-    module, _, attr = ref.partition(":")
-    return getattr(importlib.import_module(module), attr)
+    """The class registered for estimator ``name`` in :data:`soc_opt.plugins.ESTIMATORS` (``ConfigError``
+    naming the known ones otherwise)."""
+    try:
+        return ESTIMATORS.lookup(name)
+    except ConfigError as e:
+        raise ConfigError(f"estimator: {e}") from None
 
 
 _RESOLVED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
