@@ -69,7 +69,7 @@ class PointTermConfig(Config):
     ramp: Ramp = "constant"
     final_multiplier: float = 1.0
     weight: float = 1.0
-    window: tuple[float, float] | None = None
+    window: tuple[float, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class TorqueTermConfig(Config):
     ramp: Ramp = "constant"
     final_multiplier: float = 1.0
     weight: float = 1.0
-    window: tuple[float, float] | None = None
+    window: tuple[float, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -98,7 +98,7 @@ class StateTermConfig(Config):
     ramp: Ramp = "constant"
     final_multiplier: float = 1.0
     weight: float = 1.0
-    window: tuple[float, float] | None = None
+    window: tuple[float, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -116,7 +116,7 @@ class QuadraticTermConfig(Config):
     ramp: Ramp = "constant"
     final_multiplier: float = 1.0
     weight: float = 1.0
-    window: tuple[float, float] | None = None
+    window: tuple[float, ...] | None = None
 
 
 TERM_TYPES: dict[str, type[Config]] = {
