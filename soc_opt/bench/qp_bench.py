@@ -54,7 +54,7 @@ from ..mstep import MStepConfig, MStepConstraints, maximize_moments, maximize_mo
 from ..mstep.errors import InfeasibleConstraintsError
 from ..mstep.objectives import moment_stats
 from ..testing import random_mstep_instance
-from .solvers import trust_region_reference
+from .solvers import _refine, kkt_box_reference, trust_region_reference
 
 __all__ = ["FAMILIES", "LEVELS", "Level", "Problem", "make_problems", "reference", "residuals", "solution_error",
            "kkt_box_reference", "run", "summarize", "shifted_geomean", "qp_methods", "methods_for"]
@@ -197,51 +197,6 @@ def make_problems(sizes=SIZES, instances: int = 4, seed: int = 0, families=FAMIL
 
 
 # --------------------------------------------------------------------------- references
-
-
-def _refine(P, rhs, solve, steps: int = 6):
-    """Iterative refinement of ``P x = rhs`` with residuals in extended precision."""
-    Pl, rl = P.astype(np.longdouble), rhs.astype(np.longdouble)
-    x = solve(rhs)
-    for _ in range(steps):
-        res = rl - Pl @ x.astype(np.longdouble)
-        x = x + solve(np.asarray(res, dtype=float))
-    return x
-
-
-def kkt_box_reference(P, q, idx, b, max_iter: int = 100):
-    """Exact minimiser of ``1/2 f^T P f + q^T f`` with ``|f_i| <= b`` on ``idx`` (``P > 0``) and the
-    multipliers ``(z_upper, z_lower)`` of ``f_idx <= b``, ``-f_idx <= b``: a primal-dual active-set
-    iteration; on the final active set the KKT system (free variables) is solved with refinement
-    and every sign checked (raises ``ArithmeticError`` if the iteration does not settle)."""
-    import scipy.linalg as sla
-
-    d = len(q)
-    idx = np.asarray(idx)
-    state = np.zeros(len(idx), dtype=int)  # -1 lower bound, 0 free, +1 upper bound
-    for _ in range(max_iter):
-        fixed = idx[state != 0]
-        free = np.setdiff1d(np.arange(d), fixed)
-        f = np.zeros(d)
-        f[fixed] = state[state != 0] * b
-        Pff = P[np.ix_(free, free)]
-        cf = sla.cho_factor(Pff)
-        rhs = -q[free] - P[np.ix_(free, fixed)] @ f[fixed]
-        f[free] = _refine(Pff, rhs, lambda v: sla.cho_solve(cf, v))
-        g = np.asarray(P.astype(np.longdouble) @ f.astype(np.longdouble) + q, dtype=float)  # P f + q
-        mult = -state * g[idx]  # multiplier of the active bound: g_i = -z_up (upper), +z_lo (lower)
-        new = state.copy()
-        for j, i in enumerate(idx):
-            if state[j] == 0:
-                new[j] = 1 if f[i] > b else (-1 if f[i] < -b else 0)
-            elif mult[j] < 0:
-                new[j] = 0
-        if np.array_equal(new, state):
-            zu = np.where(state > 0, mult, 0.0)
-            zl = np.where(state < 0, mult, 0.0)
-            return f, zu, zl
-        state = new
-    raise ArithmeticError("primal-dual active-set iteration did not settle")
 
 
 @dataclass(frozen=True)
