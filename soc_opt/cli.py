@@ -6,7 +6,8 @@ Subcommands::
                                 [--iterations N] [--i-switch N] [--restart | --previous-checkpoint]
     soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper] [--restart]
     soc-opt verify [--json] [--seed N] [--instances N] [--full] [--replay FILE..] [--write-certificates DIR] [--rows]
-    soc-opt solvers [--json] [--quick] [--sizes NxM,..] [--instances N] [--T N] [--out DIR] [--no-kl]
+    soc-opt solvers [--json] [--quick] [--sizes NxM[xT],..] [--instances N] [--repeats N] [--kl-T N] [--sqp] [--legacy] [--T N]
+                    [--out DIR] [--no-kl]
     soc-opt bench [--json] [--only NAMES] [--quick]
     soc-opt tasks
     soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--dry-run]
@@ -300,54 +301,78 @@ def _cmd_verify(args) -> int:
     return 0 if doc["ok"] else 1
 
 
-def _parse_sizes(text: str) -> tuple[tuple[int, int], ...]:
-    """``"2x1,4x2"`` -> ``((2, 1), (4, 2))``; a clear error names a bad entry."""
+def _parse_sizes(text: str, allow_T: bool = False) -> tuple[tuple[int, ...], ...]:
+    """``"2x1,4x2"`` -> ``((2, 1), (4, 2))`` (with ``allow_T`` also ``NxMxT``); a clear error names a bad entry."""
     out = []
     for part in text.split(","):
         try:
-            n, m = (int(x) for x in part.lower().split("x"))
+            vals = tuple(int(x) for x in part.lower().split("x"))
         except ValueError:
-            raise ConfigError(f"--sizes: {part!r} is not NxM (e.g. 26x7)") from None
-        if n < 1 or m < 1:
-            raise ConfigError(f"--sizes: {part!r} needs n >= 1 and m >= 1")
-        out.append((n, m))
+            vals = ()
+        if len(vals) not in ((2, 3) if allow_T else (2,)):
+            raise ConfigError(f"--sizes: {part!r} is not NxM{' or NxMxT' if allow_T else ''} (e.g. 26x7)")
+        if min(vals) < 1:
+            raise ConfigError(f"--sizes: {part!r} needs n >= 1, m >= 1 (and T >= 1)")
+        out.append(vals)
     return tuple(out)
 
 
 def _cmd_solvers(args) -> int:
-    """M-step solver benchmark (every constraint set and solver; files in ``--out``) and the
-    KL-step comparison (closed form vs CasADi/IPOPT and fatrop) unless ``--no-kl``."""
+    """M-step solver benchmark (``soc_opt.bench.qp_bench``: families x accuracy levels, files and
+    the qpbenchmark test set in ``--out``; ``--legacy``: the earlier ``soc_opt.bench.solvers``) and
+    the KL-step comparison (closed form vs CasADi IPOPT, fatrop, sqpmethod) at the same sizes
+    (``NxMxT``; ``NxM`` uses ``T = --kl-T``) unless ``--no-kl``."""
     from .bench import lqg as bench_lqg
+    from .bench import qp_bench, solvers_report
     from .bench import solvers as bench_solvers
-    from .bench import solvers_report
 
-    sizes = _parse_sizes(args.sizes) if args.sizes else (((2, 1), (4, 2)) if args.quick else bench_solvers.SIZES)
-    instances = args.instances or (2 if args.quick else 10)
+    given = _parse_sizes(args.sizes, allow_T=True) if args.sizes else None
+    sizes = tuple(s[:2] for s in given) if given else (((2, 1), (4, 2)) if args.quick else bench_solvers.SIZES)
+    kl_T = args.kl_T or (20 if args.quick else 100)
+    kl_sizes = tuple((s[0], s[1], s[2] if len(s) == 3 else kl_T) for s in given) if given else \
+        (((4, 2, 20),) if args.quick else ((4, 2, 20), (26, 7, 100)))
+    instances = args.instances or (2 if args.quick else (10 if args.legacy else 6))
     T = args.T or (2 if args.quick else 3)
-    if instances < 1 or T < 1:
-        raise ConfigError(f"--instances and --T must be >= 1, got {instances} and {T}")
-    t0 = time.perf_counter()
+    if instances < 1 or T < 1 or kl_T < 1:
+        raise ConfigError(f"--instances, --T and --kl-T must be >= 1, got {instances}, {T} and {kl_T}")
+    t0, c0 = time.perf_counter(), time.process_time()
     with solvers_report.quiet_stdout():
-        progress = (lambda rs: solvers_report.write_rows(rs, args.out)) if args.out else None
-        rows = bench_solvers.run(sizes=sizes, T=T, instances=instances, seed=args.seed, on_progress=progress)
-        warm = [w for n, m in sizes[-2:] for w in bench_solvers.warm_vs_cold(n, m, seed=args.seed)]
-        l_rows = [] if args.no_kl else (bench_lqg.run(sizes=((4, 2, 20),)) if args.quick else bench_lqg.run())
-    summary = solvers_report.summarize(rows)
-    meta = {"sizes": sizes, "T": T, "instances": instances, "seed": args.seed,
-            "seconds": round(time.perf_counter() - t0, 1)}
+        if args.legacy:
+            progress = (lambda rs: solvers_report.write_rows(rs, args.out)) if args.out else None
+            rows = bench_solvers.run(sizes=sizes, T=T, instances=instances, seed=args.seed, on_progress=progress)
+            warm = [w for n, m in sizes[-2:] for w in bench_solvers.warm_vs_cold(n, m, seed=args.seed)]
+        else:
+            problems = qp_bench.make_problems(sizes, instances, args.seed)
+            rows = qp_bench.run(problems=problems, repeats=args.repeats or (1 if args.quick else 3))
+        l_rows = [] if args.no_kl else bench_lqg.run(sizes=kl_sizes, repeats=1 if args.quick else 5, sqp=args.sqp)
+    meta = {"sizes": sizes, "kl_sizes": kl_sizes, "instances": instances, "seed": args.seed,
+            "wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
+    return _report_solvers(args, rows, l_rows, meta, warm if args.legacy else None, None if args.legacy else problems)
+
+
+def _report_solvers(args, rows, l_rows, meta, warm, problems) -> int:
+    from .bench import qp_bench, qp_bench_report, solvers_report
+
+    legacy = warm is not None
+    summary = solvers_report.summarize(rows) if legacy else qp_bench.summarize(rows)
     if args.out:
-        for p in solvers_report.write(rows, warm, args.out, meta):
+        if legacy:
+            paths = solvers_report.write(rows, warm, args.out, dict(meta, T=args.T))
+        else:
+            paths = qp_bench_report.write(rows, args.out, meta)
+            paths += qp_bench_report.export_qpbenchmark(problems, Path(args.out, "qpbenchmark"))[-1:]
+        for p in paths:
             print(f"wrote {p}", file=sys.stderr if args.json else sys.stdout, flush=True)
         if l_rows:
             Path(args.out, "kl_step.json").write_text(json.dumps(l_rows, indent=1, default=float))
     if args.json:
         _print(json.dumps({"meta": meta, "mstep": summary, "warm_vs_cold": warm, "kl_step": l_rows}, indent=1,
                           default=float))
-    else:
-        _print("M-step: every constraint set and solver against the closed form or an independent reference\n"
-               + solvers_report.markdown(summary, warm))
-        if l_rows:
-            _print("\nKL-constrained LQG step: closed form vs CasADi/IPOPT and fatrop\n" + _table(l_rows))
+        return 0
+    text = solvers_report.markdown(summary, warm) if legacy else qp_bench_report.markdown(summary)
+    _print("M-step: every family, accuracy level and solver against an independent reference\n" + text)
+    if l_rows:
+        _print("\nKL-constrained LQG step: closed form vs CasADi IPOPT, fatrop and sqpmethod\n" + _table(l_rows))
     return 0
 
 
@@ -464,9 +489,14 @@ def build_parser() -> argparse.ArgumentParser:
                                        "(closed form vs CasADi/IPOPT and fatrop)")
     s.add_argument("--json", action="store_true")
     s.add_argument("--quick", action="store_true", help="tiny sizes only")
-    s.add_argument("--sizes", help="M-step sizes NxM, comma-separated (default 2x1,4x2,8x3,16x5,26x7)")
-    s.add_argument("--instances", type=int, help="random instances per size (default 10)")
-    s.add_argument("--T", type=int, help="steps per instance, each one problem (default 3)")
+    s.add_argument("--sizes", help="sizes NxM or NxMxT, comma-separated, for the M-step (n, m) and the KL step "
+                                   "(n, m, T; T = --kl-T if omitted); default 2x1,4x2,8x3,16x5,26x7 and KL 4x2x20,26x7x100")
+    s.add_argument("--instances", type=int, help="random instances per size and family (default 6; --legacy 10)")
+    s.add_argument("--repeats", type=int, help="timed calls per solve, median reported (default 3)")
+    s.add_argument("--T", type=int, help="--legacy: steps per instance, each one problem (default 3)")
+    s.add_argument("--kl-T", dest="kl_T", type=int, help="horizon of the KL-step sizes given as NxM (default 100)")
+    s.add_argument("--sqp", action="store_true", help="KL step: also CasADi sqpmethod on the structured NLP")
+    s.add_argument("--legacy", action="store_true", help="the earlier benchmark (soc_opt.bench.solvers)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", help="write the table (md/CSV/JSON), profiles and plots into this directory")
     s.add_argument("--no-kl", dest="no_kl", action="store_true", help="skip the KL-step comparison")

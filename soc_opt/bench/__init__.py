@@ -21,8 +21,9 @@ PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration", "noisefit", "g
 #: environment; both only on request, as is ``env_steps``, the soc_opt Gymnasium environments' steps/s).
 DEFAULT_PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration")
 #: Modules of this package that are not ``bench`` parts: the solver benchmark of ``soc-opt solvers``
-#: (``solvers``, its report ``solvers_report``) and the fatrop build-time study (``fatrop_scale``).
-SUPPORT = ("solvers", "solvers_report", "fatrop_scale")
+#: (``qp_bench``, its report and qpbenchmark export ``qp_bench_report``; the earlier ``solvers`` and
+#: ``solvers_report``, ``--legacy``) and the fatrop build-time study (``fatrop_scale``).
+SUPPORT = ("qp_bench", "qp_bench_report", "solvers", "solvers_report", "fatrop_scale")
 
 
 def parse_parts(only: str | None) -> tuple[str, ...]:

@@ -25,6 +25,13 @@ per (size, budget kind):
                              in the joint moments; see ``soc_opt.lqg.fatrop_nlp``)
     fatrop_max_policy_diff, fatrop_max_rel_eta_diff, fatrop_worst_violation
                              its policy and multipliers against the closed form, its (KL - nu) / nu
+    sqp_status, sqp_iter, sqp_s, sqp_build_s, sqp_solve_s, sqp_max_policy_diff, sqp_max_rel_eta_diff,
+    sqp_worst_violation      the structured NLP (the same oracle and derivative callbacks IPOPT gets)
+                             solved by CasADi's ``sqpmethod`` with ``qpsol`` (default ``osqp``;
+                             :func:`sqpmethod_step`), when ``sqp=True``
+    cf_cpu_ms_median, ipopt_cpu_s, fatrop_cpu_s, sqp_cpu_s
+                             the same calls' CPU time of this process (``time.process_time``; the
+                             ``*_s`` / ``*_ms`` columns above are wall time, ``time.perf_counter``)
     note                     why IPOPT or fatrop was skipped, if it was
 
 At ``n=26, m=7, T=100`` (21 700 NLP variables) the symbolic formulation (dense exact Hessian
@@ -39,16 +46,21 @@ on a loaded machine vary by up to a factor 2 between runs.
 ``n=26, m=7, T=100`` building fatrop's solver (CasADi AD of 100 stages of 377 states and 217
 controls) did not finish within 7 minutes (5.9 GB resident).  At ``n=4, m=2, T=20`` fatrop takes
 0.5-0.7 s to build and 0.02-0.03 s to solve (10-11 iterations), policy and multipliers within
-about 1e-9 of the closed form.
+about 1e-9 of the closed form.  The rerun of issue 32 at ``(26, 7, 100)`` with CPU times and
+sqpmethod (``sqp=True``) is in docs/results/solvers/README.md ("KL step at the paper's size").
 """
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
 
 from ..lqg import KLStepConfig, kl_step
+from ..lqg.casadi_nlp import casadi_kinds, nlp_solution
+from ..lqg.problem import KLProblem, KLStepResult, check_nu
+from ..lqg.structured_nlp import StructuredNLP
 from ..testing import make_kl_instance as make_instance
 
 __all__ = ["QUICK", "run", "make_instance", "kl_budget_of", "FATROP_MAX_VARS"]
@@ -75,13 +87,62 @@ def _violation(res, nu) -> float:
 
 
 def _time_closed_form(prob, nu, repeats: int, config):
-    times = []
+    times, cpu = [], []
     res = None
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         res = kl_step(*prob[:3], nu, *prob[3:], config=config)
         times.append(time.perf_counter() - t0)
-    return res, np.array(times)
+        cpu.append(time.process_time() - c0)
+    return res, np.array(times), np.array(cpu)
+
+
+def sqpmethod_step(prob, nu, config: KLStepConfig | None = None, qpsol: str = "osqp", max_iter: int = 100,
+                   tol: float = 1e-10) -> KLStepResult:
+    """The KL step (docs/math.md §6) by CasADi ``sqpmethod``: the structured single-shooting NLP of
+    :mod:`soc_opt.lqg.structured_nlp` (the oracle and exact-at-the-solution block Hessian IPOPT is
+    given), each SQP subproblem by ``qpsol``; ``prob`` is ``(dynamics, cost, reference, mu0, P0)``.
+    ``solver_stats`` has ``build_s`` and ``solve_s`` (wall)."""
+    import casadi as ca
+
+    config = KLStepConfig() if config is None else config
+    nu_arr, scalar = check_nu(nu, prob[0].A.shape[0])
+    kp = KLProblem(prob[0], prob[1], prob[2], prob[3], prob[4])
+    nu_full, kind = casadi_kinds(nu_arr, scalar, kp.T)
+    free = np.flatnonzero(kind == "free")
+    ub = [float(nu_arr[0])] if scalar else [float(nu_full[t]) for t in free]
+    t0 = time.perf_counter()
+    nlp = StructuredNLP(kp, kind, scalar, config.chol_floor)
+    x, f, g = nlp.oracle(ca)
+    grad_f, jac_g, hess = nlp.derivative_functions(ca)
+    qopts = {"print_iter": False, "print_header": False, "error_on_fail": False} if qpsol == "qrqp" else \
+        {"osqp": {"verbose": False}, "error_on_fail": False} if qpsol == "osqp" else {}
+    # sqpmethod takes the gradient and Jacobian together and the full symmetric Hessian
+    xs, ps, sg, lg = ca.MX.sym("x", nlp.nx), ca.MX.sym("p", 0, 1), ca.MX.sym("lam_f"), ca.MX.sym("lam_g", nlp.ng)
+    fv, gfv = grad_f(xs, ps)
+    gv, Jv = jac_g(xs, ps)
+    jac_fg = ca.Function("kl_jac_fg", [xs, ps], [fv, gfv, gv, Jv], ["x", "p"], ["f", "grad_f_x", "g", "jac_g_x"])
+    hess_l = ca.Function("kl_hess_l", [xs, ps, sg, lg], [ca.triu2symm(hess(xs, ps, sg, lg))],
+                         ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+    opts = {"jac_fg": jac_fg, "hess_lag": hess_l, "qpsol": qpsol, "qpsol_options": qopts,
+            "max_iter": max_iter, "tol_pr": tol, "tol_du": tol, "print_header": False, "print_iteration": False,
+            "print_status": False, "print_time": False, "error_on_fail": False}
+    solver = ca.nlpsol("kl_sqp", "sqpmethod", {"x": x, "f": f, "g": g}, opts)
+    build_s = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    sol = solver(x0=nlp.x0, lbx=nlp.lbx, ubx=np.inf, lbg=-np.inf, ubg=ub)
+    solve_s = time.perf_counter() - t1
+    st = solver.stats()
+    lam = np.asarray(sol["lam_g"]).ravel()[:nlp.ng]
+    G, S, _ = nlp.policy(np.asarray(sol["x"]).ravel())
+    K, k = G[:, :, :kp.n].copy(), G[:, :, kp.n].copy()
+    policy, eta, marg, kl, costs = nlp_solution(kp, kind, free, scalar, K, k, S, lam)
+    status = str(st.get("return_status", "unknown"))
+    return KLStepResult(policy=policy, eta=eta, kl=kl, expected_cost=float(costs.sum()), n_backward=0,
+                        scalar_eta=scalar, nu=float(nu_arr[0]) if scalar else nu_arr.copy(), dual_value=math.nan,
+                        method="sqpmethod", n_iter=int(st.get("iter_count", -1)), status=status, marginals=marg,
+                        lam_g=lam, solver_stats={"build_s": build_s, "solve_s": solve_s,
+                                                 "success": bool(st.get("success", False))})
 
 
 def _compare_to(cf, res, nu, config) -> dict:
@@ -97,33 +158,53 @@ def _compare_to(cf, res, nu, config) -> dict:
 
 
 def _solve_and_compare(prob, nu, cf, method: str, config):
-    """``(result, wall seconds, _compare_to(cf, result))`` of one NLP solve of the instance."""
-    t0 = time.perf_counter()
-    res = kl_step(*prob[:3], nu, *prob[3:], method=method, config=config)
-    return res, time.perf_counter() - t0, _compare_to(cf, res, nu, config)
+    """``(result, wall seconds, _compare_to(cf, result) with its CPU seconds)`` of one NLP solve."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    if method == "sqpmethod":
+        res = sqpmethod_step(prob, nu, config)
+    else:
+        res = kl_step(*prob[:3], nu, *prob[3:], method=method, config=config)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return res, wall, dict(_compare_to(cf, res, nu, config), cpu_s=cpu)
+
+
+def _sqp_columns(prob, nu, cf, config, run: bool) -> dict:
+    keys = ("sqp_status", "sqp_iter", "sqp_s", "sqp_cpu_s", "sqp_build_s", "sqp_solve_s", "sqp_max_policy_diff",
+            "sqp_max_rel_eta_diff", "sqp_worst_violation")
+    row = {k: None for k in keys}
+    if not run:
+        return row
+    r, t, d = _solve_and_compare(prob, nu, cf, "sqpmethod", config)
+    row.update({"sqp_status": r.status, "sqp_iter": r.n_iter, "sqp_s": t, "sqp_cpu_s": d["cpu_s"],
+                "sqp_build_s": r.solver_stats["build_s"], "sqp_solve_s": r.solver_stats["solve_s"],
+                "sqp_max_policy_diff": d["max_policy_diff"], "sqp_max_rel_eta_diff": d["max_rel_eta_diff"],
+                "sqp_worst_violation": d["violation"]})
+    return row
 
 
 def _fatrop_columns(prob, nu, cf, config, run: bool) -> dict:
-    row = {k: None for k in ("fatrop_status", "fatrop_iter", "fatrop_s", "fatrop_build_s", "fatrop_solve_s",
+    row = {k: None for k in ("fatrop_status", "fatrop_iter", "fatrop_s", "fatrop_cpu_s", "fatrop_build_s", "fatrop_solve_s",
                              "fatrop_max_policy_diff", "fatrop_max_rel_eta_diff", "fatrop_worst_violation")}
     if not run:
         return row
     fr, t_fr, d = _solve_and_compare(prob, nu, cf, "fatrop", config)
-    row.update({"fatrop_status": fr.status, "fatrop_iter": fr.n_iter, "fatrop_s": t_fr,
+    row.update({"fatrop_status": fr.status, "fatrop_iter": fr.n_iter, "fatrop_s": t_fr, "fatrop_cpu_s": d["cpu_s"],
                 "fatrop_build_s": fr.solver_stats["build_s"], "fatrop_solve_s": fr.solver_stats["solve_s"],
                 "fatrop_max_policy_diff": d["max_policy_diff"], "fatrop_max_rel_eta_diff": d["max_rel_eta_diff"],
                 "fatrop_worst_violation": d["violation"]})
     return row
 
 
-def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None, run_fatrop: bool = True) -> dict:
+def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None, run_fatrop: bool = True,
+         run_sqp: bool = False) -> dict:
     rng = np.random.default_rng([seed, n, m, T])
     prob = make_instance(n, m, T, rng)
     nu = kl_budget_of(kind, T, rng)
-    cf, times = _time_closed_form(prob, nu, repeats, config)
+    cf, times, cpu = _time_closed_form(prob, nu, repeats, config)
     row = {
         "n": n, "m": m, "T": T, "budget": kind,
         "cf_ms_median": 1e3 * float(np.median(times)), "cf_ms_min": 1e3 * float(times.min()),
+        "cf_cpu_ms_median": 1e3 * float(np.median(cpu)), "ipopt_cpu_s": None,
         "n_backward": cf.n_backward,
         "ipopt_size": None, "ipopt_formulation": None, "ipopt_status": None, "ipopt_iter": None, "ipopt_s": None,
         "ipopt_build_s": None, "ipopt_solve_s": None, "ipopt_vars": _nlp_vars(n, m, T), "speedup": None,
@@ -131,12 +212,13 @@ def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None, run_f
         "max_rel_eta_diff": None, "worst_violation": _violation(cf, nu), "note": note,
     }
     row.update(_fatrop_columns(prob, nu, cf, config, run_fatrop))
+    row.update(_sqp_columns(prob, nu, cf, config, run_sqp))
     if not run_ipopt:
         return row
     ip, t_ip, d = _solve_and_compare(prob, nu, cf, "casadi", config)
     row.update({
         "ipopt_size": (n, m, T), "ipopt_formulation": ip.solver_stats["formulation"], "ipopt_status": ip.status,
-        "ipopt_iter": ip.n_iter, "ipopt_s": t_ip, "ipopt_build_s": ip.solver_stats["build_s"],
+        "ipopt_iter": ip.n_iter, "ipopt_s": t_ip, "ipopt_cpu_s": d["cpu_s"], "ipopt_build_s": ip.solver_stats["build_s"],
         "ipopt_solve_s": ip.solver_stats["solve_s"],
         "speedup": t_ip / float(np.median(times)),
         "speedup_solve": ip.solver_stats["solve_s"] / float(np.median(times)),
@@ -150,7 +232,7 @@ def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None, run_f
 
 def run(sizes=((4, 2, 20), (26, 7, 100)), seed: int = 0, *, repeats: int = 7, ipopt_max_vars: int | None = None,
         fatrop_max_vars: int | None = FATROP_MAX_VARS, budgets=("total", "per_step"),
-        config: KLStepConfig | None = None) -> list[dict]:
+        config: KLStepConfig | None = None, sqp: bool = False) -> list[dict]:
     """Closed form vs CasADi/IPOPT and fatrop on random instances; one row per (size, budget)
     (module docstring).
 
@@ -171,7 +253,7 @@ def run(sizes=((4, 2, 20), (26, 7, 100)), seed: int = 0, *, repeats: int = 7, ip
             notes[-1] += f" ({_FATROP_SKIP_REASON})"
         for kind in budgets:
             rows.append(_row(n, m, T, kind, seed, repeats, config, run_ipopt, note="; ".join(notes) or None,
-                             run_fatrop=run_fatrop))
+                             run_fatrop=run_fatrop, run_sqp=sqp))
     return rows
 
 

@@ -3,8 +3,9 @@
 Per size ``(n, m)``, ``instances`` random well-posed instances (:func:`soc_opt.bench.mstep.random_instance`)
 of ``T`` steps each; every step is one problem.  Constraint sets: ``cov_floor``, ``entropy_floor``
 (closed forms), ``offset_bound`` and ``trust_region`` (CVXPY is the library's only path).  Reference:
-the library's closed form where it exists; for ``offset_bound`` a bound-constrained scipy
-``L-BFGS-B`` solve, for ``trust_region`` the exact trust-region subproblem (eigendecomposition of
+the library's closed form where it exists; for ``offset_bound`` an exact KKT solve on the active
+set (:func:`kkt_box_reference`; the committed tables of this benchmark predate it and used scipy
+``L-BFGS-B``), for ``trust_region`` the exact trust-region subproblem (eigendecomposition of
 ``Stilde kron H`` and a bracketed root of the secular equation) -- both independent of CVXPY.
 
 Solvers (``method`` column):
@@ -46,7 +47,7 @@ from .mstep import random_instance
 #: mostly measures the other jobs
 _clock = time.process_time
 
-__all__ = ["SIZES", "SETS", "run", "problem_data", "trust_region_reference", "offset_reference"]
+__all__ = ["SIZES", "SETS", "run", "problem_data", "trust_region_reference", "offset_reference", "kkt_box_reference"]
 
 SIZES = ((2, 1), (4, 2), (8, 3), (16, 5), (26, 7))
 SETS = ("offset_bound", "trust_region", "cov_floor", "entropy_floor")  # CVXPY-only sets first
@@ -89,18 +90,56 @@ def trust_region_reference(Q, r, f0, delta):
 
 
 def offset_reference(Q, r, idx, b):
-    """Maximiser of ``-1/2 f^T Q f + r^T f`` with ``|f_i| <= b_i`` on the offset entries ``idx`` by
-    scipy L-BFGS-B (tight tolerances), started from the clipped unconstrained optimum."""
-    from scipy.optimize import minimize
+    """Maximiser of ``-1/2 f^T Q f + r^T f`` with ``|f_i| <= b_i`` on the offset entries ``idx``: the
+    exact KKT solve of :func:`kkt_box_reference` (until issue 32: scipy L-BFGS-B)."""
+    return kkt_box_reference(Q, -np.asarray(r, dtype=float), idx, b)[0]
 
-    f = np.linalg.solve(Q, r)
-    lo, hi = np.full(len(r), -np.inf), np.full(len(r), np.inf)
-    lo[idx], hi[idx] = -b, b
-    f0 = np.clip(f, lo, hi)
-    bounds = [(None if math.isinf(a) else a, None if math.isinf(c) else c) for a, c in zip(lo, hi)]
-    res = minimize(lambda x: (0.5 * x @ Q @ x - r @ x, Q @ x - r), f0, jac=True, method="L-BFGS-B",
-                   bounds=bounds, options={"ftol": 1e-16, "gtol": 1e-13, "maxiter": 50_000, "maxcor": 50})
-    return res.x
+
+def _refine(P, rhs, solve, steps: int = 6):
+    """Iterative refinement of ``P x = rhs`` with residuals in extended precision."""
+    Pl, rl = P.astype(np.longdouble), rhs.astype(np.longdouble)
+    x = solve(rhs)
+    for _ in range(steps):
+        res = rl - Pl @ x.astype(np.longdouble)
+        x = x + solve(np.asarray(res, dtype=float))
+    return x
+
+
+def kkt_box_reference(P, q, idx, b, max_iter: int = 100):
+    """Exact minimiser of ``1/2 f^T P f + q^T f`` with ``|f_i| <= b`` on ``idx`` (``P > 0``) and the
+    multipliers ``(z_upper, z_lower)`` of ``f_idx <= b``, ``-f_idx <= b``: a primal-dual active-set
+    iteration; on the final active set the KKT system (free variables) is solved with refinement
+    and every sign checked (raises ``ArithmeticError`` if the iteration does not settle)."""
+    import scipy.linalg as sla
+
+    d = len(q)
+    idx = np.asarray(idx)
+    b = np.broadcast_to(np.asarray(b, dtype=float), idx.shape)
+    state = np.zeros(len(idx), dtype=int)  # -1 lower bound, 0 free, +1 upper bound
+    for _ in range(max_iter):
+        fixed = idx[state != 0]
+        free = np.setdiff1d(np.arange(d), fixed)
+        f = np.zeros(d)
+        f[fixed] = state[state != 0] * b[state != 0]
+        Pff = P[np.ix_(free, free)]
+        cf = sla.cho_factor(Pff)
+        rhs = -q[free] - P[np.ix_(free, fixed)] @ f[fixed]
+        f[free] = _refine(Pff, rhs, lambda v: sla.cho_solve(cf, v))
+        g = np.asarray(P.astype(np.longdouble) @ f.astype(np.longdouble) + q, dtype=float)  # P f + q
+        mult = -state * g[idx]  # multiplier of the active bound: g_i = -z_up (upper), +z_lo (lower)
+        new = state.copy()
+        for j, i in enumerate(idx):
+            if state[j] == 0:
+                new[j] = 1 if f[i] > b[j] else (-1 if f[i] < -b[j] else 0)
+            elif mult[j] < 0:
+                new[j] = 0
+        if np.array_equal(new, state):
+            zu = np.where(state > 0, mult, 0.0)
+            zl = np.where(state < 0, mult, 0.0)
+            return f, zu, zl
+        state = new
+    raise ArithmeticError("primal-dual active-set iteration did not settle")
+
 
 
 # --------------------------------------------------------------------------- CVXPY [K k] problems

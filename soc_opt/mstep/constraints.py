@@ -26,7 +26,8 @@ Combined covariance constraints use the relaxation rule: the closed-form optimum
 constraint (``Sigma_min``, ``alpha H^{-1}``) that satisfies all the other constraints is optimal
 for the whole set.  If no such candidate exists at some step (two constraints active at once)
 ``method="closed_form"`` raises :class:`ClosedFormUnavailableError` and ``method="cvxpy"`` is
-needed.  Infeasible sets (floor not below ceiling, entropy floor above ``log det`` of the ceiling)
+needed.  Infeasible sets (floor not below ceiling, entropy floor above ``log det`` of the ceiling, a
+negative ``offset_bound``)
 raise :class:`InfeasibleConstraintsError` naming them.
 """
 
@@ -213,6 +214,11 @@ class MStepConstraints(Config):
                 b = tuple(float(x) for x in np.asarray(b, dtype=float).ravel())
                 ok = len(b) > 0 and all(math.isfinite(x) and x >= 0 for x in b)
             if not ok:
+                vals = [b] if isinstance(b, float) else list(b)
+                if all(math.isfinite(x) for x in vals) and vals:  # finite but negative: |k_i| <= b_i is empty
+                    raise InfeasibleConstraintsError(
+                        f"infeasible constraint set: offset_bound {self.offset_bound!r} has an entry < 0, "
+                        f"so |k_i| <= b_i has no solution (offset_bound must be >= 0)")
                 raise ConfigError(f"offset_bound must be finite and >= 0, got {self.offset_bound!r}")
             object.__setattr__(self, "offset_bound", b)
         if self.trust_region is not None:
