@@ -54,7 +54,7 @@ from ..mstep import MStepConfig, MStepConstraints, maximize_moments, maximize_mo
 from ..mstep.errors import InfeasibleConstraintsError
 from ..mstep.objectives import moment_stats
 from ..testing import random_mstep_instance
-from .solvers import _refine, kkt_box_reference, trust_region_reference
+from .solvers import kkt_box_reference, refine_solution, trust_region_reference
 
 __all__ = ["FAMILIES", "LEVELS", "Level", "Problem", "make_problems", "reference", "residuals", "solution_error",
            "kkt_box_reference", "run", "summarize", "shifted_geomean", "qp_methods", "methods_for"]
@@ -227,7 +227,7 @@ def reference(prob: Problem) -> Reference | None:
     if prob.family == "trust_region":
         return Reference(trust_region_reference(P, -q, prob.f0, prob.delta), None, sigma)
     cf = sla.cho_factor(P)
-    return Reference(_refine(P, -q, lambda v: sla.cho_solve(cf, v)), None, sigma)
+    return Reference(refine_solution(P, -q, lambda v: sla.cho_solve(cf, v)), None, sigma)
 
 
 # --------------------------------------------------------------------------- metrics

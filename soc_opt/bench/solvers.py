@@ -47,7 +47,7 @@ from .mstep import random_instance
 #: mostly measures the other jobs
 _clock = time.process_time
 
-__all__ = ["SIZES", "SETS", "run", "problem_data", "trust_region_reference", "offset_reference", "kkt_box_reference"]
+__all__ = ["SIZES", "SETS", "run", "problem_data", "trust_region_reference", "offset_reference", "kkt_box_reference", "refine_solution"]
 
 SIZES = ((2, 1), (4, 2), (8, 3), (16, 5), (26, 7))
 SETS = ("offset_bound", "trust_region", "cov_floor", "entropy_floor")  # CVXPY-only sets first
@@ -95,7 +95,7 @@ def offset_reference(Q, r, idx, b):
     return kkt_box_reference(Q, -np.asarray(r, dtype=float), idx, b)[0]
 
 
-def _refine(P, rhs, solve, steps: int = 6):
+def refine_solution(P, rhs, solve, steps: int = 6):
     """Iterative refinement of ``P x = rhs`` with residuals in extended precision."""
     Pl, rl = P.astype(np.longdouble), rhs.astype(np.longdouble)
     x = solve(rhs)
@@ -124,7 +124,7 @@ def kkt_box_reference(P, q, idx, b, max_iter: int = 100):
         Pff = P[np.ix_(free, free)]
         cf = sla.cho_factor(Pff)
         rhs = -q[free] - P[np.ix_(free, fixed)] @ f[fixed]
-        f[free] = _refine(Pff, rhs, lambda v: sla.cho_solve(cf, v))
+        f[free] = refine_solution(Pff, rhs, lambda v: sla.cho_solve(cf, v))
         g = np.asarray(P.astype(np.longdouble) @ f.astype(np.longdouble) + q, dtype=float)  # P f + q
         mult = -state * g[idx]  # multiplier of the active bound: g_i = -z_up (upper), +z_lo (lower)
         new = state.copy()
