@@ -135,12 +135,13 @@ def _assert_same_step(new, old):
             assert type(info[key]) is type(ref[key]) and np.array_equal(info[key], ref[key]), key
 
 
-@pytest.mark.parametrize("name", ["linear2d", "peg", "door"])
-def test_o1_step_rewards_and_episodes_equal_the_whole_episode_cost_evaluation_bit_for_bit(name):
+@pytest.mark.parametrize("name, rho2", [("linear2d", None), ("peg", 0.0), ("peg", 0.1), ("door", 0.0), ("door", 0.1)])
+def test_o1_step_rewards_and_episodes_equal_the_whole_episode_cost_evaluation_bit_for_bit(name, rho2):
     """Issue 35: ``step`` charges the new stage alone (``Task.stage_cost``, O(1)) and reproduces,
     ``np.array_equal``, every observation, reward, flag and info of the whole-episode evaluation,
-    over seeded and unseeded episodes of random actions (the action space's samples)."""
-    overrides = {"T": 40} if name == "door" else None
+    over full seeded and unseeded episodes of random actions (the action space's samples), with and
+    without sensor noise."""
+    overrides = None if rho2 is None else {"rho2": rho2}
     env = envs.SocOptEnv(load_task(name, overrides=overrides))
     ref = _whole_episode_cost_env(name, overrides)
     env.action_space.seed(7)

@@ -228,3 +228,72 @@ def test_sb3_run_logs_every_episode_and_evaluates():
     assert [(e["steps"], e["budget"]) for e in res["evals"]] == [(100, 100)] and res["evals"][0]["cost"] > 0
     assert {"cost", "cost_measured", "success_rate", "min_distance"} <= set(res["episodes"][0])
     assert res["final"]["cost"] > 0
+
+
+@pytest.mark.parametrize("algo, backend", [("sac", "sb3"), ("sac", "sbx"),
+                                           pytest.param("crossq", "sbx", marks=pytest.mark.slow)])  # CrossQ: 45 s
+def test_a_stopped_off_policy_run_resumes_from_its_checkpoint_and_completes_its_budget(algo, backend, tmp_path):
+    """Stopped after its checkpoint at 200 steps (as a kill would leave it), the run continues from
+    there with its model, replay buffer and log: 400 steps in all, one episode row per 100 steps,
+    the evaluation at 300 steps made once, both final scores; a checkpoint of another run is refused."""
+    _peer("stable_baselines3")
+    if backend == "sbx":
+        _peer("sbx")
+    from soc_opt.peers.rl import train
+
+    ckpt = tmp_path / "ckpt"
+    kw = dict(budget=400, eval_episodes=1, eval_at=(300,), backend=backend, checkpoint=ckpt, checkpoint_every=1)
+    first = train(algo, "default", "peg", 0.1, seed=0, stop_at=200, **kw)
+    assert first["partial"] and first["steps"] == 200 and [r["steps"] for r in first["episodes"]] == [100, 200]
+    assert [p.name for p in ckpt.glob("step-*")] == ["step-200"]
+    done = train(algo, "default", "peg", 0.1, seed=0, **kw)
+    assert done["steps"] == 400 and done["resumed_at"] == [200]
+    assert [r["steps"] for r in done["episodes"]] == [100, 200, 300, 400]
+    assert done["episodes"][:2] == first["episodes"]
+    assert [(e["steps"], e["budget"]) for e in done["evals"]] == [(300, 300)]
+    assert done["final"]["cost"] > 0 and done["final_sampled"]["cost"] > 0
+    assert done["wall_s"] > first["wall_s"] > 0
+    with pytest.raises(ValueError, match="another run"):
+        train(algo, "default", "peg", 0.1, seed=1, **kw)
+
+
+def test_resumable_runs_are_the_off_policy_ones_and_the_plan_names_each_backend(tmp_path):
+    """PPO's rollout buffer is not saved, so it refuses a checkpoint; CrossQ runs on sbx-rl, PPO on
+    stable-baselines3 whatever the SAC backend, and the run files name a backend other than sb3."""
+    from soc_opt.bench.peers.rl import plan, run_file
+    from soc_opt.peers.rl import train
+
+    with pytest.raises(ValueError, match="off-policy"):
+        train("ppo", "default", "peg", 0.0, seed=0, budget=100, checkpoint=tmp_path)
+    specs = plan(algos=("ppo", "sac", "crossq"), settings=("default", "tuned"), tasks=("peg",), rho2s=(0.0,),
+                 seeds=(0,), backend="sbx")
+    assert [(s["algo"], s["backend"], s["setting"]) for s in specs] == [
+        ("ppo", "sb3", "default"), ("ppo", "sb3", "tuned"), ("sac", "sbx", "default"), ("sac", "sbx", "tuned"),
+        ("crossq", "sbx", "default")]
+    assert [run_file(tmp_path, s).name for s in specs[1:3]] == [
+        "ppo-tuned-peg-rho2_0-seed0-28000.json", "sac-sbx-default-peg-rho2_0-seed0-28000.json"]
+
+
+def test_the_runs_table_shows_finished_checkpointed_and_partial_runs_with_both_final_scores(tmp_path):
+    """A finished run gives its final scores with its mean action and sampled; a stopped run the steps
+    of its last checkpoint and where it was resumed; a run with a partial log only, its episodes."""
+    import json
+
+    from soc_opt.bench.peers.runs import markdown, rows
+
+    ep = [{"steps": s, "success_rate": 1.0, "cost": 2.0} for s in (100, 200)]
+    base = {"algo": "crossq", "backend": "sbx", "setting": "default", "task": "peg", "rho2": 0.0, "budget": 200}
+    (tmp_path / "a.json").write_text(json.dumps({**base, "seed": 0, "steps": 200, "wall_s": 4.0, "episodes": ep,
+                                                 "final": {"success_rate": 1.0, "cost": 3.0},
+                                                 "final_sampled": {"success_rate": 0.5, "cost": 5.0}}))
+    (tmp_path / "b.json.ckpt").mkdir()
+    (tmp_path / "b.json.ckpt" / "latest.json").write_text(json.dumps({**base, "seed": 1, "steps": 100, "wall_s": 2.0,
+                                                                      "resumed_at": [50], "episodes": ep[:1]}))
+    (tmp_path / "c.json.partial").write_text(json.dumps({**base, "seed": 2, "partial": True, "episodes": ep[:1]}))
+    rs = rows(tmp_path)
+    assert [(r["seed"], r["steps"], r["status"]) for r in rs] == [
+        (0, 200, "finished"), (1, 100, "stopped (checkpoint)"), (2, 100, "partial log")]
+    assert (rs[0]["metric_mean_action"], rs[0]["metric_sampled"], rs[0]["steps_per_s"]) == (1.0, 0.5, 50.0)
+    assert rs[1]["resumed_at"] == [50] and rs[1]["metric_sampled"] is None
+    table = markdown(rs)
+    assert "CrossQ default (sbx)" in table and "1.00 (3.0) | 0.50 (5.0)" in table and table.count("\n") == 5

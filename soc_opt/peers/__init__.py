@@ -8,8 +8,8 @@ differences and timings; nothing here changes soc_opt's own algorithms.
   model with uncorrelated process and observation noise (the case every peer can express).
 * :mod:`.lqr`: the KL step's backward pass (docs/math.md §6) with ``eta = 0`` (plain LQR), and the
   KL step at its optimal multiplier, against a finite-horizon time-varying LQR peer.
-* :mod:`.rl`: stable-baselines3 SAC and PPO on ``soc_opt/Peg-v0`` and ``soc_opt/Door-v0`` at a
-  fixed budget of environment steps.
+* :mod:`.rl`: stable-baselines3 SAC and PPO, sbx-rl SAC and CrossQ on ``soc_opt/Peg-v0`` and
+  ``soc_opt/Door-v0`` at a fixed budget of environment steps (resumable off-policy runs).
 
 The peers are the optional extra ``pip install -e '.[peers]'``; :func:`versions` says which are
 importable.
@@ -28,6 +28,7 @@ PEERS = {
     "pykalman": "pykalman",
     "stable_baselines3": "stable-baselines3",
     "torch": "torch",
+    "sbx": "sbx-rl",
 }
 
 

@@ -124,10 +124,19 @@ def _at_smaller_budgets(run: dict) -> list[dict]:
     for ev in run.get("evals", []):
         b = int(ev["budget"])
         final = {k: v for k, v in ev.items() if k not in ("steps", "budget", "wall_s")}
-        out.append({**{k: run[k] for k in ("algo", "setting", "task", "rho2", "seed")}, "budget": b,
+        out.append({**{k: run[k] for k in ("algo", "setting", "task", "rho2", "seed")},
+                    "backend": run.get("backend", "sb3"), "budget": b,
                     "wall_s": ev["wall_s"], "episodes": [e for e in run["episodes"] if e["steps"] <= ev["steps"]],
                     "final": final, "cut_from": run["budget"]})
     return out
+
+
+def rl_label(run: dict) -> str:
+    """``PPO default``, ``SAC tuned``, ``SAC default (sbx)``, ``CrossQ default (sbx)``: the algorithm,
+    its setting and, unless stable-baselines3, the backend."""
+    name = {"crossq": "CrossQ"}.get(run["algo"], run["algo"].upper())
+    backend = run.get("backend", "sb3")
+    return f"{name} {run['setting']}" + ("" if backend == "sb3" else f" ({backend})")
 
 
 def rl_curves(root: Path, bin_steps: int = 2000) -> dict:
@@ -135,7 +144,7 @@ def rl_curves(root: Path, bin_steps: int = 2000) -> dict:
     "steps_to_90", "reached"}}``; bins a run did not reach are NaN."""
     groups: dict = {}
     for r in _rl_runs(root):
-        key = (f"{r['algo'].upper()} {r['setting']}", r["task"], r["rho2"], r["budget"])
+        key = (rl_label(r), r["task"], r["rho2"], r["budget"])
         groups.setdefault(key, []).append(r)
     out = {}
     nan = float("nan")
@@ -156,6 +165,8 @@ def rl_curves(root: Path, bin_steps: int = 2000) -> dict:
                    for r in runs]
         out[key] = {"steps": edges, "seeds": seeds, "n_seeds": len(runs),
                     "final": {m: [r["final"][m] if "final" in r else nan for r in runs] for m in (METRIC[task], "cost")},
+                    "final_sampled": {m: [r["final_sampled"][m] if "final_sampled" in r else nan for r in runs]
+                                      for m in (METRIC[task], "cost")},
                     "last20": {m: [np.mean([e[m] for e in r["episodes"][-20:]]) for r in runs]
                                for m in (METRIC[task], "cost")},
                     "wall_s": [r.get("wall_s", nan) for r in runs], "steps_to_90": s90,
@@ -205,7 +216,8 @@ def rl_table(soc: dict, rl: dict) -> list[dict]:
             f"{budget:,} planned; reached {', '.join(f'{x:,}' for x in c['reached'])}"
         rows.append({"method": label, "task": task, "rho2": rho2, "env_steps": steps, "seeds": c["n_seeds"],
                      "metric_last20": _ms(c["last20"][m]), "cost_last20": _ms(c["last20"]["cost"]),
-                     "metric_eval_sampled": "", "cost_eval_sampled": "",
+                     "metric_eval_sampled": _ms(c["final_sampled"][m]) if "final_sampled" in c else "",
+                     "cost_eval_sampled": _ms(c["final_sampled"]["cost"]) if "final_sampled" in c else "",
                      "metric_eval_mean_action": _ms(c["final"][m]), "cost_eval_mean_action": _ms(c["final"]["cost"]),
                      "steps_to_90": _fmt_s90(c["steps_to_90"]) if task == "peg" else "",
                      "wall_s": _ms(c["wall_s"]).split(".")[0] if np.isfinite(c["wall_s"]).any() else "cut"})
