@@ -186,6 +186,62 @@ def test_peers_table_scores_soc_opt_sampled_and_with_its_mean_action_beside_sb3_
     assert ppo["metric_eval_sampled"] == "" and ppo["metric_eval_mean_action"] == "0.40"
 
 
+def test_rl_rows_average_finished_runs_and_name_the_steps_of_the_others():
+    """A cell with two finished runs and one still going: the statistics are the finished runs'
+    (a run at 1,000 steps would drag the last-20 average down), and the row says how far the other got."""
+    from soc_opt.bench.peers.report import rl_table
+
+    nan = float("nan")
+    rl = {("CrossQ default (sbx)", "peg", 0.0, 28000): {
+        "reached": [28000, 28000, 1000], "n_seeds": 3, "finished": [True, True, False],
+        "last20": {"success_rate": [1.0, 0.9, 0.0], "cost": [10.0, 12.0, 400.0]},
+        "final": {"success_rate": [1.0, 1.0, nan], "cost": [8.0, 10.0, nan]},
+        "final_sampled": {"success_rate": [1.0, 0.8, nan], "cost": [9.0, 11.0, nan]},
+        "steps_to_90": [6000, 5000, None], "wall_s": np.array([900.0, 1100.0, 30.0])}}
+    (row,) = rl_table({}, rl)
+    assert row["seeds"] == 2 and row["env_steps"] == "28,000 (2 finished; 1,000 reached by the rest)"
+    assert row["metric_last20"] == "0.95 ± 0.05" and row["cost_last20"] == "11.00 ± 1.00"
+    assert row["metric_eval_sampled"] == "0.90 ± 0.10" and row["metric_eval_mean_action"] == "1.00 ± 0.00"
+    assert row["steps_to_90"] == "5,500 (2/2 seeds)" and row["wall_s"] == "1000 ± 100"
+
+
+def test_stored_rows_keep_unrepeated_rl_cells_labelled_and_say_what_they_did_not_record(tmp_path):
+    """An earlier table's RL rows that no new run repeats are kept with their source in the method
+    name; their deterministic score becomes the mean-action column, the sampled one 'not recorded';
+    soc_opt rows and repeated RL cells are not carried."""
+    import json
+
+    from soc_opt.bench.peers.report import stored_rows
+
+    old = [{"method": "PPO default", "task": "peg", "rho2": 0.0, "env_steps": "280,000", "seeds": 3,
+            "metric_last20": "1.00 ± 0.00", "cost_last20": "5.2", "metric_eval": "1.00 ± 0.00", "cost_eval": "4.1",
+            "steps_to_90": "82,900 (3/3 seeds)", "wall_s": "1418"},
+           {"method": "PPO default", "task": "peg", "rho2": 0.0, "env_steps": "28,000", "seeds": 3, "metric_eval": "0.00"},
+           {"method": "LQR-FLM", "task": "peg", "rho2": 0.0, "env_steps": 28000, "seeds": 10, "metric_eval": ""}]
+    f = tmp_path / "rl.json"
+    f.write_text(json.dumps(old))
+    present = [{"method": "PPO default", "task": "peg", "rho2": 0.0, "env_steps": "28,000"}]
+    (row,) = stored_rows(f, present, "older runs")
+    assert row["method"] == "PPO default [older runs]" and row["env_steps"] == "280,000"
+    assert row["metric_eval_mean_action"] == "1.00 ± 0.00" and row["metric_eval_sampled"] == "not recorded"
+    assert row["steps_to_90"] == "82,900 (3/3 seeds)"
+
+
+def test_a_cut_at_a_smaller_budget_carries_its_sampled_score(tmp_path):
+    import json
+
+    from soc_opt.bench.peers.report import _rl_runs
+
+    run = {"algo": "sac", "backend": "sbx", "setting": "default", "task": "peg", "rho2": 0.0, "seed": 0, "budget": 300,
+           "wall_s": 9.0, "episodes": [{"steps": s, "success_rate": 0.0, "cost": 1.0} for s in (100, 200, 300)],
+           "evals": [{"steps": 200, "budget": 200, "wall_s": 5.0, "success_rate": 0.25, "cost": 2.0,
+                      "sampled": {"success_rate": 0.2, "cost": 2.5}}],
+           "final": {"success_rate": 0.5, "cost": 1.5}, "final_sampled": {"success_rate": 0.4, "cost": 1.7}}
+    (tmp_path / "r.json").write_text(json.dumps(run))
+    cut = _rl_runs(tmp_path)[1]
+    assert cut["final"] == {"success_rate": 0.25, "cost": 2.0} and cut["final_sampled"] == {"success_rate": 0.2, "cost": 2.5}
+
+
 # ------------------------------------------------------------------ with the peers installed
 
 
@@ -228,6 +284,25 @@ def test_sb3_run_logs_every_episode_and_evaluates():
     assert [(e["steps"], e["budget"]) for e in res["evals"]] == [(100, 100)] and res["evals"][0]["cost"] > 0
     assert {"cost", "cost_measured", "success_rate", "min_distance"} <= set(res["episodes"][0])
     assert res["final"]["cost"] > 0
+
+
+@pytest.mark.parametrize("backend", ["sb3", "sbx"])
+def test_a_score_at_a_smaller_budget_is_sampled_too_and_leaves_the_run_unchanged(backend):
+    """The policy at a smaller budget is scored like the final one (mean action and sampled), and the
+    sampled score does not touch the learner's random stream: the run's episodes are those of the
+    same run without it, bit for bit."""
+    _peer("stable_baselines3")
+    if backend == "sbx":
+        _peer("sbx")
+    from soc_opt.peers.rl import train
+
+    kw = dict(budget=300, eval_episodes=1, backend=backend)
+    scored = train("sac", "default", "peg", 0.1, seed=0, eval_at=(200,), **kw)
+    plain = train("sac", "default", "peg", 0.1, seed=0, **kw)
+    (ev,) = scored["evals"]
+    assert ev["budget"] == 200 and ev["cost"] > 0 and ev["sampled"]["cost"] > 0 and ev["sampled"] != {k: ev[k] for k in ev["sampled"]}
+    assert scored["episodes"] == plain["episodes"]
+    assert scored["final"] == plain["final"] and scored["final_sampled"] == plain["final_sampled"]
 
 
 @pytest.mark.parametrize("algo, backend", [("sac", "sb3"), ("sac", "sbx"),

@@ -35,6 +35,7 @@ import json
 import os
 import shutil
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -153,7 +154,12 @@ def _callback_class():
                 # n_steps, so at an episode end the policy is the one trained so far)
                 row = {"steps": int(self.num_timesteps), "budget": self._eval_at.pop(0),
                        "wall_s": self._header.get("wall_before_s", 0.0) + self.elapsed()}
-                self.evals.append({**row, **self._evaluate(self.model)})
+                # scored like the final policy: with its mean action, and sampled (issue 30 item 4);
+                # the sampled score draws from the learner's generators, so it runs on a copy of
+                # their state and the run goes on with the stream it would have had without it
+                with _rng_kept(self.model):
+                    sampled = self._evaluate(self.model, deterministic=False)
+                self.evals.append({**row, **self._evaluate(self.model), "sampled": sampled})
             if self._partial is not None and len(self.rows) % 10 == 0:
                 Path(self._partial).write_text(json.dumps({**self._header, "partial": True,
                                                            "episodes": self.rows, "evals": self.evals}))
@@ -161,6 +167,22 @@ def _callback_class():
             return True
 
     return EpisodeLog
+
+
+@contextmanager
+def _rng_kept(model):
+    """Run the body with the learner's random generators (torch's, and sbx-rl's policy keys) restored
+    afterwards: a sampled evaluation in the middle of a run leaves the run's random stream alone."""
+    import torch
+
+    pol = getattr(model, "policy", None)
+    keys = {k: getattr(pol, k) for k in ("key", "noise_key") if hasattr(pol, k)}
+    with torch.random.fork_rng(devices=[]):
+        try:
+            yield
+        finally:
+            for k, v in keys.items():
+                setattr(pol, k, v)
 
 
 def _evaluate(model, task: str, rho2: float, seed: int, episodes: int, vecnorm, deterministic: bool = True) -> dict:
@@ -244,8 +266,9 @@ def train(algo: str, setting: str, task: str, rho2: float, seed: int, budget: in
     same, actions sampled) and ``resumed_at`` (the steps each later session started from).
     ``partial``: a file rewritten every 10 episodes with the log so far (a run cut short by a
     time limit still leaves its learning curve).  ``eval_at``: smaller budgets (environment steps)
-    at which the policy is also scored with its mean action, at the first episode end at or after
-    each (key ``evals``: one row per budget, ``steps``, ``budget`` and the ``final`` keys); with the
+    at which the policy is also scored, at the first episode end at or after each (key ``evals``:
+    one row per budget, ``steps``, ``budget``, the ``final`` keys (mean action) and ``sampled``
+    (the ``final_sampled`` keys)); with the
     constant learning rates of every setting here, a run's first ``b`` steps are those of a run
     of budget ``b``, so one long run gives both budgets.
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from ...peers.rl import steps_to
 
-__all__ = ["soc_curves", "sweep_curves", "rl_curves", "rl_table", "main"]
+__all__ = ["soc_curves", "sweep_curves", "rl_curves", "rl_table", "stored_rows", "main"]
 
 METRIC = {"peg": "success_rate", "door": "min_hinge"}
 SOC_LABEL = {"paper": "{m}", "noiseaware": "{m} noise-aware"}
@@ -68,6 +68,7 @@ def _curve(per_seed: list[list[dict]], task: str, samples: int, T: int, eval_cos
         "eval_metric": [r["metrics"][METRIC[task]] for r in res] if res else None,
         "eval_metric_mean_action": [r["metrics_mean_action"][METRIC[task]] for r in res] if res else None,
         "eval_cost_mean_action": [r["final_cost_mean_action"] for r in res] if res else None,
+        "wall_s": [r["wall_time"] for r in (results or []) if "wall_time" in r] or None,
         "steps": (np.arange(n_it) + 1) * samples * T,
         "seeds": {m: np.array([[float(r[i][f"metric_{m}"]) for i in range(n_it)] for r in per_seed])
                   for m in (METRIC[task], "cost")},
@@ -123,11 +124,12 @@ def _at_smaller_budgets(run: dict) -> list[dict]:
     out = []
     for ev in run.get("evals", []):
         b = int(ev["budget"])
-        final = {k: v for k, v in ev.items() if k not in ("steps", "budget", "wall_s")}
+        final = {k: v for k, v in ev.items() if k not in ("steps", "budget", "wall_s", "sampled")}
         out.append({**{k: run[k] for k in ("algo", "setting", "task", "rho2", "seed")},
                     "backend": run.get("backend", "sb3"), "budget": b,
                     "wall_s": ev["wall_s"], "episodes": [e for e in run["episodes"] if e["steps"] <= ev["steps"]],
-                    "final": final, "cut_from": run["budget"]})
+                    "final": final, "cut_from": run["budget"],
+                    **({"final_sampled": ev["sampled"]} if "sampled" in ev else {})})
     return out
 
 
@@ -163,7 +165,7 @@ def rl_curves(root: Path, bin_steps: int = 2000) -> dict:
         if task == "peg":
             s90 = [steps_to([e["steps"] for e in r["episodes"]], [e["success_rate"] for e in r["episodes"]])
                    for r in runs]
-        out[key] = {"steps": edges, "seeds": seeds, "n_seeds": len(runs),
+        out[key] = {"steps": edges, "seeds": seeds, "n_seeds": len(runs), "finished": ["final" in r for r in runs],
                     "final": {m: [r["final"][m] if "final" in r else nan for r in runs] for m in (METRIC[task], "cost")},
                     "final_sampled": {m: [r["final_sampled"][m] if "final_sampled" in r else nan for r in runs]
                                       for m in (METRIC[task], "cost")},
@@ -181,6 +183,13 @@ def _ms(v) -> str:
         return "n/a"
     f = ".2e" if 0 < abs(v.mean()) < 0.01 else ".2f"
     return f"{v.mean():{f}} ± {v.std():{f}}" if v.size > 1 else f"{v.mean():{f}}"
+
+
+def _wall(v) -> str:
+    """Seconds per run, mean ± std over the runs (whole seconds)."""
+    v = np.asarray(v, dtype=float)
+    v = v[np.isfinite(v)]
+    return f"{v.mean():.0f} ± {v.std():.0f}" if v.size > 1 else f"{v.mean():.0f}"
 
 
 def _s90_soc(c) -> list:
@@ -209,19 +218,48 @@ def rl_table(soc: dict, rl: dict) -> list[dict]:
                      "cost_eval_sampled": _ms(c["eval_cost"]) if c.get("eval_cost") else "",
                      "metric_eval_mean_action": _ms(c["eval_metric_mean_action"]) if c.get("eval_metric_mean_action") else "",
                      "cost_eval_mean_action": _ms(c["eval_cost_mean_action"]) if c.get("eval_cost_mean_action") else "",
-                     "steps_to_90": _fmt_s90(_s90_soc(c)) if task == "peg" else "", "wall_s": ""})
+                     "steps_to_90": _fmt_s90(_s90_soc(c)) if task == "peg" else "",
+                     "wall_s": _wall(c["wall_s"]) if c.get("wall_s") else ""})
     for (label, task, rho2, budget), c in sorted(rl.items(), key=lambda kv: (kv[0][1], kv[0][2], kv[0][3], kv[0][0])):
         m = METRIC[task]
-        steps = f"{budget:,}" if min(c["reached"]) >= budget else \
-            f"{budget:,} planned; reached {', '.join(f'{x:,}' for x in c['reached'])}"
-        rows.append({"method": label, "task": task, "rho2": rho2, "env_steps": steps, "seeds": c["n_seeds"],
-                     "metric_last20": _ms(c["last20"][m]), "cost_last20": _ms(c["last20"]["cost"]),
-                     "metric_eval_sampled": _ms(c["final_sampled"][m]) if "final_sampled" in c else "",
-                     "cost_eval_sampled": _ms(c["final_sampled"]["cost"]) if "final_sampled" in c else "",
-                     "metric_eval_mean_action": _ms(c["final"][m]), "cost_eval_mean_action": _ms(c["final"]["cost"]),
-                     "steps_to_90": _fmt_s90(c["steps_to_90"]) if task == "peg" else "",
-                     "wall_s": _ms(c["wall_s"]).split(".")[0] if np.isfinite(c["wall_s"]).any() else "cut"})
+        done = np.array(c.get("finished", [True] * c["n_seeds"]))
+        # statistics over the finished runs; runs still going (or cut) are named with the steps they reached
+        sel = done if done.any() else np.ones_like(done)
+        pick = (lambda v: [x for x, k in zip(v, sel) if k])
+        rest = ", ".join(f"{x:,}" for x, k in zip(c["reached"], done) if not k)
+        steps = f"{budget:,}" if done.all() else f"{budget:,} ({int(done.sum())} finished; {rest} reached by the rest)"
+        s90 = pick(c["steps_to_90"]) if c["steps_to_90"] is not None else None
+        rows.append({"method": label, "task": task, "rho2": rho2, "env_steps": steps, "seeds": int(sel.sum()),
+                     "metric_last20": _ms(pick(c["last20"][m])), "cost_last20": _ms(pick(c["last20"]["cost"])),
+                     "metric_eval_sampled": _ms(pick(c["final_sampled"][m])) if "final_sampled" in c else "",
+                     "cost_eval_sampled": _ms(pick(c["final_sampled"]["cost"])) if "final_sampled" in c else "",
+                     "metric_eval_mean_action": _ms(pick(c["final"][m])), "cost_eval_mean_action": _ms(pick(c["final"]["cost"])),
+                     "steps_to_90": _fmt_s90(s90) if task == "peg" else "",
+                     "wall_s": _wall(pick(c["wall_s"])) if np.isfinite(pick(c["wall_s"])).any() else "cut"})
     return rows
+
+
+def stored_rows(path: Path, present: list[dict], source: str) -> list[dict]:
+    """Rows of an earlier ``rl.json`` for the (method, task, rho2, env_steps) that ``present`` lacks,
+    marked with ``source``: runs that were not repeated keep their numbers, labelled.  Older tables
+    scored RL with the mean action only (``metric_eval``, ``cost_eval``); their sampled columns
+    say ``not recorded``."""
+    have = {(r["method"], r["task"], float(r["rho2"]), str(r["env_steps"])) for r in present}
+    out = []
+    for r in json.loads(Path(path).read_text()):
+        if (r["method"], r["task"], float(r["rho2"]), str(r["env_steps"])) in have:
+            continue
+        if not any(r["method"].startswith(p) for p in ("PPO", "SAC", "CrossQ")):
+            continue  # soc_opt's rows come from the runs given
+        row = {k: r.get(k, "") for k in ("method", "task", "rho2", "env_steps", "seeds", "metric_last20", "cost_last20")}
+        row["method"] = f"{r['method']} [{source}]"
+        row["metric_eval_sampled"] = r.get("metric_eval_sampled", "not recorded")
+        row["cost_eval_sampled"] = r.get("cost_eval_sampled", "not recorded")
+        row["metric_eval_mean_action"] = r.get("metric_eval_mean_action", r.get("metric_eval", ""))
+        row["cost_eval_mean_action"] = r.get("cost_eval_mean_action", r.get("cost_eval", ""))
+        row["steps_to_90"], row["wall_s"] = r.get("steps_to_90", ""), r.get("wall_s", "")
+        out.append(row)
+    return out
 
 
 def _md(rows: list[dict]) -> str:
@@ -241,7 +279,8 @@ def _cell(v) -> str:
 
 
 _COLORS = {"LQR-FLM": "tab:blue", "DPSOC-EM": "tab:orange", "PPO default": "tab:green",
-           "PPO tuned": "tab:olive", "SAC default": "tab:red", "SAC tuned": "tab:purple"}
+           "PPO tuned": "tab:olive", "SAC default": "tab:red", "SAC tuned": "tab:purple",
+           "CrossQ default": "tab:brown"}
 
 
 def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
@@ -256,7 +295,8 @@ def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
         return
     fig, axes = plt.subplots(2, len(rhos), figsize=(5.5 * len(rhos), 7), squeeze=False)
     for j, rho2 in enumerate(rhos):
-        series = [(k[0], c) for k, c in soc.items() if k[1] == task and k[2] == rho2]
+        # the paper-as-written rows are in the table; the figure shows the methods' defaults
+        series = [(k[0], c) for k, c in soc.items() if k[1] == task and k[2] == rho2 and "as written" not in k[0]]
         series += [(f"{k[0]} ({k[3] // 1000}k)", c) for k, c in rl.items() if k[1] == task and k[2] == rho2]
         for label, c in series:
             base = label.split(" (")[0]
@@ -282,7 +322,7 @@ def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
             axes[i, j].set_xlabel("environment steps (log scale)")
             axes[i, j].grid(alpha=0.3)
         axes[0, j].legend(fontsize=7, loc="best")
-    fig.suptitle(f"{task}: soc_opt (solid) vs stable-baselines3 (dashed), mean ± std over seeds; "
+    fig.suptitle(f"{task}: soc_opt (solid) vs model-free RL (dashed), mean ± std over seeds; "
                  "RL: training episodes in bins of 2,000 steps")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -292,7 +332,10 @@ def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="docs/results/peers")
-    ap.add_argument("--rl", default="runs/peers-rl")
+    ap.add_argument("--rl", nargs="+", default=["runs/peers-rl"], help="directories of RL runs (one JSON per run)")
+    ap.add_argument("--stored", default=None,
+                    help="an earlier rl.json: its RL rows that no run given here repeats are kept, labelled (see --stored-label)")
+    ap.add_argument("--stored-label", default="stored")
     ap.add_argument("--soc", default="runs/peers-soc")
     ap.add_argument("--sweep", nargs="*", default=[],
                     help="noise sweep output directories (runs/sweep-noise_peg ...): their paper, noise-aware and "
@@ -314,8 +357,13 @@ def main(argv=None) -> int:
     soc = soc_curves(Path(a.soc)) if Path(a.soc).exists() else {}
     for d in a.sweep:
         soc.update(sweep_curves(Path(d)))
-    rl = rl_curves(Path(a.rl)) if Path(a.rl).exists() else {}
+    rl = {}
+    for d in a.rl:
+        if Path(d).exists():
+            rl.update(rl_curves(Path(d)))
     table = rl_table(soc, rl)
+    if a.stored:
+        table += stored_rows(Path(a.stored), table, a.stored_label)
     (out / "rl.json").write_text(json.dumps(table, indent=1))
     parts.append("## sample efficiency\n\n" + _md(table))
     for task in METRIC:
