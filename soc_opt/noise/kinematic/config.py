@@ -15,7 +15,8 @@ class KinematicConfig(Config):
     """The structured estimator of ``estimator = "kinematic"`` (``docs/math.md §11``; ``docs/noise.md`` §11).
 
     It uses the robot's kinematics (MuJoCo forward kinematics and site Jacobians), not its
-    masses, inertia or damping; the acceleration map ``u = B a + D z + c + w`` is learned.
+    masses, inertia or damping (unless ``start_map = "rigid_body"``); the acceleration map
+    ``u = B a + D z + c + w`` is learned.
 
     relin:          Gauss-Newton passes of the iterated smoother (relinearising ``h`` at the
                     smoothed mean) after the first extended-Kalman pass.
@@ -104,6 +105,11 @@ class KinematicConfig(Config):
                     ``filter = "kinematic"`` and ``dynamics = "fit"`` only.
     w_floor:        with ``dynamics = "structured"`` or ``structured_prior > 0``: variance added to every diagonal entry of the
                     process noise in task coordinates (the transition's noise has rank ``nz`` there).
+    start_map:      the batch's own EM start's map: ``"zero"`` (``B = D = c = 0``: kinematics only) or
+                    ``"rigid_body"`` (the robot's contact-free rigid-body acceleration, MuJoCo's
+                    ``qacc_smooth``, linearised along the batch's mean measured trajectory; assumes
+                    the robot's masses, inertia, damping and gravity known, not its contacts;
+                    :mod:`soc_opt.noise.kinematic.rigid`).  The first iteration has only this start.
     learn_on:       the states the learner (prior, fit, cost expansion, EM phase) sees: ``"smoothed"``
                     (``h(E[z_k | s_0..s_T, a])``) or ``"filtered"`` (the estimates the new policy will
                     act on: this batch re-filtered with the batch's new filter, ``E[z_k | s_0..s_k]``
@@ -131,6 +137,7 @@ class KinematicConfig(Config):
     fit_moments: Literal["means", "posterior"] = "posterior"
     structured_prior: float = 0.0
     w_floor: float = 1e-6
+    start_map: Literal["zero", "rigid_body"] = "zero"
 
     # runs of the kinematic estimator recorded before these fields existed used fixed gains and the means fit
     _implied_when_absent = {"kinematic.gains": ("nominal", {"estimator": "kinematic"}),
@@ -157,6 +164,7 @@ class KinematicConfig(Config):
         "fit_moments": [Options(("means", "posterior"))],
         "w_floor": [Interval(0.0, None, "neither")],
         "structured_prior": [Interval(0.0)],
+        "start_map": [Options(("zero", "rigid_body"))],
     }
 
     def __post_init__(self):

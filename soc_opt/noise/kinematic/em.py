@@ -25,18 +25,25 @@ import numpy as np
 from ...parallel import fork_map
 from .config import KinematicConfig
 from .model import AccelMap, KinematicModel, transition
+from .rigid import rigid_body_map
 from .smoother import LinearGaussianZ, Smoothed, smooth
 
 __all__ = ["initial_map", "mstep", "EMResult", "fit", "fit_starts", "z_model", "loglik"]
 
 
-def initial_map(km: KinematicModel, s, rho2: float, floor: float) -> AccelMap:
-    """``B = D = c = 0`` and per-joint ``S = Var(d qd) / dt^2 - 2 rho2 / dt^2`` (floored) from the
-    second differences of the measured velocities (``docs/math.md §11.2``)."""
-    qd = km.z_of(s)[..., km.nq:]
+def initial_map(km: KinematicModel, s, rho2: float, floor: float, start_map: str = "zero") -> AccelMap:
+    """The batch's own EM start (``docs/math.md §11.2``): per-joint noise ``S = Var(d qd) / dt^2 - 2 rho2 / dt^2``
+    (floored) from the second differences of the measured velocities, and ``B = D = c = 0``
+    (``start_map = "zero"``) or the robot's contact-free rigid-body map linearised along the batch's
+    mean measured trajectory (``"rigid_body"``, :func:`~soc_opt.noise.kinematic.rigid.rigid_body_map`)."""
+    z = km.z_of(s)
+    qd = z[..., km.nq:]
     dqd = np.diff(qd, axis=-2).reshape(-1, km.nq)
     var = np.maximum(dqd.var(axis=0) / km.dt ** 2 - 2.0 * rho2 / km.dt ** 2, floor)
-    return AccelMap.zero(km.T, km.nq, km.m, np.broadcast_to(np.diag(var), (km.T, km.nq, km.nq)))
+    S = np.broadcast_to(np.diag(var), (km.T, km.nq, km.nq))
+    if start_map == "rigid_body":
+        return rigid_body_map(km, z[:, :km.T].mean(axis=0), S)
+    return AccelMap.zero(km.T, km.nq, km.m, S)
 
 
 def z_model(km: KinematicModel, accel: AccelMap, cfg: KinematicConfig) -> LinearGaussianZ:
@@ -112,7 +119,7 @@ def fit(km: KinematicModel, s, a, rho2: float, cfg: KinematicConfig, init: Accel
     """
     s, a = np.asarray(s, dtype=float), np.asarray(a, dtype=float)
     R = rho2 * np.eye(km.n)
-    accel = initial_map(km, s, rho2, cfg.s_floor) if init is None else init
+    accel = initial_map(km, s, rho2, cfg.s_floor, cfg.start_map) if init is None else init
     lg = z_model(km, accel, cfg)
     sm = smooth(km, lg, s, a, R)
     for _ in range(cfg.relin):

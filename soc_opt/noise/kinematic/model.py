@@ -21,6 +21,7 @@ The model uses the robot's kinematics (not its masses, inertia or damping).
 
 from __future__ import annotations
 
+import copy
 import threading
 from dataclasses import dataclass
 
@@ -170,6 +171,27 @@ class KinematicModel:
         if d is None:
             d = self._local.data = self.mj.MjData(self.model)
         return d
+
+    def free_accel(self, z, a) -> np.ndarray:
+        """``u (nq,)``: the mean acceleration ``(qd_{k+1} - qd_k) / dt`` of the latent joints over one
+        control step from ``z (nz,)`` under actions ``a (m,)``, simulated by MuJoCo with every
+        constraint (contacts, joint limits) disabled: the robot's own rigid-body dynamics (masses,
+        inertia, damping, gravity, the integrator), not its contacts.  Joints outside ``z`` start
+        at their initial angle with zero velocity (``docs/math.md §11.2``, the rigid-body start)."""
+        mj = self.mj
+        loc = self._local
+        if getattr(loc, "free", None) is None:
+            fm = copy.deepcopy(self.model)
+            fm.opt.disableflags |= int(mj.mjtDisableBit.mjDSBL_CONSTRAINT)
+            loc.free = (fm, mj.MjData(fm))
+        fm, d = loc.free
+        mj.mj_resetData(fm, d)
+        d.qpos[:] = self._qinit
+        d.qpos[self.qpos_adr] = z[:self.nq]
+        d.qvel[self.dof_adr] = z[self.nq:]
+        d.ctrl[np.asarray(self.task.actuator_ids, dtype=int)] = a
+        mj.mj_step(fm, d, int(self.task.substeps))
+        return (d.qvel[self.dof_adr] - z[self.nq:]) / self.dt
 
     def z_of(self, x) -> np.ndarray:
         """``z = (q, qd)`` read off task states ``x (..., n)``."""
