@@ -74,8 +74,8 @@ def closed_loop(model: AugmentedModel, policy: LinearGaussianPolicy) -> tuple[np
     """
     _check_pair(model, policy)
     Bs = model.Bs
-    Mk = model.As + np.einsum("tim,tmj->tij", Bs, policy.K)
-    mk = np.einsum("tim,tm->ti", Bs, policy.k) + model.co
+    Mk = model.As + Bs @ policy.K
+    mk = (Bs @ policy.k[:, :, None])[:, :, 0] + model.co
     Sk = symmetrize(model.So + Bs @ policy.cov @ np.swapaxes(Bs, 1, 2))
     return Mk, mk, Sk
 

@@ -221,13 +221,19 @@ def _prepare(params: Params, y, per_sequence: bool = False) -> _Prepared:
             pF = pQ = pH = pR = True
         Ht, Rt = H[:T], R[:T]
         G = C / Rt if p == 1 else right_cho_solve(C, chol(Rt, "emission covariance R"))  # C R^{-1}
-        F = F - G @ Ht
-        Q = symmetrize(Q - G @ _T(C))
+        F = F - _mm(G, Ht)
+        Q = symmetrize(Q - _mm(G, _T(C)))
         r = yt[:T] - d[:T]  # (T, M, p)
-        b = b + (r[..., None, :] @ _T(G))[..., 0, :] if G.ndim == 4 else b + r @ _T(G)
+        b = b + (_mm(r[..., None, :], _T(G)))[..., 0, :] if G.ndim == 4 else b + _mm(r, _T(G))
     if per:  # shared matrices get a unit sequence axis, so that stacks over time broadcast against per-sequence ones
         F, Q, H, R = (x if f else x[:, None] for x, f in ((F, pF), (Q, pQ), (H, pH), (R, pR)))
     return _Prepared(F, Q, H, R, b, d, yt, mu0, P0, (M,) if per else ())
+
+
+def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A @ B`` (batched); an outer product (inner size 1) by broadcasting, the same numbers without a
+    matrix-product call per matrix of the stack."""
+    return A * B if A.shape[-1] == 1 else A @ B
 
 
 def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -263,6 +269,8 @@ def _forward(params: Params, y, linearize: Callable | None) -> _Pass:
     Pp = np.empty((T + 1,) + batch + (n, n))
     Pf = np.empty((K,) + batch + (n, n))
     Pp[0] = pr.P0
+    info = _information(H, R, n, p, linearize is not None)
+    eye = np.eye(n)
     m, g = pr.mu0, None
     for k in range(K):
         P = Pp[k]
@@ -270,6 +278,23 @@ def _forward(params: Params, y, linearize: Callable | None) -> _Pass:
             if k:  # the previous step's update and prediction of the means, to linearise at
                 m = _mv(F[k - 1], m + _mv(g, yt[k - 1] - _mv(H[k - 1], m) - d[k - 1])) + b[k - 1]
             H[k], d[k] = linearize(k, m)
+            if info is not None:
+                info.Hw[k] = Hw = info.W[k] @ H[k]
+                info.G[k] = _T(Hw) @ Hw
+        if info is not None:  # P^f = (P^{-1} + H^T R^{-1} H)^{-1} = (I + P G)^{-1} P, in the n state dimensions
+            X = np.linalg.solve(eye + mm(P, info.G[k]), P)
+            X += X.swapaxes(-1, -2)
+            X *= 0.5
+            Pf[k] = X
+            if linearize is not None:
+                g = X @ _T(info.Hw[k]) @ info.W[k]
+            if k < T:
+                X = mm(mm(F[k], X), FT[k])
+                X += Q[k]
+                P = Pp[k + 1]
+                np.add(X, X.swapaxes(-1, -2), out=P)
+                P *= 0.5
+            continue
         PHt = mm(P, HT[k])
         S = mm(H[k], PHt)
         S += R[k]
@@ -293,27 +318,63 @@ def _forward(params: Params, y, linearize: Callable | None) -> _Pass:
             P = Pp[k + 1]
             np.add(X, X.swapaxes(-1, -2), out=P)
             P *= 0.5
-    pm, fm, loglik = _means(F, b, H, HT, R, d, yt, Pp, pr.mu0, batch)
+    pm, fm, loglik = _means(F, b, H, HT, R, d, yt, Pp, Pf, info, pr.mu0, batch)
     return _Pass(pm, Pp, fm, Pf, loglik, pr._replace(H=H, d=d))
 
 
-def _means(F, b, H, HT, R, d, yt, Pp, mu0, batch):
+class _Information(NamedTuple):
+    """The measurement in information form (when ``p > n``), whitened: ``W = L_R^{-1} (K, *, p, p)`` with
+    ``R = L_R L_R^T`` (Cholesky), ``Hw = W H (K, *B, p, n)``, ``G = Hw^T Hw = H^T R^{-1} H (K, *B, n, n)``."""
+
+    W: np.ndarray
+    Hw: np.ndarray
+    G: np.ndarray
+
+
+def _information(H, R, n: int, p: int, extended: bool) -> _Information | None:
+    """The update in the ``n`` state dimensions instead of the ``p`` observed ones when there are more
+    observations than states and ``R`` is positive definite; ``None`` otherwise (covariance form)."""
+    if p <= n:
+        return None
+    try:
+        LR = np.linalg.cholesky(R)
+    except np.linalg.LinAlgError:
+        return None
+    # the whitening transform itself (a triangular solve per R, shared by every sequence and column of H)
+    W = tri_solve(LR, np.broadcast_to(np.eye(p), LR.shape))
+    if extended:  # filled step by step as the emissions are linearised
+        return _Information(W, np.empty(H.shape), np.empty(H.shape[:-2] + (n, n)))
+    Hw = W @ H
+    return _Information(W, Hw, _T(Hw) @ Hw)
+
+
+def _means(F, b, H, HT, R, d, yt, Pp, Pf, info: _Information | None, mu0, batch):
     """Predicted and filtered means and ``log p(Y)`` given the covariances (module docstring, step 3)."""
     T, (K, M, p), n = F.shape[0], yt.shape, F.shape[-1]
     r = yt - d  # (K, M, p)
-    PHt = Pp[:K] @ HT  # (K, *B, n, p)
-    S = H @ PHt + R  # innovation covariances (K, *B, p, p)
-    if p == 1:
-        Kg = PHt / S
+
+    def mv(A, X):  # A_k X_k for stacks A (K, *B, i, j) and X (K, M, j)
+        return (A @ X[..., None])[..., 0] if batch else _mm(X, _T(A))
+
+    if info is not None:  # the gain K_k = P^f_k H_k^T R_k^{-1}, never formed (it is n x p)
+        def gain(X):
+            return mv(Pf, mv(_T(info.Hw), mv(info.W, X)))
+
+        Abar = F - F @ (Pf[:T] @ info.G[:T])  # F'_k (I - K_k H_k), (T, *B, n, n)
     else:
-        L = chol(symmetrize(S), "innovation covariance S")
-        Kg = right_cho_solve(PHt, L)  # (K, *B, n, p)
-    FK = F @ Kg[:T]  # F'_k K_k, (T, *B, n, p)
-    Abar = F - FK @ H[:T]  # F'_k (I - K_k H_k), (T, *B, n, n)
-    if batch:
-        u = b + (FK @ r[:T, :, :, None])[..., 0]
-    else:
-        u = b + r[:T] @ _T(FK)
+        PHt = Pp[:K] @ HT  # (K, *B, n, p)
+        S = H @ PHt + R  # innovation covariances (K, *B, p, p)
+        if p == 1:
+            Kg = PHt / S
+        else:
+            L = chol(symmetrize(S), "innovation covariance S")
+            Kg = right_cho_solve(PHt, L)  # (K, *B, n, p)
+
+        def gain(X):
+            return mv(Kg, X)
+
+        Abar = F - F @ _mm(Kg[:T], H[:T])
+    u = b + mv(F, gain(r)[:T])  # m_{k+1} = Abar_k m_k + u_k
     pm = np.empty((T + 1, M, n))
     pm[0] = x = mu0
     if batch:
@@ -324,22 +385,25 @@ def _means(F, b, H, HT, R, d, yt, Pp, mu0, batch):
         for k in range(T):
             pm[k + 1] = x = x.dot(AbarT[k]) + u[k]
     mK = pm[:K]
-    if batch:
-        v = r - (H @ mK[..., None])[..., 0]  # innovations (K, M, p)
-        fm = mK + (Kg @ v[..., None])[..., 0]
+    v = r - mv(H, mK)  # innovations (K, M, p)
+    if info is not None:
+        # log|S| = log|R| + log|I + G P| and v^T S^{-1} v = v^T R^{-1} v - g^T P^f g, g = H^T R^{-1} v (Woodbury)
+        w = mv(info.W, v)  # whitened innovations
+        g = mv(_T(info.Hw), w)
+        Pg = mv(Pf, g)
+        fm = mK + Pg
+        logdet = -2.0 * np.log(np.diagonal(info.W, axis1=-2, axis2=-1)).sum(-1) + \
+            np.linalg.slogdet(np.eye(n) + info.G @ Pp[:K])[1]
+        ll = (logdet if batch else logdet[:, None]) + (w * w).sum(-1) - (g * Pg).sum(-1)
     else:
-        v = r - mK @ _T(H)
-        fm = mK + v @ _T(Kg)
-    if p == 1:
-        s = S[..., 0, 0] if batch else S[:, None, 0, 0]  # (K, M) or (K, 1)
-        ll = np.log(s) + v[..., 0] ** 2 / s
-    else:
-        if batch:
-            w = np.linalg.solve(L, v[..., None])[..., 0]
+        fm = mK + gain(v)
+        if p == 1:
+            s = S[..., 0, 0] if batch else S[:, None, 0, 0]  # (K, M) or (K, 1)
+            ll = np.log(s) + v[..., 0] ** 2 / s
         else:
-            w = _T(np.linalg.solve(L, _T(v)))
-        logdet = 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(-1)
-        ll = (logdet if batch else logdet[:, None]) + (w * w).sum(-1)
+            w = (np.linalg.solve(L, v[..., None])[..., 0]) if batch else _T(np.linalg.solve(L, _T(v)))
+            logdet = 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(-1)
+            ll = (logdet if batch else logdet[:, None]) + (w * w).sum(-1)
     loglik = -0.5 * (K * p * _LOG_2PI + ll.sum(0))
     return pm, fm, np.broadcast_to(loglik, (M,)).copy()
 

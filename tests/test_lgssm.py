@@ -110,6 +110,8 @@ CASES = [
     dict(p=2, K="T+1", correlated=True, per_sequence=False),
     dict(p=2, K="T+1", correlated=False, per_sequence=True),
     dict(p=1, K="T", correlated=True, per_sequence=True),
+    dict(p=4, K="T+1", correlated=False, per_sequence=True),  # p > n: the update in information form
+    dict(p=4, K="T", correlated=True, per_sequence=False),
 ]
 
 
@@ -153,10 +155,11 @@ def test_filter_last_step_matches_smoother_and_prefix_conditioning():
         np.testing.assert_allclose(filt.filt_cov[k], cov[k], atol=1e-9)
 
 
-def test_extended_filter_with_the_model_linearisation_is_the_linear_filter():
+@pytest.mark.parametrize("p", [2, 4])
+def test_extended_filter_with_the_model_linearisation_is_the_linear_filter(p):
     rng = np.random.default_rng(5)
     M, T = 3, 4
-    params, y = _instance(rng, M=M, T=T, n=3, p=2, K=T + 1, correlated=False)
+    params, y = _instance(rng, M=M, T=T, n=3, p=p, K=T + 1, correlated=False)
     H, d = params.emissions.weights, params.emissions.bias
     seen = []
 
