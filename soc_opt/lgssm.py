@@ -271,7 +271,11 @@ def _forward(params: Params, y, linearize: Callable | None) -> _Pass:
     Pp[0] = pr.P0
     info = _information(H, R, n, p, linearize is not None)
     eye = np.eye(n)
+    rs = R[:, 0, 0].tolist() if p == 1 and not batch and info is None else None  # scalar observation noises
     m, g = pr.mu0, None
+    # The stacks are symmetrised once after the loop: inside it the covariances carry a rounding-level
+    # antisymmetric part, which the products below propagate (bounded by the growth of the covariances
+    # themselves) but never feed back into their symmetric part beyond rounding.
     for k in range(K):
         P = Pp[k]
         if linearize is not None:
@@ -283,41 +287,32 @@ def _forward(params: Params, y, linearize: Callable | None) -> _Pass:
                 info.G[k] = _T(Hw) @ Hw
         if info is not None:  # P^f = (P^{-1} + H^T R^{-1} H)^{-1} = (I + P G)^{-1} P, in the n state dimensions
             X = np.linalg.solve(eye + mm(P, info.G[k]), P)
-            X += X.swapaxes(-1, -2)
-            X *= 0.5
-            Pf[k] = X
             if linearize is not None:
                 g = X @ _T(info.Hw[k]) @ info.W[k]
-            if k < T:
-                X = mm(mm(F[k], X), FT[k])
-                X += Q[k]
-                P = Pp[k + 1]
-                np.add(X, X.swapaxes(-1, -2), out=P)
-                P *= 0.5
-            continue
-        PHt = mm(P, HT[k])
-        S = mm(H[k], PHt)
-        S += R[k]
-        if linearize is not None:
-            g = right_cho_solve(PHt, chol(S, f"innovation covariance S[{k}]"))
-        if p == 1:  # P - a a^T / s, a = P H^T, is symmetric as computed
-            X = P - mm(PHt, PHt.swapaxes(-1, -2)) / (S if batch else S[0, 0])
+        elif rs is not None:  # shared covariances, scalar observation: P - a a^T / s, a = P H^T
+            PHt = mm(P, HT[k])
+            X = P - mm(PHt, PHt.T) / (mm(H[k], PHt)[0, 0] + rs[k])
         else:
-            try:
-                L = np.linalg.cholesky(S)
-            except np.linalg.LinAlgError:
-                raise NotPositiveDefiniteError(f"lgssm: innovation covariance S[{k}] is not positive definite") from None
-            W = tri_solve(L, PHt.swapaxes(-1, -2))  # L^{-1} H P
-            X = P - mm(W.swapaxes(-1, -2), W)
-            X += X.swapaxes(-1, -2)
-            X *= 0.5
+            PHt = mm(P, HT[k])
+            S = mm(H[k], PHt)
+            S += R[k]
+            if linearize is not None:
+                g = right_cho_solve(PHt, chol(S, f"innovation covariance S[{k}]"))
+            if p == 1:
+                X = P - mm(PHt, PHt.swapaxes(-1, -2)) / S
+            else:
+                try:
+                    L = np.linalg.cholesky(S)
+                except np.linalg.LinAlgError:
+                    raise NotPositiveDefiniteError(f"lgssm: innovation covariance S[{k}] is not positive definite") from None
+                W = tri_solve(L, PHt.swapaxes(-1, -2))  # L^{-1} H P
+                X = P - mm(W.swapaxes(-1, -2), W)
         Pf[k] = X
         if k < T:
             X = mm(mm(F[k], X), FT[k])
             X += Q[k]
-            P = Pp[k + 1]
-            np.add(X, X.swapaxes(-1, -2), out=P)
-            P *= 0.5
+            Pp[k + 1] = X
+    Pp, Pf = symmetrize(Pp), symmetrize(Pf)
     pm, fm, loglik = _means(F, b, H, HT, R, d, yt, Pp, Pf, info, pr.mu0, batch)
     return _Pass(pm, Pp, fm, Pf, loglik, pr._replace(H=H, d=d))
 
@@ -456,7 +451,7 @@ def rts_smoother(params: Params, y, linearize: Callable | None = None) -> Poster
     JT = np.linalg.solve(Pp[1:], F @ Pfk)
     J = _T(JT)
     IJF = eye - J @ F
-    Cst = symmetrize(IJF @ Pfk @ _T(IJF) + J @ Q @ JT)  # the P^s-independent part of P^s_k
+    Cst = IJF @ Pfk @ _T(IJF) + J @ Q @ JT  # the P^s-independent part of P^s_k (symmetrised with P^s below)
     batch = fp.prep.batch
     cov = np.empty((T + 1,) + batch + (n, n))
     mean = np.empty((T + 1, M, n))
