@@ -211,7 +211,7 @@ def _prepare(params: Params, y, per_sequence: bool = False) -> _Prepared:
     d = np.broadcast_to(d if d.ndim == 3 else d[:, None], (K, M, p))
     mu0 = np.broadcast_to(mu0, (M, n))
     yt = np.swapaxes(y, 0, 1)
-    if params.cross is not None:
+    if params.cross is not None and np.any(params.cross):  # (an all-zero C is independent noise: nothing to remove)
         C, pC = _time_major("cross", params.cross, 3, M, (T,))
         if C.shape[-2:] != (n, p):
             raise ShapeError(f"lgssm: cross must end in ({n}, {p}), got {C.shape}")
