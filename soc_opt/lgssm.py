@@ -264,7 +264,7 @@ def _forward(params: Params, y, linearize: Callable | None) -> _Pass:
     if linearize is not None:
         H, d = np.empty((K, M, p, n)), np.empty((K, M, p))
     FT, HT = _T(F), _T(H)
-    # 2-D products by ndarray.dot: a third of matmul's call overhead at these sizes (shared covariances)
+    # 2-D products by ndarray.dot (shared covariances): a third of matmul's call overhead at these sizes
     mm = np.matmul if batch else np.ndarray.dot
     Pp = np.empty((T + 1,) + batch + (n, n))
     Pf = np.empty((K,) + batch + (n, n))
@@ -290,8 +290,8 @@ def _forward(params: Params, y, linearize: Callable | None) -> _Pass:
             if linearize is not None:
                 g = X @ _T(info.Hw[k]) @ info.W[k]
         elif rs is not None:  # shared covariances, scalar observation: P - a a^T / s, a = P H^T
-            PHt = mm(P, HT[k])
-            X = P - mm(PHt, PHt.T) / (mm(H[k], PHt)[0, 0] + rs[k])
+            PHt = P.dot(HT[k])
+            X = P - PHt.dot(PHt.T) / (H[k].dot(PHt)[0, 0] + rs[k])
         else:
             PHt = mm(P, HT[k])
             S = mm(H[k], PHt)
@@ -309,7 +309,7 @@ def _forward(params: Params, y, linearize: Callable | None) -> _Pass:
                 X = P - mm(W.swapaxes(-1, -2), W)
         Pf[k] = X
         if k < T:
-            X = mm(mm(F[k], X), FT[k])
+            X = mm(mm(F[k], X), FT[k]) if batch else F[k].dot(X).dot(FT[k])
             X += Q[k]
             Pp[k + 1] = X
     Pp, Pf = symmetrize(Pp), symmetrize(Pf)
@@ -460,12 +460,16 @@ def rts_smoother(params: Params, y, linearize: Callable | None = None) -> Poster
     else:
         cov[T], mean[T] = Pp[T], pm[T]
     off = fm[:T] - ((J @ pm[1:, :, :, None])[..., 0] if batch else pm[1:] @ JT)  # zs_k = J_k zs_{k+1} + off_k
-    mm = np.matmul if batch else np.ndarray.dot  # as in _forward
     X, x = cov[T], mean[T]
-    for k in range(T - 1, -1, -1):
-        # linear in P^s: symmetrising the stack once at the end equals symmetrising every step
-        cov[k] = X = mm(mm(J[k], X), JT[k]) + Cst[k]
-        mean[k] = x = ((J[k] @ x[:, :, None])[:, :, 0] if batch else x.dot(JT[k])) + off[k]
+    # linear in P^s: symmetrising the stack once at the end equals symmetrising every step
+    if batch:
+        for k in range(T - 1, -1, -1):
+            cov[k] = X = J[k] @ X @ JT[k] + Cst[k]
+            mean[k] = x = (J[k] @ x[:, :, None])[:, :, 0] + off[k]
+    else:  # 2-D products by ndarray.dot, as in _forward
+        for k in range(T - 1, -1, -1):
+            cov[k] = X = J[k].dot(X).dot(JT[k]) + Cst[k]
+            mean[k] = x = x.dot(JT[k]) + off[k]
     cov = symmetrize(cov)
     cross = cov[1:] @ JT
     if batch:
