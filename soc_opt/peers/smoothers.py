@@ -24,7 +24,9 @@ handicap added here.  The like-for-like row is therefore also timed: soc_opt's c
 covariances made per sequence (:func:`run_soc_opt_per_sequence`, an initial covariance with a
 sequence axis, as when every sequence has its own model), which does dynamax's work.  pykalman has
 no batch axis: one ``smooth`` call per sequence.  The calls are timed interleaved (soc_opt, soc_opt
-per sequence, dynamax, in turn), so that a change of the machine's load hits all of them.
+per sequence, dynamax, in turn, the order rotated from one round to the next), so that a change of the
+machine's load hits all of them and none always runs right after another (a cold cache after dynamax's
+call cost the next numpy call up to 0.5 ms at ``n = 6``).
 
 Public functions:
     random_uncorrelated(rng, n, m, T)              -> (model, policy, mu0, P0)
@@ -251,9 +253,10 @@ def compare(rng: np.random.Generator, n: int, T: int = 100, M: int = 20, m: int 
     for f in calls.values():  # warm up
         f()
     runs: dict[str, list] = {k: [] for k in calls}
-    for _ in range(repeats):
-        for k, f in calls.items():
-            runs[k].append(f())
+    names = list(calls)
+    for r in range(repeats):  # in turn, the order rotated: no call always runs right after another one
+        for k in names[r % len(names):] + names[: r % len(names)]:
+            runs[k].append(calls[k]())
     sec = {k: float(np.median([r.seconds for r in v])) for k, v in runs.items()}
     ref, so_s = runs["soc_opt"][-1], sec["soc_opt"]
     d = _diff(ref, runs["per_seq"][-1])
