@@ -161,7 +161,7 @@ def kalman_filter(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P
     1. Update with ``y_k`` (scalar): ``v_k = y_k - My_k m_k - my_k``,
        ``s_k^v = My_k P_k My_k^T + S_yy``, gain ``g_k = P_k My_k^T / s_k^v``;
        ``m_k^f = m_k + g_k v_k``,
-       ``P_k^f = (I - g_k My_k) P_k (I - g_k My_k)^T + S_yy g_k g_k^T`` (Joseph form);
+       ``P_k^f = P_k - s_k^v g_k g_k^T``;
        ``log p(y_k | y_0..y_{k-1}) = -1/2 (log 2 pi + log s_k^v + v_k^2 / s_k^v)``.
     2. Predict ``s_{k+1}``.  The noise of ``s_{k+1}`` is correlated with the noise of
        ``y_k``, so it is split as ``e_s = G_k e_y + e'_k`` with ``G_k = S_sy / S_yy`` and
@@ -173,6 +173,8 @@ def kalman_filter(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P
 
     Every covariance is symmetrised.  ``y`` is ``(T,)`` or ``(M, T)`` (means and ``loglik``
     vectorised over ``M``; the covariances do not depend on ``y`` and are computed once).
+    The recursions are those of the Gaussian core, :func:`soc_opt.lgssm.kalman_filter`, on
+    :func:`params` (the closed loop with its cross-covariance ``S_sy``).
     """
     Y, batched, mu0, P0 = _validate(model, policy, y, mu0, P0)
     fp = lgssm.kalman_filter(params(model, policy, mu0, P0), Y[:, :, None])
@@ -200,7 +202,7 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
     Runs :func:`kalman_filter` and then, backwards from ``s_hat_T = m_T``, ``P^s_T = P_T``
     (the last prediction already conditions on all of ``Y``), for ``k = T-1..0``:
 
-        J_k = P_k^f F_k^T P_{k+1}^{-1}                (Cholesky solve with P_{k+1})
+        J_k = P_k^f F_k^T P_{k+1}^{-1}                (a solve with P_{k+1}, not an inverse)
         s_hat_k = m_k^f + J_k (s_hat_{k+1} - m_{k+1})
         P^s_k = (I - J_k F_k) P_k^f (I - J_k F_k)^T + J_k (Q_k + P^s_{k+1}) J_k^T
         Cov(s_{k+1}, s_k | Y) = P^s_{k+1} J_k^T
@@ -210,6 +212,7 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
     ``s_{k+1} = F_k s_k + b_k + e'_k`` with ``e'_k`` independent of ``s_k, y_0..y_k``).
     The covariance update is the Joseph-like form of ``P^f - J P_{k+1} J^T + J P^s J^T``:
     a sum of positive semidefinite terms, so it stays positive definite over long horizons.
+    The smoother is the Gaussian core's, :func:`soc_opt.lgssm.rts_smoother`, on :func:`params`.
 
     Args:
         model: the augmented model :class:`~soc_opt.models.AugmentedModel` of

@@ -26,12 +26,17 @@ Algorithm (all steps batched over the sequences and, outside the two recursions,
    independent of ``v_k`` (and of ``z_k``, ``y_0..y_k``).
 2. Covariance recursion (data independent): ``S_k = H_k P_k H_k^T + R_k``,
    ``K_k = P_k H_k^T S_k^{-1}`` (Cholesky solve), filtered ``P^f_k = P_k - K_k S_k K_k^T``,
-   predicted ``P_{k+1} = F'_k P^f_k F'^T_k + Q'_k`` (both symmetrised).
+   predicted ``P_{k+1} = F'_k P^f_k F'^T_k + Q'_k`` (the stacks symmetrised once after the
+   recursion).  With more observations than states (``p > n``) and ``R_k`` positive definite, the
+   update is taken in information form, ``P^f_k = (I + P_k G_k)^{-1} P_k`` with
+   ``G_k = H_k^T R_k^{-1} H_k`` (``R_k`` whitened once), and ``log|S_k|``, ``v^T S_k^{-1} v`` follow from
+   the determinant lemma and Woodbury's identity: ``n x n`` work instead of ``p x p``.
 3. Means: the predicted means follow the affine recursion ``m_{k+1} = F'_k (I - K_k H_k) m_k
    + F'_k K_k (y_k - d_k) + b'_k`` (one matrix product per step for all sequences); filtered means,
    innovations ``v_k = y_k - H_k m_k - d_k`` and ``log p(Y) = -1/2 sum_k (p log 2 pi + log|S_k|
    + v_k^T S_k^{-1} v_k)`` are then computed for all steps at once.
-4. RTS smoother: ``J_k = P^f_k F'^T_k P_{k+1}^{-1}`` (Cholesky solve, all steps at once) and, from
+4. RTS smoother: ``J_k = P^f_k F'^T_k P_{k+1}^{-1}`` (one batched solve for all steps, ``P_{k+1}``
+   checked positive definite by its Cholesky factorisation) and, from
    the last state back, ``P^s_k = (I - J_k F'_k) P^f_k (I - J_k F'_k)^T + J_k (Q'_k + P^s_{k+1}) J_k^T``
    (the Joseph-like form of ``P^f_k + J_k (P^s_{k+1} - P_{k+1}) J_k^T``, a sum of PSD terms),
    ``zs_k = m^f_k + J_k (zs_{k+1} - m_{k+1})``, ``Cov(z_{k+1}, z_k | Y) = P^s_{k+1} J_k^T``.
