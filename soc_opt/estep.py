@@ -25,12 +25,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
+from . import lgssm
 from .models import (
     AugmentedModel,
     LinearGaussianPolicy,
-    NotPositiveDefiniteError,
     ShapeError,
     Smoothed,
     check_array,
@@ -45,11 +44,9 @@ __all__ = [
     "kalman_filter",
     "log_likelihood",
     "moments",
+    "params",
     "smooth",
 ]
-
-_LOG_2PI = float(np.log(2.0 * np.pi))
-
 
 # --------------------------------------------------------------------------- closed loop
 
@@ -77,9 +74,9 @@ def closed_loop(model: AugmentedModel, policy: LinearGaussianPolicy) -> tuple[np
     """
     _check_pair(model, policy)
     Bs = model.Bs
-    Mk = model.As + np.einsum("tim,tmj->tij", Bs, policy.K)
-    mk = np.einsum("tim,tm->ti", Bs, policy.k) + model.co
-    Sk = symmetrize(model.So + np.einsum("tia,tab,tjb->tij", Bs, policy.cov, Bs))
+    Mk = model.As + Bs @ policy.K
+    mk = (Bs @ policy.k[:, :, None])[:, :, 0] + model.co
+    Sk = symmetrize(model.So + Bs @ policy.cov @ np.swapaxes(Bs, 1, 2))
     return Mk, mk, Sk
 
 
@@ -131,74 +128,16 @@ class Filtered:
     loglik: float | np.ndarray
 
 
-@dataclass(frozen=True)
-class _FilterPass:
-    """Everything the smoother needs from the forward pass (always batched means)."""
+def params(model: AugmentedModel, policy: LinearGaussianPolicy, mu0, P0) -> lgssm.Params:
+    """The closed loop (:func:`closed_loop`) as the Gaussian core's model (:mod:`soc_opt.lgssm`).
 
-    pred_mean: np.ndarray  # (M, T+1, n)
-    pred_cov: np.ndarray  # (T+1, n, n)
-    filt_mean: np.ndarray  # (M, T, n)
-    filt_cov: np.ndarray  # (T, n, n)
-    F: np.ndarray  # (T, n, n)  decorrelated transition
-    Q: np.ndarray  # (T, n, n)  decorrelated process noise
-    loglik: np.ndarray  # (M,)
-
-
-def _decorrelate(Mk: np.ndarray, mk: np.ndarray, Sk: np.ndarray, n: int):
-    """Split the closed loop into state rows / observation row and decorrelate the noises.
-
-    With ``e = (e_s, e_y) ~ N(0, S_k)``, write ``e_s = G_k e_y + e'_k`` where
-    ``G_k = S_sy / S_yy`` and ``e'_k ~ N(0, Q_k)``, ``Q_k = S_ss - S_sy S_yy^{-1} S_ys``,
-    independent of ``e_y``.  Substituting ``e_y = y_k - My_k s_k - my_k`` gives
-    ``s_{k+1} = F_k s_k + b0_k + G_k y_k + e'_k`` with
-    ``F_k = Ms_k - G_k My_k`` and ``b0_k = ms_k - G_k my_k``.
+    State rows ``s_{k+1} = Ms_k s_k + ms_k + e_s``, observation row ``y_k = My_k s_k + my_k + e_y``,
+    ``Cov(e_s, e_y) = S_sy`` (correlated noise), ``z_0 ~ N(mu0, P0)``; ``s_T`` is not observed.
     """
-    Ms, My = Mk[:, :n, :], Mk[:, n, :]
-    ms, my = mk[:, :n], mk[:, n]
-    Sss, Ssy, Syy = Sk[:, :n, :n], Sk[:, :n, n], Sk[:, n, n]
-    G = Ssy / Syy[:, None]  # (T, n)
-    F = Ms - G[:, :, None] * My[:, None, :]  # (T, n, n)
-    b0 = ms - G * my[:, None]  # (T, n)
-    Q = symmetrize(Sss - Ssy[:, :, None] * G[:, None, :])  # (T, n, n), Schur complement of S_yy
-    return My, my, Syy, G, F, b0, Q
-
-
-def _forward(Mk, mk, Sk, Y, mu0, P0) -> _FilterPass:
-    """Forward (filter) pass on the closed loop, vectorised over the ``M`` sequences of ``Y``."""
-    M, T = Y.shape
-    n = mu0.shape[0]
-    My, my, Syy, G, F, b0, Q = _decorrelate(Mk, mk, Sk, n)
-    eye = np.eye(n)
-
-    pred_mean = np.empty((M, T + 1, n))
-    pred_cov = np.empty((T + 1, n, n))
-    filt_mean = np.empty((M, T, n))
-    filt_cov = np.empty((T, n, n))
-    loglik = np.zeros(M)
-
-    m = np.broadcast_to(mu0, (M, n)).copy()
-    P = P0
-    for k in range(T):
-        pred_mean[:, k] = m
-        pred_cov[k] = P
-        h = My[k]
-        Ph = P @ h
-        s_v = float(h @ Ph + Syy[k])  # innovation variance (scalar observation), >= S_yy > 0
-        g = Ph / s_v  # Kalman gain
-        # measurement update (Joseph form)
-        v = Y[:, k] - m @ h - my[k]  # innovations (M,)
-        loglik -= 0.5 * (_LOG_2PI + np.log(s_v) + v * v / s_v)
-        m = m + v[:, None] * g
-        IKH = eye - np.outer(g, h)
-        P = symmetrize(IKH @ P @ IKH.T + Syy[k] * np.outer(g, g))
-        filt_mean[:, k] = m
-        filt_cov[k] = P
-        # time update with the decorrelated transition
-        m = m @ F[k].T + b0[k] + Y[:, k, None] * G[k]
-        P = symmetrize(F[k] @ P @ F[k].T + Q[k])
-    pred_mean[:, T] = m
-    pred_cov[T] = P
-    return _FilterPass(pred_mean, pred_cov, filt_mean, filt_cov, F, Q, loglik)
+    n = model.n
+    Mk, mk, Sk = closed_loop(model, policy)
+    return lgssm.Params(lgssm.Initial(mu0, P0), lgssm.Dynamics(Mk[:, :n], mk[:, :n], Sk[:, :n, :n]),
+                        lgssm.Emissions(Mk[:, n:], mk[:, n:], Sk[:, n:, n:]), Sk[:, :n, n:])
 
 
 def _unbatch(x: np.ndarray, batched: bool, M: int, shared: bool = False) -> np.ndarray:
@@ -222,7 +161,7 @@ def kalman_filter(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P
     1. Update with ``y_k`` (scalar): ``v_k = y_k - My_k m_k - my_k``,
        ``s_k^v = My_k P_k My_k^T + S_yy``, gain ``g_k = P_k My_k^T / s_k^v``;
        ``m_k^f = m_k + g_k v_k``,
-       ``P_k^f = (I - g_k My_k) P_k (I - g_k My_k)^T + S_yy g_k g_k^T`` (Joseph form);
+       ``P_k^f = P_k - s_k^v g_k g_k^T``;
        ``log p(y_k | y_0..y_{k-1}) = -1/2 (log 2 pi + log s_k^v + v_k^2 / s_k^v)``.
     2. Predict ``s_{k+1}``.  The noise of ``s_{k+1}`` is correlated with the noise of
        ``y_k``, so it is split as ``e_s = G_k e_y + e'_k`` with ``G_k = S_sy / S_yy`` and
@@ -234,9 +173,11 @@ def kalman_filter(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P
 
     Every covariance is symmetrised.  ``y`` is ``(T,)`` or ``(M, T)`` (means and ``loglik``
     vectorised over ``M``; the covariances do not depend on ``y`` and are computed once).
+    The recursions are those of the Gaussian core, :func:`soc_opt.lgssm.kalman_filter`, on
+    :func:`params` (the closed loop with its cross-covariance ``S_sy``).
     """
     Y, batched, mu0, P0 = _validate(model, policy, y, mu0, P0)
-    fp = _forward(*closed_loop(model, policy), Y, mu0, P0)
+    fp = lgssm.kalman_filter(params(model, policy, mu0, P0), Y[:, :, None])
     M = Y.shape[0]
     return Filtered(
         pred_mean=_unbatch(fp.pred_mean, batched, M),
@@ -261,7 +202,7 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
     Runs :func:`kalman_filter` and then, backwards from ``s_hat_T = m_T``, ``P^s_T = P_T``
     (the last prediction already conditions on all of ``Y``), for ``k = T-1..0``:
 
-        J_k = P_k^f F_k^T P_{k+1}^{-1}                (Cholesky solve with P_{k+1})
+        J_k = P_k^f F_k^T P_{k+1}^{-1}                (a solve with P_{k+1}, not an inverse)
         s_hat_k = m_k^f + J_k (s_hat_{k+1} - m_{k+1})
         P^s_k = (I - J_k F_k) P_k^f (I - J_k F_k)^T + J_k (Q_k + P^s_{k+1}) J_k^T
         Cov(s_{k+1}, s_k | Y) = P^s_{k+1} J_k^T
@@ -271,6 +212,7 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
     ``s_{k+1} = F_k s_k + b_k + e'_k`` with ``e'_k`` independent of ``s_k, y_0..y_k``).
     The covariance update is the Joseph-like form of ``P^f - J P_{k+1} J^T + J P^s J^T``:
     a sum of positive semidefinite terms, so it stays positive definite over long horizons.
+    The smoother is the Gaussian core's, :func:`soc_opt.lgssm.rts_smoother`, on :func:`params`.
 
     Args:
         model: the augmented model :class:`~soc_opt.models.AugmentedModel` of
@@ -289,35 +231,14 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
     positive definite.
     """
     Y, batched, mu0, P0 = _validate(model, policy, y, mu0, P0)
-    fp = _forward(*closed_loop(model, policy), Y, mu0, P0)
-    M, T = Y.shape
-    n = mu0.shape[0]
-    eye = np.eye(n)
-
-    mean = np.empty((M, T + 1, n))
-    cov = np.empty((T + 1, n, n))
-    cross = np.empty((T, n, n))
-    mean[:, T] = fp.pred_mean[:, T]
-    cov[T] = fp.pred_cov[T]
-    for k in range(T - 1, -1, -1):
-        Pf, F = fp.filt_cov[k], fp.F[k]
-        try:
-            c = cho_factor(fp.pred_cov[k + 1], lower=True, check_finite=False)
-        except LinAlgError as exc:
-            raise NotPositiveDefiniteError(
-                f"predicted covariance P[{k + 1}] (Cov(s_{k + 1} | y_0..y_{k})) is not positive definite"
-            ) from exc
-        J = cho_solve(c, F @ Pf, check_finite=False).T  # P_{k+1}^{-1} F P^f = J^T
-        mean[:, k] = fp.filt_mean[:, k] + (mean[:, k + 1] - fp.pred_mean[:, k + 1]) @ J.T
-        IJF = eye - J @ F
-        cov[k] = symmetrize(IJF @ Pf @ IJF.T + J @ (fp.Q[k] + cov[k + 1]) @ J.T)
-        cross[k] = cov[k + 1] @ J.T
-
+    post = lgssm.rts_smoother(params(model, policy, mu0, P0), Y[:, :, None])
+    M = Y.shape[0]
+    mean, cov, cross = post.mean, post.cov, post.cross
     return Smoothed(
         mean=_unbatch(mean, batched, M),
         cov=_unbatch(cov, batched, M, shared=True),
         cross=_unbatch(cross, batched, M, shared=True),
-        loglik=fp.loglik if batched else float(fp.loglik[0]),
+        loglik=post.loglik if batched else float(post.loglik[0]),
     )
 
 

@@ -10,7 +10,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.parametrize("name", ["lqg", "mstep", "estep", "learning", "ilqg", "tasks", "experiments",
+@pytest.mark.parametrize("name", ["lqg", "mstep", "estep", "lgssm", "learning", "tasks", "experiments",
                                   "methods", "noise", "sweeps"])
 def test_submodules_are_attributes_of_a_freshly_imported_package(name):
     """``import soc_opt; soc_opt.<name>`` works without importing the submodule first."""

@@ -12,8 +12,8 @@ Model: ``x_{k+1} = A_k x_k + B_k a_k + c_k + w_k``, ``s_k = x_k + eps_k``, ``eps
   NIW posterior of docs/math.md §2 takes), returning the moments of the true tuple
   ``(x_k, a_k, x_{k+1}[, y_k])``, so that the usual conditioning gives the corrected model.
 * **SSM-EM** (:func:`ssm_em`): maximum likelihood of the linear-Gaussian state-space model with
-  latent ``x`` and known ``R`` by EM; E-step :func:`smooth_states` (Kalman filter of
-  :mod:`soc_opt.noise.estimator` + RTS smoother), M-step closed-form per step.
+  latent ``x`` and known ``R`` by EM; E-step :func:`smooth_states` (the RTS smoother of the Gaussian
+  core :mod:`soc_opt.lgssm`), M-step closed-form per step.
 
 Public functions:
     noise_action_cov(R, K, G=None)            -> X (T, n, m)
@@ -34,6 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .. import lgssm
 from ..config import Config, Interval
 from ..linalg import T as _T
 from ..linalg import cho_solve, chol, right_cho_solve, tri_solve
@@ -273,36 +274,27 @@ def corrected_fit(s, a, R, X, config: NoiseFitConfig = NoiseFitConfig()) -> Line
 def smooth_states(kf, s, a) -> Smoothed:
     """RTS smoother of the latent ``x`` given ``s (M, T+1, n)`` and known actions ``a (M, T, m)``.
 
-    Forward pass: :func:`soc_opt.noise.estimator.filter_pass`.  Backward, ``k = T-1..0``:
-    ``J_k = P_k A_k^T (P^-_{k+1})^{-1}``, ``xs_k = xhat_k + J_k (xs_{k+1} - xhat^-_{k+1})``,
-    ``Ps_k = (I - J_k A_k) P_k (I - J_k A_k)^T + J_k (W_k + Ps_{k+1}) J_k^T``,
-    ``Cov(x_{k+1}, x_k | s) = Ps_{k+1} J_k^T``.  Returns :class:`~soc_opt.models.Smoothed` with a
-    leading ``M`` axis; ``cov`` and ``cross`` are read-only broadcast views (shared by all sequences)
-    and ``loglik`` is ``log p(s | a)`` per sequence.
+    The Gaussian core (:func:`soc_opt.lgssm.rts_smoother`) on the filter's model: dynamics
+    ``(A_k, B_k a_k + c_k, W_k)``, emissions ``s_k = x_k + eps_k``, ``eps_k ~ N(0, R)``, prior
+    ``(mu0, P0)``.  Returns :class:`~soc_opt.models.Smoothed` with a leading ``M`` axis; ``cov`` and
+    ``cross`` are read-only broadcast views (shared by all sequences) and ``loglik`` is
+    ``log p(s | a)`` per sequence.
     """
-    fp = filter_pass(kf, s, a)
-    mean_f = fp.mean if fp.mean.ndim == 3 else fp.mean[None]
-    pred = fp.pred_mean if fp.pred_mean.ndim == 3 else fp.pred_mean[None]
-    M, T1, n = mean_f.shape
-    T = T1 - 1
-    eye = np.eye(n)
-    xs = np.empty_like(mean_f)
-    Ps = np.empty((T + 1, n, n))
-    cross = np.empty((T, n, n))
-    xs[:, T] = mean_f[:, T]
-    Ps[T] = kf.P[T]
-    for k in range(T - 1, -1, -1):
-        L = chol(kf.P_pred[k + 1], f"predicted covariance P^-[{k + 1}]")
-        J = right_cho_solve(kf.P[k] @ kf.A[k].T, L)
-        xs[:, k] = mean_f[:, k] + (xs[:, k + 1] - pred[:, k + 1]) @ J.T
-        IJA = eye - J @ kf.A[k]
-        Ps[k] = symmetrize(IJA @ kf.P[k] @ IJA.T + J @ (kf.W[k] + Ps[k + 1]) @ J.T)
-        cross[k] = Ps[k + 1] @ J.T
+    s = np.asarray(s, dtype=float)
+    s3, a3 = (s, np.asarray(a, dtype=float)) if s.ndim == 3 else (s[None], np.asarray(a, dtype=float)[None])
+    T, n = kf.T, kf.n
+    s3 = check_array("measurements s", s3, (s3.shape[0], T + 1, n))
+    a3 = check_array("actions a", a3, (s3.shape[0], T, kf.m))
+    eye = np.broadcast_to(np.eye(n), (T + 1, n, n))
+    params = lgssm.Params(lgssm.Initial(kf.mu0, kf.P0), lgssm.Dynamics(kf.A, np.einsum("mtj,tij->mti", a3, kf.B) + kf.c, kf.W),
+                          lgssm.Emissions(eye, np.zeros((T + 1, n)), np.broadcast_to(kf.R, (T + 1, n, n))))
+    post = lgssm.rts_smoother(params, s3)
+    M = s3.shape[0]
     return Smoothed(
-        mean=xs,
-        cov=np.broadcast_to(Ps, (M,) + Ps.shape),
-        cross=np.broadcast_to(cross, (M,) + cross.shape),
-        loglik=np.atleast_1d(fp.loglik),
+        mean=post.mean,
+        cov=np.broadcast_to(post.cov, (M,) + post.cov.shape),
+        cross=np.broadcast_to(post.cross, (M,) + post.cross.shape),
+        loglik=post.loglik,
     )
 
 

@@ -15,7 +15,7 @@ __all__ = ["run", "SIZES"]
 SIZES = (6, 14, 26)
 
 
-def run(sizes=SIZES, T: int = 100, M: int = 20, seed: int = 0, repeats: int = 3) -> list[dict]:
+def run(sizes=SIZES, T: int = 100, M: int = 20, seed: int = 0, repeats: int = 15) -> list[dict]:
     from ...peers import smoothers
 
     rng = np.random.default_rng(seed)

@@ -12,21 +12,19 @@ Given measurements ``s (M, T+1, n)`` and actions ``a (M, T, m)``, the transition
   Gauss-Newton pass of the iterated smoother; call again with the new mean to iterate).
 
 ``R = 0`` (``rho^2 = 0``) is exact: ``z`` is read off the measurements with zero covariance.
+The filter and the RTS pass are those of the Gaussian core (:func:`soc_opt.lgssm.rts_smoother`).
 """
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
 
+from ... import lgssm
 from ...models import ShapeError
 
 __all__ = ["Smoothed", "smooth", "LinearGaussianZ"]
-
-_LOG_2PI = math.log(2.0 * math.pi)
-
 
 class LinearGaussianZ(NamedTuple):
     """The transition in ``z``: ``A (T, nz, nz)``, ``Bz (T, nz, m)``, ``cz (T, nz)``, ``Q (T, nz, nz)``;
@@ -60,10 +58,6 @@ class Smoothed(NamedTuple):
     lin: tuple
 
 
-def _sym(P):
-    return 0.5 * (P + np.swapaxes(P, -1, -2))
-
-
 def _exact(km, s) -> Smoothed:
     z = km.z_of(s)
     M, T1, nz = z.shape
@@ -93,44 +87,19 @@ def smooth(km, lg: LinearGaussianZ, s, a, R, z_lin=None, lin=None) -> Smoothed:
     r2 = float(R[0, 0])
     if not np.allclose(R, r2 * np.eye(n)):
         raise ValueError("the kinematic smoother needs R = rho2 I")
-    mf = np.empty((M, T1, nz))
-    Pf = np.empty((M, T1, nz, nz))
-    mp = np.empty((M, T1, nz))
-    Pp = np.empty((M, T1, nz, nz))
-    Lp = np.empty((M, T1, nz, nz))                                # inverse predicted covariances
     zl = np.empty((M, T1, nz))
-    ll = np.full(M, -0.5 * T1 * n * (_LOG_2PI + math.log(r2)))
-    mu, P = np.broadcast_to(lg.z0, (M, nz)).copy(), np.broadcast_to(lg.P0, (M, nz, nz)).copy()
-    for k in range(T1):
-        if k > 0:
-            mu = mf[:, k - 1] @ lg.A[k - 1].T + a[:, k - 1] @ lg.Bz[k - 1].T + lg.cz[k - 1]
-            P = _sym(lg.A[k - 1] @ Pf[:, k - 1] @ lg.A[k - 1].T + lg.Q[k - 1])
-        mp[:, k], Pp[:, k] = mu, P
-        if z_lin is None:
+    linearize = None
+    if z_lin is None:  # extended filter: linearise at each step's prediction
+        def linearize(k, mu):
             zl[:, k] = mu
             hx, H = km.measure(mu)
             hx_all[:, k], H_all[:, k] = hx, H
-        else:
-            zl[:, k] = z_lin[:, k]
-            hx, H = hx_all[:, k], H_all[:, k]
-        nu = s[:, k] - hx - np.einsum("mij,mj->mi", H, mu - zl[:, k])
-        Ht = np.swapaxes(H, 1, 2)
-        Lprior = _sym(np.linalg.inv(P))
-        Lp[:, k] = Lprior
-        Pk = _sym(np.linalg.inv(Lprior + Ht @ H / r2))
-        g = np.einsum("mij,mj->mi", Ht, nu) / r2                 # H^T R^-1 nu
-        Pg = np.einsum("mij,mj->mi", Pk, g)
-        mf[:, k] = mu + Pg
-        Pf[:, k] = Pk
-        # log N(nu; 0, H P H^T + R) by the determinant lemma and Woodbury
-        ld = np.linalg.slogdet(P)[1] - np.linalg.slogdet(Pk)[1]
-        ll -= 0.5 * (ld + (nu * nu).sum(-1) / r2 - (g * Pg).sum(-1))
-    ms, Ps = mf.copy(), Pf.copy()
-    cross = np.empty((M, T, nz, nz))
-    for k in range(T - 1, -1, -1):
-        J = Pf[:, k] @ lg.A[k].T @ Lp[:, k + 1]                   # P_k A^T (P^-_{k+1})^{-1}
-        Jt = np.swapaxes(J, 1, 2)
-        ms[:, k] = mf[:, k] + np.einsum("mij,mj->mi", J, ms[:, k + 1] - mp[:, k + 1])
-        Ps[:, k] = _sym(Pf[:, k] + J @ (Ps[:, k + 1] - Pp[:, k + 1]) @ Jt)
-        cross[:, k] = Ps[:, k + 1] @ Jt
-    return Smoothed(ms, Ps, cross, ll, zl, (hx_all, H_all))
+            return H, hx - np.einsum("mij,mj->mi", H, mu)
+        H_lin, d_lin = np.zeros((T1, n, nz)), np.zeros((T1, n))  # replaced step by step
+    else:
+        zl[:] = z_lin
+        H_lin, d_lin = H_all, hx_all - np.einsum("mkij,mkj->mki", H_all, z_lin)
+    params = lgssm.Params(lgssm.Initial(lg.z0, lg.P0), lgssm.Dynamics(lg.A, np.einsum("mtj,tij->mti", a, lg.Bz) + lg.cz, lg.Q),
+                          lgssm.Emissions(H_lin, d_lin, np.broadcast_to(R, (T1, n, n))))
+    post = lgssm.rts_smoother(params, s, linearize)
+    return Smoothed(post.mean, post.cov, post.cross, post.loglik, zl, (hx_all, H_all))

@@ -1,0 +1,482 @@
+"""The Gaussian core: Kalman filter, RTS smoother and log-likelihood of a linear-Gaussian
+state-space model (docs/math.md §4; used by the E-step, the §10.1 fits and the §11.2 estimator).
+
+Model (time-varying, ``k = 0..T-1`` transitions, ``K = T`` or ``T+1`` observations)::
+
+    z_0 ~ N(mu0, P0)
+    z_{k+1} = F_k z_k + b_k + w_k,      w_k ~ N(0, Q_k)
+    y_k     = H_k z_k + d_k + v_k,      v_k ~ N(0, R_k),     Cov(w_k, v_k) = C_k   (correlated noise)
+
+With ``K = T`` the last state ``z_T`` is not observed (the E-step's closed loop, §4); with
+``K = T + 1`` every state is (the §10 measurements ``s_k``, the §11 measurements of ``h(z_k)``).
+
+Parameters are bundled as :class:`Params` (:class:`Initial`, :class:`Dynamics`,
+:class:`Emissions` and the cross-covariance ``C``).  ``M`` sequences are processed at once: the
+observations are ``y (M, K, p)``; means (``mu0``, ``b``, ``d``) may carry a leading ``M`` axis.
+When every matrix (``P0, F, Q, H, R, C``) is shared by the sequences, so are all covariances and
+gains: they are computed once and only the means are per sequence (the E-step's case, where all
+sequences share the closed loop).  A matrix with a leading ``M`` axis (the §11 estimator's
+emissions, linearised per rollout) makes the covariances per sequence.
+
+Algorithm (all steps batched over the sequences and, outside the two recursions, over time):
+
+1. Correlated noise is removed by decorrelation: ``G_k = C_k R_k^{-1}``,
+   ``F'_k = F_k - G_k H_k``, ``Q'_k = Q_k - G_k C_k^T`` and the data-dependent bias
+   ``b'_k = b_k + G_k (y_k - d_k)``; then ``z_{k+1} = F'_k z_k + b'_k + w'_k`` with ``w'_k``
+   independent of ``v_k`` (and of ``z_k``, ``y_0..y_k``).
+2. Covariance recursion (data independent): ``S_k = H_k P_k H_k^T + R_k``,
+   ``K_k = P_k H_k^T S_k^{-1}`` (Cholesky solve), filtered ``P^f_k = P_k - K_k S_k K_k^T``,
+   predicted ``P_{k+1} = F'_k P^f_k F'^T_k + Q'_k`` (the stacks symmetrised once after the
+   recursion).  With more observations than states (``p > n``) and ``R_k`` positive definite, the
+   update is taken in information form, ``P^f_k = (I + P_k G_k)^{-1} P_k`` with
+   ``G_k = H_k^T R_k^{-1} H_k`` (``R_k`` whitened once), and ``log|S_k|``, ``v^T S_k^{-1} v`` follow from
+   the determinant lemma and Woodbury's identity: ``n x n`` work instead of ``p x p``.
+3. Means: the predicted means follow the affine recursion ``m_{k+1} = F'_k (I - K_k H_k) m_k
+   + F'_k K_k (y_k - d_k) + b'_k`` (one matrix product per step for all sequences); filtered means,
+   innovations ``v_k = y_k - H_k m_k - d_k`` and ``log p(Y) = -1/2 sum_k (p log 2 pi + log|S_k|
+   + v_k^T S_k^{-1} v_k)`` are then computed for all steps at once.
+4. RTS smoother: ``J_k = P^f_k F'^T_k P_{k+1}^{-1}`` (one batched solve for all steps, ``P_{k+1}``
+   checked positive definite by its Cholesky factorisation) and, from
+   the last state back, ``P^s_k = (I - J_k F'_k) P^f_k (I - J_k F'_k)^T + J_k (Q'_k + P^s_{k+1}) J_k^T``
+   (the Joseph-like form of ``P^f_k + J_k (P^s_{k+1} - P_{k+1}) J_k^T``, a sum of PSD terms),
+   ``zs_k = m^f_k + J_k (zs_{k+1} - m_{k+1})``, ``Cov(z_{k+1}, z_k | Y) = P^s_{k+1} J_k^T``.
+
+An extended filter (the §11 estimator's first pass) passes ``linearize(k, m_k) -> (H_k, d_k)``,
+called with the predicted means ``m_k (M, n)`` at each step; the emissions are then per sequence.
+
+Public API:
+    Initial, Dynamics, Emissions, Params        parameter bundles
+    kalman_filter(params, y, linearize=None)    -> Filtered
+    rts_smoother(params, y, linearize=None)     -> Posterior
+    log_likelihood(params, y)                   -> (M,)
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from .linalg import T as _T
+from .linalg import chol, right_cho_solve, tri_solve
+from .models import NotPositiveDefiniteError, ShapeError, symmetrize
+
+__all__ = ["Initial", "Dynamics", "Emissions", "Params", "Filtered", "Posterior", "kalman_filter", "rts_smoother",
+           "log_likelihood"]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+class Initial(NamedTuple):
+    """``z_0 ~ N(mean, cov)``: mean ``(n,)`` or ``(M, n)``; cov ``(n, n)`` or ``(M, n, n)``."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+
+
+class Dynamics(NamedTuple):
+    """``z_{k+1} = F_k z_k + b_k + w_k``, ``w_k ~ N(0, Q_k)``, ``k = 0..T-1``.
+
+    Fields:
+        weights: (T, n, n) or (M, T, n, n)  ``F_k``
+        bias:    (T, n) or (M, T, n)        ``b_k``
+        cov:     (T, n, n) or (M, T, n, n)  ``Q_k`` (positive semidefinite)
+    """
+
+    weights: np.ndarray
+    bias: np.ndarray
+    cov: np.ndarray
+
+
+class Emissions(NamedTuple):
+    """``y_k = H_k z_k + d_k + v_k``, ``v_k ~ N(0, R_k)``, ``k = 0..K-1`` with ``K = T`` or ``T+1``.
+
+    Fields:
+        weights: (K, p, n) or (M, K, p, n)  ``H_k``
+        bias:    (K, p) or (M, K, p)        ``d_k``
+        cov:     (K, p, p) or (M, K, p, p)  ``R_k`` (positive definite where ``C_k != 0``)
+    """
+
+    weights: np.ndarray
+    bias: np.ndarray
+    cov: np.ndarray
+
+
+class Params(NamedTuple):
+    """A linear-Gaussian state-space model (module docstring).
+
+    Fields:
+        initial:   :class:`Initial`
+        dynamics:  :class:`Dynamics`
+        emissions: :class:`Emissions`
+        cross:     (T, n, p) or (M, T, n, p) ``C_k = Cov(w_k, v_k)``, or ``None`` (independent noises)
+    """
+
+    initial: Initial
+    dynamics: Dynamics
+    emissions: Emissions
+    cross: np.ndarray | None = None
+
+
+class Filtered(NamedTuple):
+    """Output of :func:`kalman_filter`; ``*`` is ``()`` when the covariances are shared, ``(M,)`` otherwise.
+
+    Fields:
+        pred_mean: (M, T+1, n)     ``m_k = E[z_k | y_0..y_{k-1}]`` (``m_0 = mu0``)
+        pred_cov:  (*, T+1, n, n)  ``P_k = Cov(z_k | y_0..y_{k-1})``
+        filt_mean: (M, K, n)       ``E[z_k | y_0..y_k]``
+        filt_cov:  (*, K, n, n)    ``Cov(z_k | y_0..y_k)``
+        loglik:    (M,)            ``log p(y_0..y_{K-1})``
+    """
+
+    pred_mean: np.ndarray
+    pred_cov: np.ndarray
+    filt_mean: np.ndarray
+    filt_cov: np.ndarray
+    loglik: np.ndarray
+
+
+class Posterior(NamedTuple):
+    """Output of :func:`rts_smoother`; ``*`` as in :class:`Filtered`.
+
+    Fields:
+        mean:   (M, T+1, n)     ``E[z_k | Y]``
+        cov:    (*, T+1, n, n)  ``Cov(z_k | Y)``
+        cross:  (*, T, n, n)    ``Cov(z_{k+1}, z_k | Y)``
+        loglik: (M,)            ``log p(Y)``
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    cross: np.ndarray
+    loglik: np.ndarray
+
+
+# --------------------------------------------------------------------------- preparation
+
+
+class _Prepared(NamedTuple):
+    """Time-major arrays of the decorrelated model; ``B`` is ``()`` (shared) or ``(M,)``."""
+
+    F: np.ndarray  # (T, *B, n, n) decorrelated F'
+    Q: np.ndarray  # (T, *B, n, n) decorrelated Q'
+    H: np.ndarray  # (K, *B, p, n)
+    R: np.ndarray  # (K, *B, p, p)
+    b: np.ndarray  # (T, M, n) decorrelated bias b' (data dependent)
+    d: np.ndarray  # (K, M, p)
+    y: np.ndarray  # (K, M, p)
+    mu0: np.ndarray  # (M, n)
+    P0: np.ndarray  # (*B, n, n)
+    batch: tuple
+
+
+def _time_major(name: str, x, shared_ndim: int, M: int, lead: tuple) -> tuple[np.ndarray, bool]:
+    """``x`` shared ``lead + tail`` or per sequence ``(M,) + lead + tail``, returned time first."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim == shared_ndim:
+        ok, per = x.shape[: len(lead)] == lead, False
+    elif x.ndim == shared_ndim + 1:
+        ok, per = x.shape[: len(lead) + 1] == (M,) + lead, True
+        if ok and lead:
+            x = np.moveaxis(x, 0, 1)
+    else:
+        ok, per = False, False
+    if not ok:
+        raise ShapeError(f"lgssm: {name} has shape {x.shape}; expected leading axes {lead} or {(M,) + lead}")
+    return x, per
+
+
+def _prepare(params: Params, y, per_sequence: bool = False) -> _Prepared:
+    if not isinstance(params, Params):
+        raise TypeError(f"params must be an lgssm.Params, got {type(params).__name__}")
+    y = np.asarray(y, dtype=float)
+    if y.ndim != 3:
+        raise ShapeError(f"lgssm: observations y must have shape (M, K, p), got {y.shape}")
+    M, K, p = y.shape
+    dyn, em, ini = params.dynamics, params.emissions, params.initial
+    F0 = np.asarray(dyn.weights, dtype=float)
+    T, n = F0.shape[-3], F0.shape[-1]
+    if K not in (T, T + 1):
+        raise ShapeError(f"lgssm: y has K={K} steps; the dynamics have T={T} (K must be T or T+1)")
+    F, pF = _time_major("dynamics.weights", F0, 3, M, (T,))
+    Q, pQ = _time_major("dynamics.cov", dyn.cov, 3, M, (T,))
+    b, _ = _time_major("dynamics.bias", dyn.bias, 2, M, (T,))
+    H, pH = _time_major("emissions.weights", em.weights, 3, M, (K,))
+    R, pR = _time_major("emissions.cov", em.cov, 3, M, (K,))
+    d, _ = _time_major("emissions.bias", em.bias, 2, M, (K,))
+    P0, pP = _time_major("initial.cov", ini.cov, 2, M, ())
+    mu0, _ = _time_major("initial.mean", ini.mean, 1, M, ())
+    if F.shape[-2:] != (n, n) or Q.shape[-2:] != (n, n) or H.shape[-2:] != (p, n) or R.shape[-2:] != (p, p) \
+            or b.shape[-1] != n or d.shape[-1] != p or P0.shape[-2:] != (n, n) or mu0.shape[-1] != n:
+        raise ShapeError(f"lgssm: inconsistent sizes (state n={n}, observation p={p}): F {F.shape}, Q {Q.shape}, "
+                         f"H {H.shape}, R {R.shape}, b {b.shape}, d {d.shape}, P0 {P0.shape}, mu0 {mu0.shape}")
+    per = per_sequence or pF or pQ or pH or pR or pP
+    b = np.broadcast_to(b if b.ndim == 3 else b[:, None], (T, M, n))
+    d = np.broadcast_to(d if d.ndim == 3 else d[:, None], (K, M, p))
+    mu0 = np.broadcast_to(mu0, (M, n))
+    yt = np.swapaxes(y, 0, 1)
+    if params.cross is not None and np.any(params.cross):  # (an all-zero C is independent noise: nothing to remove)
+        C, pC = _time_major("cross", params.cross, 3, M, (T,))
+        if C.shape[-2:] != (n, p):
+            raise ShapeError(f"lgssm: cross must end in ({n}, {p}), got {C.shape}")
+        per = per or pC
+        if per:
+            F, Q, H, R, C = (x if f else x[:, None] for x, f in ((F, pF), (Q, pQ), (H, pH), (R, pR), (C, pC)))
+            pF = pQ = pH = pR = True
+        Ht, Rt = H[:T], R[:T]
+        G = C / Rt if p == 1 else right_cho_solve(C, chol(Rt, "emission covariance R"))  # C R^{-1}
+        F = F - _mm(G, Ht)
+        Q = symmetrize(Q - _mm(G, _T(C)))
+        r = yt[:T] - d[:T]  # (T, M, p)
+        b = b + (_mm(r[..., None, :], _T(G)))[..., 0, :] if G.ndim == 4 else b + _mm(r, _T(G))
+    if per:  # shared matrices get a unit sequence axis, so that stacks over time broadcast against per-sequence ones
+        F, Q, H, R = (x if f else x[:, None] for x, f in ((F, pF), (Q, pQ), (H, pH), (R, pR)))
+    return _Prepared(F, Q, H, R, b, d, yt, mu0, P0, (M,) if per else ())
+
+
+def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A @ B`` (batched); an outer product (inner size 1) by broadcasting, the same numbers without a
+    matrix-product call per matrix of the stack."""
+    return A * B if A.shape[-1] == 1 else A @ B
+
+
+def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``A x`` for ``x (M, j)`` and ``A (i, j)`` (shared) or ``(M, i, j)`` (per sequence)."""
+    return x @ A.T if A.ndim == 2 else (A @ x[:, :, None])[:, :, 0]
+
+
+# --------------------------------------------------------------------------- filter
+
+
+class _Pass(NamedTuple):
+    """Forward pass, time-major: everything :func:`rts_smoother` needs."""
+
+    pm: np.ndarray  # (T+1, M, n) predicted means
+    Pp: np.ndarray  # (T+1, *B, n, n)
+    fm: np.ndarray  # (K, M, n) filtered means
+    Pf: np.ndarray  # (K, *B, n, n)
+    loglik: np.ndarray  # (M,)
+    prep: _Prepared
+
+
+def _forward(params: Params, y, linearize: Callable | None) -> _Pass:
+    if linearize is not None and params.cross is not None:
+        raise ValueError("lgssm: an extended filter (linearize) takes independent noises (cross=None)")
+    pr = _prepare(params, y, per_sequence=linearize is not None)
+    F, Q, H, R, b, d, yt, batch = pr.F, pr.Q, pr.H, pr.R, pr.b, pr.d, pr.y, pr.batch
+    T, K, M, n, p = F.shape[0], yt.shape[0], yt.shape[1], F.shape[-1], yt.shape[2]
+    if linearize is not None:
+        H, d = np.empty((K, M, p, n)), np.empty((K, M, p))
+    FT, HT = _T(F), _T(H)
+    # 2-D products by ndarray.dot (shared covariances): a third of matmul's call overhead at these sizes
+    mm = np.matmul if batch else np.ndarray.dot
+    Pp = np.empty((T + 1,) + batch + (n, n))
+    Pf = np.empty((K,) + batch + (n, n))
+    Pp[0] = pr.P0
+    info = _information(H, R, n, p, linearize is not None)
+    eye = np.eye(n)
+    rs = R[:, 0, 0].tolist() if p == 1 and not batch and info is None else None  # scalar observation noises
+    m, g = pr.mu0, None
+    # The stacks are symmetrised once after the loop: inside it the covariances carry a rounding-level
+    # antisymmetric part, which the products below propagate (bounded by the growth of the covariances
+    # themselves) but never feed back into their symmetric part beyond rounding.
+    for k in range(K):
+        P = Pp[k]
+        if linearize is not None:
+            if k:  # the previous step's update and prediction of the means, to linearise at
+                m = _mv(F[k - 1], m + _mv(g, yt[k - 1] - _mv(H[k - 1], m) - d[k - 1])) + b[k - 1]
+            H[k], d[k] = linearize(k, m)
+            if info is not None:
+                info.Hw[k] = Hw = info.W[k] @ H[k]
+                info.G[k] = _T(Hw) @ Hw
+        if info is not None:  # P^f = (P^{-1} + H^T R^{-1} H)^{-1} = (I + P G)^{-1} P, in the n state dimensions
+            X = np.linalg.solve(eye + mm(P, info.G[k]), P)
+            if linearize is not None:
+                g = X @ _T(info.Hw[k]) @ info.W[k]
+        elif rs is not None:  # shared covariances, scalar observation: P - a a^T / s, a = P H^T
+            PHt = P.dot(HT[k])
+            X = P - PHt.dot(PHt.T) / (H[k].dot(PHt)[0, 0] + rs[k])
+        else:
+            PHt = mm(P, HT[k])
+            S = mm(H[k], PHt)
+            S += R[k]
+            if linearize is not None:
+                g = right_cho_solve(PHt, chol(S, f"innovation covariance S[{k}]"))
+            if p == 1:
+                X = P - mm(PHt, PHt.swapaxes(-1, -2)) / S
+            else:
+                try:
+                    L = np.linalg.cholesky(S)
+                except np.linalg.LinAlgError:
+                    raise NotPositiveDefiniteError(f"lgssm: innovation covariance S[{k}] is not positive definite") from None
+                W = tri_solve(L, PHt.swapaxes(-1, -2))  # L^{-1} H P
+                X = P - mm(W.swapaxes(-1, -2), W)
+        Pf[k] = X
+        if k < T:
+            X = mm(mm(F[k], X), FT[k]) if batch else F[k].dot(X).dot(FT[k])
+            X += Q[k]
+            Pp[k + 1] = X
+    Pp, Pf = symmetrize(Pp), symmetrize(Pf)
+    pm, fm, loglik = _means(F, b, H, HT, R, d, yt, Pp, Pf, info, pr.mu0, batch)
+    return _Pass(pm, Pp, fm, Pf, loglik, pr._replace(H=H, d=d))
+
+
+class _Information(NamedTuple):
+    """The measurement in information form (when ``p > n``), whitened: ``W = L_R^{-1} (K, *, p, p)`` with
+    ``R = L_R L_R^T`` (Cholesky), ``Hw = W H (K, *B, p, n)``, ``G = Hw^T Hw = H^T R^{-1} H (K, *B, n, n)``."""
+
+    W: np.ndarray
+    Hw: np.ndarray
+    G: np.ndarray
+
+
+def _information(H, R, n: int, p: int, extended: bool) -> _Information | None:
+    """The update in the ``n`` state dimensions instead of the ``p`` observed ones when there are more
+    observations than states and ``R`` is positive definite; ``None`` otherwise (covariance form)."""
+    if p <= n:
+        return None
+    try:
+        LR = np.linalg.cholesky(R)
+    except np.linalg.LinAlgError:
+        return None
+    # the whitening transform itself (a triangular solve per R, shared by every sequence and column of H)
+    W = tri_solve(LR, np.broadcast_to(np.eye(p), LR.shape))
+    if extended:  # filled step by step as the emissions are linearised
+        return _Information(W, np.empty(H.shape), np.empty(H.shape[:-2] + (n, n)))
+    Hw = W @ H
+    return _Information(W, Hw, _T(Hw) @ Hw)
+
+
+def _means(F, b, H, HT, R, d, yt, Pp, Pf, info: _Information | None, mu0, batch):
+    """Predicted and filtered means and ``log p(Y)`` given the covariances (module docstring, step 3)."""
+    T, (K, M, p), n = F.shape[0], yt.shape, F.shape[-1]
+    r = yt - d  # (K, M, p)
+
+    def mv(A, X):  # A_k X_k for stacks A (K, *B, i, j) and X (K, M, j)
+        return (A @ X[..., None])[..., 0] if batch else _mm(X, _T(A))
+
+    if info is not None:  # the gain K_k = P^f_k H_k^T R_k^{-1}, never formed (it is n x p)
+        def gain(X):
+            return mv(Pf, mv(_T(info.Hw), mv(info.W, X)))
+
+        Abar = F - F @ (Pf[:T] @ info.G[:T])  # F'_k (I - K_k H_k), (T, *B, n, n)
+    else:
+        PHt = Pp[:K] @ HT  # (K, *B, n, p)
+        S = H @ PHt + R  # innovation covariances (K, *B, p, p)
+        if p == 1:
+            Kg = PHt / S
+        else:
+            L = chol(symmetrize(S), "innovation covariance S")
+            Kg = right_cho_solve(PHt, L)  # (K, *B, n, p)
+
+        def gain(X):
+            return mv(Kg, X)
+
+        Abar = F - F @ _mm(Kg[:T], H[:T])
+    u = b + mv(F, gain(r)[:T])  # m_{k+1} = Abar_k m_k + u_k
+    pm = np.empty((T + 1, M, n))
+    pm[0] = x = mu0
+    if batch:
+        for k in range(T):
+            pm[k + 1] = x = (Abar[k] @ x[:, :, None])[:, :, 0] + u[k]
+    else:
+        AbarT = _T(Abar)
+        for k in range(T):
+            pm[k + 1] = x = x.dot(AbarT[k]) + u[k]
+    mK = pm[:K]
+    v = r - mv(H, mK)  # innovations (K, M, p)
+    if info is not None:
+        # log|S| = log|R| + log|I + G P| and v^T S^{-1} v = v^T R^{-1} v - g^T P^f g, g = H^T R^{-1} v (Woodbury)
+        w = mv(info.W, v)  # whitened innovations
+        g = mv(_T(info.Hw), w)
+        Pg = mv(Pf, g)
+        fm = mK + Pg
+        logdet = -2.0 * np.log(np.diagonal(info.W, axis1=-2, axis2=-1)).sum(-1) + \
+            np.linalg.slogdet(np.eye(n) + info.G @ Pp[:K])[1]
+        ll = (logdet if batch else logdet[:, None]) + (w * w).sum(-1) - (g * Pg).sum(-1)
+    else:
+        fm = mK + gain(v)
+        if p == 1:
+            s = S[..., 0, 0] if batch else S[:, None, 0, 0]  # (K, M) or (K, 1)
+            ll = np.log(s) + v[..., 0] ** 2 / s
+        else:
+            w = (np.linalg.solve(L, v[..., None])[..., 0]) if batch else _T(np.linalg.solve(L, _T(v)))
+            logdet = 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(-1)
+            ll = (logdet if batch else logdet[:, None]) + (w * w).sum(-1)
+    loglik = -0.5 * (K * p * _LOG_2PI + ll.sum(0))
+    return pm, fm, np.broadcast_to(loglik, (M,)).copy()
+
+
+def kalman_filter(params: Params, y, linearize: Callable | None = None) -> Filtered:
+    """Filtered and predicted moments and ``log p(Y)`` of ``y (M, K, p)`` (module docstring, steps 1-3).
+
+    ``linearize(k, m_k) -> (H_k (M, p, n), d_k (M, p))``: an extended filter, linearised at the
+    predicted means ``m_k (M, n)``; the emissions of ``params`` are then ignored.
+    """
+    fp = _forward(params, y, linearize)
+    b = fp.prep.batch
+    return Filtered(_seq_major(fp.pm), _seq_major(fp.Pp) if b else fp.Pp, _seq_major(fp.fm),
+                    _seq_major(fp.Pf) if b else fp.Pf, fp.loglik)
+
+
+def _seq_major(X: np.ndarray) -> np.ndarray:
+    """A time-major ``(K, M, ...)`` array as ``(M, K, ...)`` (contiguous)."""
+    return np.ascontiguousarray(np.swapaxes(X, 0, 1))
+
+
+def log_likelihood(params: Params, y) -> np.ndarray:
+    """``log p(y_0..y_{K-1})`` per sequence, ``(M,)`` (the filter pass only)."""
+    return _forward(params, y, None).loglik
+
+
+# --------------------------------------------------------------------------- smoother
+
+
+def rts_smoother(params: Params, y, linearize: Callable | None = None) -> Posterior:
+    """Rauch-Tung-Striebel smoother of ``y (M, K, p)`` (module docstring, step 4); ``linearize`` as in
+    :func:`kalman_filter`.  Raises :class:`~soc_opt.models.NotPositiveDefiniteError` when a
+    predicted covariance is not positive definite."""
+    fp = _forward(params, y, linearize)
+    F, Q = fp.prep.F, fp.prep.Q
+    Pp, Pf, pm, fm = fp.Pp, fp.Pf, fp.pm, fp.fm
+    T, K = F.shape[0], fm.shape[0]
+    M, n = pm.shape[1], pm.shape[2]
+    eye = np.eye(n)
+    try:
+        np.linalg.cholesky(Pp[1:])
+    except np.linalg.LinAlgError:
+        bad = np.linalg.eigvalsh(Pp[1:])[..., 0].reshape(T, -1).min(1)
+        k = int(np.argmax(bad <= 0)) + 1
+        raise NotPositiveDefiniteError(
+            f"predicted covariance P[{k}] (Cov(z_{k} | y_0..y_{k - 1})) is not positive definite") from None
+    Pfk = Pf[:T]
+    # J_k^T = P_{k+1}^{-1} F'_k P^f_k, (T, *B, n, n): P_{k+1} is positive definite (its Cholesky factor
+    # above); one batched LU solve costs half the two triangular solves of linalg.cho_solve
+    JT = np.linalg.solve(Pp[1:], F @ Pfk)
+    J = _T(JT)
+    IJF = eye - J @ F
+    Cst = IJF @ Pfk @ _T(IJF) + J @ Q @ JT  # the P^s-independent part of P^s_k (symmetrised with P^s below)
+    batch = fp.prep.batch
+    cov = np.empty((T + 1,) + batch + (n, n))
+    mean = np.empty((T + 1, M, n))
+    if K == T + 1:
+        cov[T], mean[T] = Pf[T], fm[T]
+    else:
+        cov[T], mean[T] = Pp[T], pm[T]
+    off = fm[:T] - ((J @ pm[1:, :, :, None])[..., 0] if batch else pm[1:] @ JT)  # zs_k = J_k zs_{k+1} + off_k
+    X, x = cov[T], mean[T]
+    # linear in P^s: symmetrising the stack once at the end equals symmetrising every step
+    if batch:
+        for k in range(T - 1, -1, -1):
+            cov[k] = X = J[k] @ X @ JT[k] + Cst[k]
+            mean[k] = x = (J[k] @ x[:, :, None])[:, :, 0] + off[k]
+    else:  # 2-D products by ndarray.dot, as in _forward
+        for k in range(T - 1, -1, -1):
+            cov[k] = X = J[k].dot(X).dot(JT[k]) + Cst[k]
+            mean[k] = x = x.dot(JT[k]) + off[k]
+    cov = symmetrize(cov)
+    cross = cov[1:] @ JT
+    if batch:
+        cov, cross = _seq_major(cov), _seq_major(cross)
+    return Posterior(_seq_major(mean), cov, cross, fp.loglik)
