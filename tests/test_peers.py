@@ -242,6 +242,27 @@ def test_a_cut_at_a_smaller_budget_carries_its_sampled_score(tmp_path):
     assert cut["final"] == {"success_rate": 0.25, "cost": 2.0} and cut["final_sampled"] == {"success_rate": 0.2, "cost": 2.5}
 
 
+
+def test_a_run_of_a_budget_supersedes_the_cut_of_a_longer_run_of_the_same_seed(tmp_path):
+    """A 300-step run extended from a finished 200-step run (same seed) is not counted a second time
+    at 200 steps; another seed's cut still is."""
+    import json
+
+    from soc_opt.bench.peers.report import _rl_runs
+
+    def run(seed, budget, evals=()):
+        return {"algo": "sac", "backend": "sbx", "setting": "default", "task": "peg", "rho2": 0.0, "seed": seed,
+                "budget": budget, "wall_s": 9.0,
+                "episodes": [{"steps": s, "success_rate": 0.0, "cost": 1.0} for s in range(100, budget + 1, 100)],
+                "evals": list(evals), "final": {"success_rate": 0.5, "cost": 1.5}}
+
+    ev = [{"steps": 300, "budget": 200, "wall_s": 5.0, "success_rate": 0.25, "cost": 2.0}]
+    (tmp_path / "a-200.json").write_text(json.dumps(run(0, 200)))
+    (tmp_path / "b-400.json").write_text(json.dumps(run(0, 400, ev)))
+    (tmp_path / "c-400.json").write_text(json.dumps(run(1, 400, ev)))
+    at200 = [(r["seed"], "cut_from" in r) for r in _rl_runs(tmp_path) if r["budget"] == 200]
+    assert sorted(at200) == [(0, False), (1, True)]
+
 # ------------------------------------------------------------------ with the peers installed
 
 

@@ -105,14 +105,22 @@ def sweep_curves(root: Path, rho2s=(0.0, 0.1), samples: int = 20, T: int = 100) 
 
 def _rl_runs(root: Path) -> list[dict]:
     """Finished runs (``*.json``) and, for runs cut short, their partial logs (``*.json.partial``:
-    no ``final`` evaluation)."""
+    no ``final`` evaluation); then each long run at the smaller budgets it was scored at, unless a
+    run of that budget (same algorithm, backend, setting, task, rho2 and seed) is there itself: a
+    long run extended from a finished short run's checkpoint would otherwise count that seed twice."""
     runs = []
     for f in sorted(Path(root).glob("*.json")):
         runs.append(json.loads(f.read_text()))
     for f in sorted(Path(root).glob("*.json.partial")):
         if not f.with_suffix("").exists():
             runs.append(json.loads(f.read_text()))
-    return runs + [cut for r in runs for cut in _at_smaller_budgets(r)]
+    have = {_run_key(r) for r in runs}
+    return runs + [cut for r in runs for cut in _at_smaller_budgets(r) if _run_key(cut) not in have]
+
+
+def _run_key(run: dict) -> tuple:
+    return (run["algo"], run.get("backend", "sb3"), run["setting"], run["task"], float(run["rho2"]), int(run["seed"]),
+            int(run["budget"]))
 
 
 def _at_smaller_budgets(run: dict) -> list[dict]:
