@@ -393,3 +393,21 @@ def test_the_runs_table_shows_finished_checkpointed_and_partial_runs_with_both_f
     assert rs[1]["resumed_at"] == [50] and rs[1]["metric_sampled"] is None
     table = markdown(rs)
     assert "CrossQ default (sbx)" in table and "1.00 (3.0) | 0.50 (5.0)" in table and table.count("\n") == 5
+
+
+def test_the_runs_table_takes_the_budget_from_the_file_name_for_a_copied_checkpoint(tmp_path):
+    """A finished 200-step run's checkpoint copied to the 400-step run's name (to extend it) is listed
+    at 200 of 400 steps, as an extension not started; once the long run has checkpointed, as stopped."""
+    import json
+
+    from soc_opt.bench.peers.runs import rows
+
+    ep = [{"steps": s, "success_rate": 1.0, "cost": 2.0} for s in (100, 200)]
+    base = {"algo": "sac", "backend": "sbx", "setting": "default", "task": "peg", "rho2": 0.0, "steps": 200,
+            "wall_s": 4.0, "episodes": ep}
+    for seed, budget in ((0, 200), (1, 400)):
+        d = tmp_path / f"sac-sbx-default-peg-rho2_0-seed{seed}-400.json.ckpt"
+        d.mkdir()
+        (d / "latest.json").write_text(json.dumps({**base, "seed": seed, "budget": budget}))
+    assert [(r["seed"], r["steps"], r["budget"], r["status"]) for r in rows(tmp_path)] == [
+        (0, 200, 400, "extension of a 200-step run, not started"), (1, 200, 400, "stopped (checkpoint)")]

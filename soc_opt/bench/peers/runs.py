@@ -23,14 +23,22 @@ __all__ = ["rows", "markdown"]
 
 
 def _load(path: Path) -> dict:
-    """The run of ``path`` (``<run>.json``) as far as it got; ``status`` says how far."""
+    """The run of ``path`` (``<run>-<budget>.json``) as far as it got; ``status`` says how far.  A
+    checkpoint copied from a finished shorter run to extend it carries that run's budget: the budget
+    is the file name's."""
     if path.exists():
         return {**json.loads(path.read_text()), "status": "finished"}
+    tail = path.name[:-len(".json")].rsplit("-", 1)[-1]
+    named = int(tail) if tail.isdigit() else None
     ckpt = path.with_name(path.name + ".ckpt") / "latest.json"
     if ckpt.exists():
-        return {**json.loads(ckpt.read_text()), "status": "stopped (checkpoint)"}
+        state = json.loads(ckpt.read_text())
+        budget = int(state["budget"]) if named is None else named
+        status = "stopped (checkpoint)" if int(state["budget"]) == budget else \
+            f"extension of a {int(state['budget']):,}-step run, not started"
+        return {**state, "budget": budget, "status": status}
     part = json.loads(path.with_name(path.name + ".partial").read_text())
-    return {**part, "status": "partial log"}
+    return {**part, "budget": int(part["budget"]) if named is None else named, "status": "partial log"}
 
 
 def rows(root: str | Path) -> list[dict]:
