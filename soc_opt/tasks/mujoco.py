@@ -375,6 +375,67 @@ class MujocoTask(TaskBase):
                 kk = int(bad_k[0]) if bad_k.size else T
                 raise SimulationError(f"sample {i} diverged at control step {kk}: non-finite state or action")
 
+    def _run_lockstep(self, samples, K, offs, eps, x, s, a, x0, filtered):
+        """The rollouts ``samples`` of a filtered policy, all stepped together: one ``MjData`` per rollout,
+        and per control step one call of the filter for all of them
+        (:meth:`~soc_opt.noise.estimator.FilteredPolicy.estimate_rows`) instead of one per rollout.
+
+        Each rollout's arithmetic is that of :meth:`_run_samples` (the same MuJoCo calls on its own data,
+        the filter's rows bit for bit those of one rollout, the action ``K_k xhat_k`` as a stack of the
+        same matrix-vector products), so the arrays are identical (tested).  On a divergence the samples
+        are simulated again one at a time, so that the error names the sample and step it names there.
+        """
+        mj = import_mujoco()
+        m = self.model
+        idx = np.asarray(samples, dtype=int)
+        B, T = idx.size, self.T
+        datas = [mj.MjData(m) for _ in range(B)]
+        reads = [self._reader(d) for d in datas]
+        ctrls = [d.ctrl for d in datas]
+        warns = [d.warning.number for d in datas]
+        step1, step2, step, forward = mj.mj_step1, mj.mj_step2, mj.mj_step, mj.mj_forward
+        nsub, split, bad = self.substeps, self._split_step, self._bad_warn
+        act = _as_index(self.actuator_ids)
+        xb, sb, ab = np.empty((B, T + 1, self.n)), np.empty((B, T + 1, self.n)), np.empty((B, T, self.m))
+        eb, ob = eps[idx], offs[idx]
+        Kc = K[:, None]  # (T, 1, m, n): K_k xhat_k for every row as a stack of matrix-vector products
+        rows = list(zip(range(B), datas, reads, ctrls, warns))
+        for d in datas:
+            self.reset_data(d, x0)
+        xhat = None
+        for k in range(T):
+            for j, d, read, _, _ in rows:
+                if split:
+                    step1(m, d)
+                else:
+                    forward(m, d)
+                read(xb[j, k])
+            sk = sb[:, k]
+            np.add(xb[:, k], eb[:, k], out=sk)
+            xhat = filtered.estimate_rows(k, sk) if k == 0 else filtered.estimate_rows(k, sk, xhat, ab[:, k - 1])
+            ak = ab[:, k]
+            np.add((Kc[k] @ xhat[:, :, None])[:, :, 0], ob[:, k], out=ak)
+            for j, d, _, ctrl, warn in rows:
+                ctrl[act] = ak[j]
+                if split:
+                    step2(m, d)
+                    if nsub > 1:
+                        step(m, d, nsub - 1)
+                else:
+                    step(m, d, nsub)
+                if warn.any():
+                    try:
+                        self._diverged(int(idx[j]), k, d, warn, bad)
+                    except SimulationError:
+                        return self._run_samples(samples, K, offs, eps, x, s, a, x0, filtered)
+        for j, d, read, _, _ in rows:
+            forward(m, d)
+            read(xb[j, T])
+        np.add(xb[:, T], eb[:, T], out=sb[:, T])
+        if not (np.isfinite(xb).all() and np.isfinite(ab).all()):
+            return self._run_samples(samples, K, offs, eps, x, s, a, x0, filtered)
+        x[idx], s[idx], a[idx] = xb, sb, ab
+
     def _diverged(self, i, k, d, warn, bad):
         mj = import_mujoco()
         names = [mj.mjtWarning(w).name for w in np.flatnonzero(warn) if w in bad]
@@ -419,13 +480,14 @@ class MujocoTask(TaskBase):
         workers = max(1, min(int(workers), M))
         if filtered is not None and not can_fork():  # threads would only wait on the filter's Python
             workers = 1
+        run = self._run_samples if filtered is None else self._run_lockstep
         if workers == 1:
-            self._run_samples(range(M), K, offs, eps, x, s, a, x0, filtered)
+            run(range(M), K, offs, eps, x, s, a, x0, filtered)
         elif filtered is not None:  # the filter is Python: processes, not threads
             blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
 
             def run_block(b):
-                self._run_samples(b.tolist(), K, offs, eps, x, s, a, x0, filtered)
+                run(b.tolist(), K, offs, eps, x, s, a, x0, filtered)
                 return x[b], s[b], a[b]
 
             for b, (xb, sb, ab) in zip(blocks, fork_map(run_block, blocks)):
