@@ -29,7 +29,7 @@ import numpy as np
 
 from ..config import ConfigError
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
-from ..parallel import can_fork, fork_map
+from .. import parallel
 from . import linearize as _linearize
 from .base import SimulationError, TaskBase, as_rng
 from .config import StateConfig, TaskConfig
@@ -453,14 +453,16 @@ class MujocoTask(TaskBase):
         Noise ``eps (M,T+1,n) ~ N(0, rho2 I)`` then ``w (M,T,m) ~ N(0, I)`` is drawn from
         ``rng`` up front (``noise=False``: both zero, the policy mean on the true state).
         ``workers > 1`` simulates contiguous blocks of samples in threads, one ``MjData``
-        each (MuJoCo releases the GIL while stepping), or, for a policy acting on a filter (whose
-        steps are Python), in forked processes (:func:`soc_opt.parallel.fork_map`; in one process
-        where it cannot fork); results are identical for any ``workers``.  ``x0``: another initial state in task coordinates (its joint
+        per sample (MuJoCo releases the GIL while stepping); results are identical for any ``workers``.
+        A filtered policy's blocks run in one thread when no CPU is idle (:func:`soc_opt.parallel.spare_cpu`):
+        its filter holds the GIL between the physics steps.  ``x0``: another initial state in task coordinates (its joint
         components are used; default ``self.x0``).  ``a`` records the policy's action
         before MuJoCo clamps it to ``ctrlrange``.  Raises :class:`SimulationError`
         naming the sample and step on divergence.  A :class:`~soc_opt.noise.estimator.FilteredPolicy`
         acts on ``xhat_k``, its filter run online on the measurements and the recorded actions
-        (docs/math.md §10.2); the draws are the same as for a plain policy.
+        (docs/math.md §10.2); the draws are the same as for a plain policy.  Its samples (of a block)
+        are stepped in lockstep, the filter updating all of them in one call per control step
+        (:meth:`_run_lockstep`); each sample's numbers are those of simulating it alone.
         """
         policy, filtered = self._check_policy(policy)
         rng = as_rng(rng)
@@ -478,24 +480,16 @@ class MujocoTask(TaskBase):
         s = np.empty((M, T + 1, n))
         a = np.empty((M, T, m))
         workers = max(1, min(int(workers), M))
-        if filtered is not None and not can_fork():  # threads would only wait on the filter's Python
-            workers = 1
+        # a filtered policy's samples are stepped in lockstep (one call of its filter per step for all of them)
         run = self._run_samples if filtered is None else self._run_lockstep
+        if filtered is not None and not parallel.spare_cpu():  # a second thread would only wait for the first's GIL
+            workers = 1
         if workers == 1:
             run(range(M), K, offs, eps, x, s, a, x0, filtered)
-        elif filtered is not None:  # the filter is Python: processes, not threads
-            blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
-
-            def run_block(b):
-                run(b.tolist(), K, offs, eps, x, s, a, x0, filtered)
-                return x[b], s[b], a[b]
-
-            for b, (xb, sb, ab) in zip(blocks, fork_map(run_block, blocks)):
-                x[b], s[b], a[b] = xb, sb, ab
         else:
             blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
             with ThreadPoolExecutor(max_workers=workers) as ex:
-                futs = [ex.submit(self._run_samples, b.tolist(), K, offs, eps, x, s, a, x0, filtered) for b in blocks]
+                futs = [ex.submit(run, b.tolist(), K, offs, eps, x, s, a, x0, filtered) for b in blocks]
                 errors = []
                 for f in futs:
                     try:
