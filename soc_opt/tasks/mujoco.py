@@ -27,9 +27,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from .. import parallel
 from ..config import ConfigError
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
-from .. import parallel
 from . import linearize as _linearize
 from .base import SimulationError, TaskBase, as_rng
 from .config import StateConfig, TaskConfig
