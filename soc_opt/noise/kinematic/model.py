@@ -30,6 +30,12 @@ import numpy as np
 from ...config import ConfigError
 from ...models import ShapeError, check_array
 
+__all__ = ["KinematicModel", "AccelMap", "transition", "check_task"]
+
+#: What the model reads off a MuJoCo task (:class:`soc_opt.tasks.mujoco.MujocoTask`, gym: tasks included).
+_MUJOCO_TASK_ATTRS = ("qpos_adr", "dof_adr", "state_qpos_idx", "state_qvel_idx", "point_refs", "layout", "substeps",
+                      "_qinit", "x0")
+
 
 def _as_index(idx) -> slice | np.ndarray:
     """A slice when ``idx`` is a contiguous ascending range (a cheaper copy), else the array."""
@@ -37,12 +43,6 @@ def _as_index(idx) -> slice | np.ndarray:
     if idx.size and np.all(np.diff(idx) == 1):
         return slice(int(idx[0]), int(idx[-1]) + 1)
     return idx
-
-__all__ = ["KinematicModel", "AccelMap", "transition", "check_task"]
-
-#: What the model reads off a MuJoCo task (:class:`soc_opt.tasks.mujoco.MujocoTask`, gym: tasks included).
-_MUJOCO_TASK_ATTRS = ("qpos_adr", "dof_adr", "state_qpos_idx", "state_qvel_idx", "point_refs", "layout", "substeps",
-                      "_qinit", "x0")
 
 
 def _task_name(task) -> str:
