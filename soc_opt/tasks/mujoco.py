@@ -382,12 +382,24 @@ class MujocoTask(TaskBase):
 
         Each rollout's arithmetic is that of :meth:`_run_samples` (the same MuJoCo calls on its own data,
         the filter's rows bit for bit those of one rollout, the action ``K_k xhat_k`` as a stack of the
-        same matrix-vector products), so the arrays are identical (tested).  On a divergence the samples
-        are simulated again one at a time, so that the error names the sample and step it names there.
+        same matrix-vector products), so the arrays are identical (tested).  On a divergence, or any error,
+        the samples are simulated again one at a time, which raises what it raises there (the sample and
+        step it names).
         """
+        idx = np.asarray(samples, dtype=int)
+        try:
+            out = self._lockstep(idx, K, offs, eps, x0, filtered)
+        except Exception:  # noqa: BLE001 -- replayed one sample at a time below, which raises its own error
+            out = None
+        if out is None:
+            return self._run_samples(samples, K, offs, eps, x, s, a, x0, filtered)
+        x[idx], s[idx], a[idx] = out
+
+    def _lockstep(self, idx, K, offs, eps, x0, filtered):
+        """``(x, s, a)`` of the samples ``idx`` stepped together (:meth:`_run_lockstep`), or ``None`` on a
+        divergence."""
         mj = import_mujoco()
         m = self.model
-        idx = np.asarray(samples, dtype=int)
         B, T = idx.size, self.T
         datas = [mj.MjData(m) for _ in range(B)]
         reads = [self._reader(d) for d in datas]
@@ -427,14 +439,14 @@ class MujocoTask(TaskBase):
                     try:
                         self._diverged(int(idx[j]), k, d, warn, bad)
                     except SimulationError:
-                        return self._run_samples(samples, K, offs, eps, x, s, a, x0, filtered)
+                        return None
         for j, d, read, _, _ in rows:
             forward(m, d)
             read(xb[j, T])
         np.add(xb[:, T], eb[:, T], out=sb[:, T])
         if not (np.isfinite(xb).all() and np.isfinite(ab).all()):
-            return self._run_samples(samples, K, offs, eps, x, s, a, x0, filtered)
-        x[idx], s[idx], a[idx] = xb, sb, ab
+            return None
+        return xb, sb, ab
 
     def _diverged(self, i, k, d, warn, bad):
         mj = import_mujoco()
