@@ -73,6 +73,11 @@ def closed_loop(model: AugmentedModel, policy: LinearGaussianPolicy) -> tuple[np
                            because ``So_k`` is, even for a singular policy covariance).
     """
     _check_pair(model, policy)
+    return _closed_loop(model, policy)
+
+
+def _closed_loop(model: AugmentedModel, policy: LinearGaussianPolicy) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`closed_loop` of a pair already checked (batched products over the ``T`` steps)."""
     Bs = model.Bs
     Mk = model.As + Bs @ policy.K
     mk = (Bs @ policy.k[:, :, None])[:, :, 0] + model.co
@@ -134,8 +139,14 @@ def params(model: AugmentedModel, policy: LinearGaussianPolicy, mu0, P0) -> lgss
     State rows ``s_{k+1} = Ms_k s_k + ms_k + e_s``, observation row ``y_k = My_k s_k + my_k + e_y``,
     ``Cov(e_s, e_y) = S_sy`` (correlated noise), ``z_0 ~ N(mu0, P0)``; ``s_T`` is not observed.
     """
+    _check_pair(model, policy)
+    return _params(model, policy, mu0, P0)
+
+
+def _params(model: AugmentedModel, policy: LinearGaussianPolicy, mu0, P0) -> lgssm.Params:
+    """:func:`params` of inputs already checked (:func:`_validate`, the one check of the E-step's entry points)."""
     n = model.n
-    Mk, mk, Sk = closed_loop(model, policy)
+    Mk, mk, Sk = _closed_loop(model, policy)
     return lgssm.Params(lgssm.Initial(mu0, P0), lgssm.Dynamics(Mk[:, :n], mk[:, :n], Sk[:, :n, :n]),
                         lgssm.Emissions(Mk[:, n:], mk[:, n:], Sk[:, n:, n:]), Sk[:, :n, n:])
 
@@ -177,7 +188,7 @@ def kalman_filter(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P
     :func:`params` (the closed loop with its cross-covariance ``S_sy``).
     """
     Y, batched, mu0, P0 = _validate(model, policy, y, mu0, P0)
-    fp = lgssm.kalman_filter(params(model, policy, mu0, P0), Y[:, :, None])
+    fp = lgssm.kalman_filter(_params(model, policy, mu0, P0), Y[:, :, None])
     M = Y.shape[0]
     return Filtered(
         pred_mean=_unbatch(fp.pred_mean, batched, M),
@@ -231,7 +242,7 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
     positive definite.
     """
     Y, batched, mu0, P0 = _validate(model, policy, y, mu0, P0)
-    post = lgssm.rts_smoother(params(model, policy, mu0, P0), Y[:, :, None])
+    post = lgssm.rts_smoother(_params(model, policy, mu0, P0), Y[:, :, None])
     M = Y.shape[0]
     mean, cov, cross = post.mean, post.cov, post.cross
     return Smoothed(

@@ -336,12 +336,18 @@ def _information(H, R, n: int, p: int, extended: bool) -> _Information | None:
     observations than states and ``R`` is positive definite; ``None`` otherwise (covariance form)."""
     if p <= n:
         return None
+    # one R repeated over the leading axes (a broadcast view, stride 0: the §11 estimator's rho^2 I) is
+    # factored once; the same matrix gives the same factor, so this is what factoring every copy gives
+    shared = all(st == 0 for st in R.strides[:-2])
+    R1 = R[(0,) * (R.ndim - 2)] if shared else R
     try:
-        LR = np.linalg.cholesky(R)
+        LR = np.linalg.cholesky(R1)
     except np.linalg.LinAlgError:
         return None
     # the whitening transform itself (a triangular solve per R, shared by every sequence and column of H)
     W = tri_solve(LR, np.broadcast_to(np.eye(p), LR.shape))
+    if shared:
+        W = np.broadcast_to(W, R.shape)
     if extended:  # filled step by step as the emissions are linearised
         return _Information(W, np.empty(H.shape), np.empty(H.shape[:-2] + (n, n)))
     Hw = W @ H

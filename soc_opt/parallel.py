@@ -14,7 +14,7 @@ import os
 import sys
 from typing import Any, Callable, Sequence
 
-__all__ = ["can_fork", "fork_map"]
+__all__ = ["can_fork", "spare_cpu", "fork_map"]
 
 
 
@@ -31,10 +31,27 @@ def can_fork() -> bool:
     """Whether :func:`fork_map` can run pieces side by side: ``fork`` exists, this process may use more
     than one CPU, may have child processes (a daemonic process may not) and has not started JAX (the
     peers' benchmarks), whose thread pools a fork can leave deadlocked."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return (cpus > 1 and "fork" in multiprocessing.get_all_start_methods()
+    return (_cpus() > 1 and "fork" in multiprocessing.get_all_start_methods()
             and not multiprocessing.current_process().daemon
             and not _thread_pools_running())
+
+
+def _cpus() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def spare_cpu() -> bool:
+    """Whether a second process would find a CPU to run on: the 1-minute load average (runnable tasks,
+    this process included) is below the CPUs this process may use minus one half (``make -l`` in
+    spirit).  On a machine busy with other jobs a forked piece only takes CPU time from this process
+    (and its fork and copy-on-write cost more than it saves: docs/results/noise/kinematic.md, the
+    per-phase table), so :func:`fork_map` then runs the items in turn; the results are the same
+    either way, only the wall time differs.  ``True`` where the load average is unavailable."""
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return True
+    return load < _cpus() - 0.5
 
 
 def _child(conn, fn, item):
@@ -50,14 +67,14 @@ def _child(conn, fn, item):
 
 
 def fork_map(fn: Callable[[Any], Any], items: Sequence, parallel: bool = True) -> list:
-    """``[fn(item) for item in items]``; with ``parallel`` (and :func:`can_fork`) every item after the
-    first runs in a forked child while this process runs the first.
+    """``[fn(item) for item in items]``; with ``parallel`` (and :func:`can_fork` and :func:`spare_cpu`)
+    every item after the first runs in a forked child while this process runs the first.
 
     Errors: the exception of the first item (in order) that raised is raised here, as raised there; a
     child that ends without a result raises :class:`RuntimeError` with its exit code.
     """
     items = list(items)
-    if not parallel or len(items) < 2 or not can_fork():
+    if not parallel or len(items) < 2 or not can_fork() or not spare_cpu():
         return [fn(item) for item in items]
     ctx = multiprocessing.get_context("fork")
     kids = []

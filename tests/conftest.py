@@ -43,3 +43,12 @@ def tiny_run_config():
     from soc_opt.methods.config import DPSOCConfig, LQRFLMConfig
 
     return DPSOCConfig(baseline=LQRFLMConfig(iterations=2, samples=4), i_switch=1)
+
+
+@pytest.fixture(autouse=True)
+def _fork_whatever_the_load(monkeypatch):
+    """The tests of forked and threaded work run it that way on a busy machine too (``soc_opt.parallel.spare_cpu``
+    otherwise sends it in turn when the load average leaves no CPU idle; tests/test_parallel.py tests that rule)."""
+    import soc_opt.parallel
+
+    monkeypatch.setattr(soc_opt.parallel, "spare_cpu", lambda: True)

@@ -5,6 +5,8 @@ import pickle
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from soc_opt.models import LinearGaussianPolicy, ShapeError
 from soc_opt.noise.kinematic import loop
@@ -150,13 +152,9 @@ def test_online_filter_in_rollouts_equals_offline_and_is_saved(peg_online, tmp_p
                            "R": np.diag(np.linspace(0.1, 0.2, task.n)), "online": True})
 
 
-def test_rollouts_of_a_filtered_policy_in_forked_workers_equal_those_in_one_process(peg_online):
-    """``workers > 1`` runs a filtered policy's rollouts in forked processes (the filter is Python):
-    the same states, measurements and actions, bit for bit, as one process."""
-    from soc_opt.parallel import can_fork
-
-    if not can_fork():
-        pytest.skip("needs fork and two CPUs")
+def test_rollouts_of_a_filtered_policy_in_threads_equal_those_in_one_thread(peg_online):
+    """``workers > 1`` runs blocks of a filtered policy's rollouts in threads, each block in lockstep:
+    the same states, measurements and actions, bit for bit, as one block in one thread."""
     task, _, filt = peg_online
     pol = KinematicFilteredPolicy(_policy(task, np.random.default_rng(0)), filt)
     one = task.rollouts(pol, 5, np.random.default_rng(4))
@@ -164,3 +162,64 @@ def test_rollouts_of_a_filtered_policy_in_forked_workers_equal_those_in_one_proc
         many = task.rollouts(pol, 5, np.random.default_rng(4), workers=workers)
         for name in ("x", "s", "a", "cost", "y"):
             np.testing.assert_array_equal(getattr(many, name), getattr(one, name))
+
+
+def _one_at_a_time(task, pol, M, seed):
+    """Oracle: the rollouts of ``pol`` simulated one after the other, each on its own
+    :class:`~soc_opt.tasks.mujoco.MujocoSimulator` (the rollouts' physics calls, tested in test_envs), its
+    filter stepped on that rollout's vectors alone and the action ``K_k xhat_k`` as one ``numpy.dot``:
+    the per-rollout arithmetic the lockstep simulation must reproduce."""
+    draws = task.draw_noise(M, np.random.default_rng(seed))
+    offs = pol.policy.k[None] + np.einsum("tij,mtj->mti", pol.policy.chol, draws.w)
+    T = task.T
+    x, s, a = np.empty((M, T + 1, task.n)), np.empty((M, T + 1, task.n)), np.empty((M, T, task.m))
+    for i in range(M):
+        sim = task.simulator()
+        x[i, 0] = sim.reset()
+        xhat = None
+        for k in range(T + 1):
+            s[i, k] = x[i, k] + draws.eps[i, k]
+            if k == T:
+                break
+            xhat = pol.estimate(k, s[i, k]) if k == 0 else pol.estimate(k, s[i, k], xhat, a[i, k - 1])
+            a[i, k] = np.dot(pol.policy.K[k], xhat) + offs[i, k]
+            x[i, k + 1] = sim.step(a[i, k])
+    return x, s, a
+
+
+@pytest.fixture(scope="module")
+def peg_nominal(peg):
+    task, ro, _, _, _ = peg
+    _, filt, _ = loop.learn(task, ro, task.initial_policy(0.3), KinematicConfig(gains="nominal"))
+    return task, ro, filt
+
+
+@pytest.mark.parametrize("gains", ["nominal", "online"])
+def test_lockstep_rollouts_equal_the_rollouts_simulated_one_at_a_time(peg_nominal, peg_online, gains):
+    """The samples of a filtered policy are stepped together, the filter updating all of them in one
+    call per step: every state, measurement and action equals, bit for bit, that rollout simulated
+    alone with its filter stepped on its own vectors (nominal gains with ``h`` attached, and the
+    online extended update)."""
+    task, _, filt = peg_online if gains == "online" else peg_nominal
+    assert filt.online == (gains == "online")
+    pol = KinematicFilteredPolicy(_policy(task, np.random.default_rng(0)), filt)
+    got = task.rollouts(pol, 4, np.random.default_rng(6))
+    for name, want in zip(("x", "s", "a"), _one_at_a_time(task, pol, 4, 6)):
+        np.testing.assert_array_equal(getattr(got, name), want)
+
+
+@settings(max_examples=15, deadline=None)
+@given(rows=st.lists(st.integers(0, 7), min_size=1, max_size=6), k=st.sampled_from([0, 1, 37, 100]))
+def test_a_filter_steps_rows_of_a_batch_as_it_steps_each_alone(peg_nominal, peg_online, rows, k):
+    """Property: ``KinematicFilter.step`` on any batch of rows (repeats allowed, any order) returns for
+    each row exactly what it returns for that row alone, so a rollout's estimates do not depend on
+    the batch it is stepped in (nominal and online gains with ``h`` attached, and the linearised ``h``
+    of a filter read back without its task)."""
+    ro, nominal = peg_nominal[1], peg_nominal[2]
+    linearised = KinematicFilter.from_dict(nominal.to_dict())
+    for filt in (nominal, peg_online[2], linearised):
+        xhat = filt.states(ro.s, ro.a)
+        args = (ro.s[:, k],) if k == 0 else (ro.s[:, k], xhat[:, k - 1], ro.a[:, k - 1])
+        batch = filt.step(k, *(v[rows] for v in args))
+        for j, i in enumerate(rows):
+            np.testing.assert_array_equal(batch[j], filt.step(k, *(v[i] for v in args)))

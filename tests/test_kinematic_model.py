@@ -137,3 +137,48 @@ def test_transition_noise_is_the_acceleration_noise_through_the_kinematics():
     np.testing.assert_allclose(A[0], F + Gm @ D[0], atol=1e-15)
     np.testing.assert_allclose(Bz[0], Gm @ B[0], atol=1e-15)
     np.testing.assert_allclose(Q[0], Gm @ S @ Gm.T + np.diag(np.r_[np.full(nq, qv), np.zeros(nq)]), atol=1e-15)
+
+
+def _h_point_by_point(task, km, z):
+    """Oracle: ``h(z)`` and ``H`` of one latent state by MuJoCo's calls made point by point, the velocity
+    ``J_p(q) qd`` as ``jp[:, dof] @ qd`` (numpy's product of one row's matrix and vector)."""
+    import mujoco as mj
+
+    m, d = task.model, mj.MjData(task.model)
+    nq, dof = km.nq, km.dof_adr
+    d.qpos[:] = task._qinit
+    d.qpos[km.qpos_adr], d.qvel[dof] = z[:nq], z[nq:]
+    mj.mj_kinematics(m, d)
+    mj.mj_comPos(m, d)
+    mj.mj_comVel(m, d)
+    hx, H = np.zeros(km.n), np.zeros((km.n, km.nz))
+    hx[km.zidx] = z
+    H[km.zidx, np.arange(km.nz)] = 1.0
+    o_p, o_v = km.pos_sl.start, km.vel_sl.start
+    jp, jr, jdp, jdr = (np.zeros((3, m.nv)) for _ in range(4))
+    for j, (kind, pid) in enumerate(km.points):
+        ps, vs = slice(o_p + 3 * j, o_p + 3 * j + 3), slice(o_v + 3 * j, o_v + 3 * j + 3)
+        pos, body = (d.site_xpos[pid], m.site_bodyid[pid]) if kind == "site" else (d.xpos[pid], pid)
+        (mj.mj_jacSite if kind == "site" else mj.mj_jacBody)(m, d, jp, jr, pid)
+        mj.mj_jacDot(m, d, jdp, jdr, pos, int(body))
+        Jq = jp[:, dof]
+        hx[ps], hx[vs] = pos, Jq @ z[nq:]
+        H[ps, :nq], H[vs, :nq], H[vs, nq:] = Jq, jdp[:, dof], Jq
+    return hx, H
+
+
+def test_h_of_a_batch_equals_mujoco_point_by_point_for_each_row(task_km, rollouts_of):
+    """``measure`` runs MuJoCo per row and the products for all rows at once: every row equals, bit for
+    bit, the point-by-point oracle of that row alone (so a rollout's ``h`` does not depend on the
+    batch it is measured in; peg's joints are a contiguous range, the door's are not)."""
+    task, km = task_km
+    z = km.z_of(rollouts_of.x[:, ::9])                      # (3, 12, nz)
+    z = z + 0.2 * np.random.default_rng(1).standard_normal(z.shape)
+    hx, H = km.measure(z)
+    h_only = km.measure(z, False)
+    for i in np.ndindex(z.shape[:-1]):
+        want = _h_point_by_point(task, km, z[i])
+        np.testing.assert_array_equal(hx[i], want[0])
+        np.testing.assert_array_equal(H[i], want[1])
+        np.testing.assert_array_equal(h_only[i], want[0])
+        np.testing.assert_array_equal(km.measure(z[i])[0], want[0])

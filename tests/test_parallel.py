@@ -72,3 +72,19 @@ def test_runs_in_turn_once_jax_has_started_a_backend(monkeypatch):
     assert not can_fork()
     assert set(fork_map(lambda _: os.getpid(), range(3))) == {os.getpid()}
     assert imported_only == (len(os.sched_getaffinity(0)) > 1)
+
+
+def test_runs_in_turn_when_the_load_leaves_no_cpu_idle(monkeypatch):
+    """``spare_cpu``: below ``CPUs - 1/2`` runnable tasks in the last minute a piece is forked, above it
+    the items run in this process (the results are the same; a busy machine only pays for the fork)."""
+    import soc_opt.parallel as par
+
+    monkeypatch.undo()                                            # the conftest's "always spare" off
+    cpus = len(os.sched_getaffinity(0))
+    monkeypatch.setattr(os, "getloadavg", lambda: (cpus - 0.4, 0.0, 0.0))
+    assert not par.spare_cpu()
+    assert set(par.fork_map(lambda _: os.getpid(), range(3))) == {os.getpid()}
+    monkeypatch.setattr(os, "getloadavg", lambda: (cpus - 0.6, 0.0, 0.0))
+    assert par.spare_cpu()
+    monkeypatch.setattr(os, "getloadavg", lambda: (_ for _ in ()).throw(OSError("no load average")))
+    assert par.spare_cpu()

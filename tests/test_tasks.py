@@ -501,6 +501,24 @@ def test_divergence_raises_simulation_error_naming_sample_and_step():
             t.rollouts(pol, 3, np.random.default_rng(0), workers=workers)
 
 
+def test_a_filtered_policy_that_diverges_names_the_sample_and_step_of_one_at_a_time():
+    """A filtered policy's samples run in lockstep; on a divergence they are simulated again one at a
+    time, so the error is the one the first diverging sample in order raises (for any ``workers``)."""
+    from soc_opt.noise.estimator import FilteredPolicy, kalman_filter
+
+    t = build_task(_two_link_config(rho2=0.01), xml=TWO_LINK)
+    T, m, n = t.T, t.m, t.n
+    K = np.zeros((T, m, n))
+    K[:, 0, 2] = K[:, 1, 3] = 1e6
+    pol = LinearGaussianPolicy(K, np.zeros((T, m)), np.broadcast_to(1e-2 * np.eye(m), (T, m, m)))
+    dyn = LinearGaussianDynamics(np.broadcast_to(np.eye(n), (T, n, n)), np.zeros((T, n, m)), np.zeros((T, n)),
+                                 np.broadcast_to(0.1 * np.eye(n), (T, n, n)))
+    fpol = FilteredPolicy(pol, kalman_filter(dyn, 0.01 * np.eye(n), t.x0, 0.01 * np.eye(n)))
+    for workers in (1, 2):
+        with pytest.raises(SimulationError, match=r"sample 0 diverged at control step \d+"):
+            t.rollouts(fpol, 3, np.random.default_rng(0), workers=workers)
+
+
 # ----------------------------------------------------------------- linearisation
 
 

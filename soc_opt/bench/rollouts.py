@@ -38,7 +38,10 @@ def run(task: str = "peg", M: int = 20, T: int = 100, seed: int = 0, repeats: in
     * ``replay_mj_step_nstep``: the actions of the measured rollouts replayed open loop,
       ``mj_step(m, d, substeps)`` per action: physics of exactly the same trajectories with no
       per-step Python work (the reference of ``ratio_to_replay``);
-    * ``rollouts_serial`` and ``rollouts_workers2``: ``task.rollouts`` with the initial policy.
+    * ``rollouts_serial`` and ``rollouts_workers2``: ``task.rollouts`` with the initial policy;
+    * ``rollouts_kinematic_filter``: the initial policy acting on the kinematic estimator's online filter
+      (``gains = "online"``, learned from the serial rollouts' batch), its samples stepped in lockstep
+      (one filter call per control step for all of them).
     """
     import mujoco
 
@@ -74,14 +77,23 @@ def run(task: str = "peg", M: int = 20, T: int = 100, seed: int = 0, repeats: in
                 data.ctrl[act] = actions[i, k]
                 step(model, data, nsub)
 
-    def roll(workers):
-        t.rollouts(policy, M, np.random.default_rng(seed), workers=workers)
+    def roll(workers, pol=policy):
+        t.rollouts(pol, M, np.random.default_rng(seed), workers=workers)
+
+    from ..noise.kinematic import loop
+    from ..noise.kinematic.config import KinematicConfig
+    from ..noise.kinematic.filter import KinematicFilteredPolicy
+
+    batch = t.rollouts(policy, max(M, 2), np.random.default_rng(seed))
+    _, filt, _ = loop.learn(t, batch, policy, KinematicConfig(gains="online"))
+    filtered = KinematicFilteredPolicy(policy, filt)
 
     cases = [
         ("raw_mj_step", raw),
         ("replay_mj_step_nstep", replay),
         ("rollouts_serial", lambda: roll(1)),
         ("rollouts_workers2", lambda: roll(2)),
+        ("rollouts_kinematic_filter", lambda: roll(1, filtered)),
     ]
     rows = []
     for case, fn in cases:

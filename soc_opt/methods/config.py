@@ -128,8 +128,9 @@ class LQRFLMConfig(Config):
     kl_method:   KL-step solver, a name in ``lqg.KL_METHODS``: "closed_form" (LQR backward pass +
                  dual), "casadi" (IPOPT) or "fatrop".
     adapt_multiplier:  adapt ``mult`` from predicted vs actual improvement (GPS rule, see lqg.adapt_multiplier).
-    workers:     parallel rollout workers (results do not depend on it): threads, or forked
-                 processes for a policy acting on a Python filter (the noise estimators').
+    workers:     parallel rollout workers (results do not depend on it): threads.  A policy acting on
+                 a filter (the noise estimators') steps its samples in lockstep, its filter once per
+                 step for all of them, in threads only when a CPU is idle.
     fit:         dynamics-fitting configuration (docs/math.md §2).
     kl:          KL-step solver and step-adaptation configuration (docs/math.md §6), the loop's
                  :class:`LoopKLStepConfig` (dual solved to ``kl_rtol = 1e-6``).

@@ -333,6 +333,18 @@ class FilteredPolicy:
         """:func:`filter_step` with this policy's filter."""
         return filter_step(self.filter, k, s_k, xhat_prev, a_prev)
 
+    def estimate_rows(self, k: int, s_k, xhat_prev=None, a_prev=None) -> np.ndarray:
+        """The estimates ``(B, n)`` of ``B`` rollouts stepped together (``s_k (B, n)``, ``xhat_prev (B, n)``,
+        ``a_prev (B, m)``), each row bit for bit what :meth:`estimate` gives that rollout alone (the
+        MuJoCo rollouts of a filtered policy step their samples in lockstep through it).  Here one call
+        of :meth:`estimate` per row; a filter whose batched step is row-independent overrides it with
+        one call (:class:`~soc_opt.noise.kinematic.filter.KinematicFilteredPolicy`)."""
+        s_k = np.asarray(s_k, dtype=float)
+        out = np.empty(s_k.shape)
+        for i in range(s_k.shape[0]):
+            out[i] = self.estimate(k, s_k[i]) if k == 0 else self.estimate(k, s_k[i], xhat_prev[i], a_prev[i])
+        return out
+
     def sample_action(self, k: int, xhat_k, rng: np.random.Generator) -> np.ndarray:
         """``a_k = K_k xhat_k + k_k + L_k w_k`` for estimates ``xhat_k (..., n)``."""
         return self.policy.sample_action(k, xhat_k, rng)

@@ -23,10 +23,13 @@ dynamax's ``lgssm_smoother`` smooths one sequence; ``jit(vmap(...))`` over the `
 handicap added here.  The like-for-like row is therefore also timed: soc_opt's core with the
 covariances made per sequence (:func:`run_soc_opt_per_sequence`, an initial covariance with a
 sequence axis, as when every sequence has its own model), which does dynamax's work.  pykalman has
-no batch axis: one ``smooth`` call per sequence.  The calls are timed interleaved (soc_opt, soc_opt
-per sequence, dynamax, in turn, the order rotated from one round to the next), so that a change of the
-machine's load hits all of them and none always runs right after another (a cold cache after dynamax's
-call cost the next numpy call up to 0.5 ms at ``n = 6``).
+no batch axis: one ``smooth`` call per sequence.  The calls are timed interleaved (soc_opt, its core,
+its core per sequence, dynamax, in turn, in a random order drawn afresh every round from a fixed seed),
+so that a change of the machine's load hits all of them and each follows each other equally often: a
+call made right after a large one (the per-sequence core, dynamax) starts with cold caches, which cost
+a 1.4 ms call at ``n = 6`` up to 1 ms more.  (A rotation of a fixed order, used before, keeps every
+call's predecessor: the E-step always ran right after dynamax or the per-sequence core, and looked
+0.3-0.6 ms slower than its core for that reason.)
 
 Public functions:
     random_uncorrelated(rng, n, m, T)              -> (model, policy, mu0, P0)
@@ -254,8 +257,9 @@ def compare(rng: np.random.Generator, n: int, T: int = 100, M: int = 20, m: int 
         f()
     runs: dict[str, list] = {k: [] for k in calls}
     names = list(calls)
-    for r in range(repeats):  # in turn, the order rotated: no call always runs right after another one
-        for k in names[r % len(names):] + names[: r % len(names)]:
+    order = np.random.default_rng(0)
+    for _ in range(repeats):  # in turn, in an order drawn afresh every round (module docstring)
+        for k in order.permutation(names):
             runs[k].append(calls[k]())
     sec = {k: float(np.median([r.seconds for r in v])) for k, v in runs.items()}
     ref, so_s = runs["soc_opt"][-1], sec["soc_opt"]

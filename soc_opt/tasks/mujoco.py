@@ -27,9 +27,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from .. import parallel
 from ..config import ConfigError
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
-from ..parallel import can_fork, fork_map
 from . import linearize as _linearize
 from .base import SimulationError, TaskBase, as_rng
 from .config import StateConfig, TaskConfig
@@ -375,6 +375,79 @@ class MujocoTask(TaskBase):
                 kk = int(bad_k[0]) if bad_k.size else T
                 raise SimulationError(f"sample {i} diverged at control step {kk}: non-finite state or action")
 
+    def _run_lockstep(self, samples, K, offs, eps, x, s, a, x0, filtered):
+        """The rollouts ``samples`` of a filtered policy, all stepped together: one ``MjData`` per rollout,
+        and per control step one call of the filter for all of them
+        (:meth:`~soc_opt.noise.estimator.FilteredPolicy.estimate_rows`) instead of one per rollout.
+
+        Each rollout's arithmetic is that of :meth:`_run_samples` (the same MuJoCo calls on its own data,
+        the filter's rows bit for bit those of one rollout, the action ``K_k xhat_k`` as a stack of the
+        same matrix-vector products), so the arrays are identical (tested).  On a divergence, or any error,
+        the samples are simulated again one at a time, which raises what it raises there (the sample and
+        step it names).
+        """
+        idx = np.asarray(samples, dtype=int)
+        try:
+            out = self._lockstep(idx, K, offs, eps, x0, filtered)
+        except Exception:  # noqa: BLE001 -- replayed one sample at a time below, which raises its own error
+            out = None
+        if out is None:
+            return self._run_samples(samples, K, offs, eps, x, s, a, x0, filtered)
+        x[idx], s[idx], a[idx] = out
+
+    def _lockstep(self, idx, K, offs, eps, x0, filtered):
+        """``(x, s, a)`` of the samples ``idx`` stepped together (:meth:`_run_lockstep`), or ``None`` on a
+        divergence."""
+        mj = import_mujoco()
+        m = self.model
+        B, T = idx.size, self.T
+        datas = [mj.MjData(m) for _ in range(B)]
+        reads = [self._reader(d) for d in datas]
+        ctrls = [d.ctrl for d in datas]
+        warns = [d.warning.number for d in datas]
+        step1, step2, step, forward = mj.mj_step1, mj.mj_step2, mj.mj_step, mj.mj_forward
+        nsub, split, bad = self.substeps, self._split_step, self._bad_warn
+        act = _as_index(self.actuator_ids)
+        xb, sb, ab = np.empty((B, T + 1, self.n)), np.empty((B, T + 1, self.n)), np.empty((B, T, self.m))
+        eb, ob = eps[idx], offs[idx]
+        Kc = K[:, None]  # (T, 1, m, n): K_k xhat_k for every row as a stack of matrix-vector products
+        rows = list(zip(range(B), datas, reads, ctrls, warns))
+        for d in datas:
+            self.reset_data(d, x0)
+        xhat = None
+        for k in range(T):
+            for j, d, read, _, _ in rows:
+                if split:
+                    step1(m, d)
+                else:
+                    forward(m, d)
+                read(xb[j, k])
+            sk = sb[:, k]
+            np.add(xb[:, k], eb[:, k], out=sk)
+            xhat = filtered.estimate_rows(k, sk) if k == 0 else filtered.estimate_rows(k, sk, xhat, ab[:, k - 1])
+            ak = ab[:, k]
+            np.add((Kc[k] @ xhat[:, :, None])[:, :, 0], ob[:, k], out=ak)
+            for j, d, _, ctrl, warn in rows:
+                ctrl[act] = ak[j]
+                if split:
+                    step2(m, d)
+                    if nsub > 1:
+                        step(m, d, nsub - 1)
+                else:
+                    step(m, d, nsub)
+                if warn.any():
+                    try:
+                        self._diverged(int(idx[j]), k, d, warn, bad)
+                    except SimulationError:
+                        return None
+        for j, d, read, _, _ in rows:
+            forward(m, d)
+            read(xb[j, T])
+        np.add(xb[:, T], eb[:, T], out=sb[:, T])
+        if not (np.isfinite(xb).all() and np.isfinite(ab).all()):
+            return None
+        return xb, sb, ab
+
     def _diverged(self, i, k, d, warn, bad):
         mj = import_mujoco()
         names = [mj.mjtWarning(w).name for w in np.flatnonzero(warn) if w in bad]
@@ -392,14 +465,16 @@ class MujocoTask(TaskBase):
         Noise ``eps (M,T+1,n) ~ N(0, rho2 I)`` then ``w (M,T,m) ~ N(0, I)`` is drawn from
         ``rng`` up front (``noise=False``: both zero, the policy mean on the true state).
         ``workers > 1`` simulates contiguous blocks of samples in threads, one ``MjData``
-        each (MuJoCo releases the GIL while stepping), or, for a policy acting on a filter (whose
-        steps are Python), in forked processes (:func:`soc_opt.parallel.fork_map`; in one process
-        where it cannot fork); results are identical for any ``workers``.  ``x0``: another initial state in task coordinates (its joint
+        per sample (MuJoCo releases the GIL while stepping); results are identical for any ``workers``.
+        A filtered policy's blocks run in one thread when no CPU is idle (:func:`soc_opt.parallel.spare_cpu`):
+        its filter holds the GIL between the physics steps.  ``x0``: another initial state in task coordinates (its joint
         components are used; default ``self.x0``).  ``a`` records the policy's action
         before MuJoCo clamps it to ``ctrlrange``.  Raises :class:`SimulationError`
         naming the sample and step on divergence.  A :class:`~soc_opt.noise.estimator.FilteredPolicy`
         acts on ``xhat_k``, its filter run online on the measurements and the recorded actions
-        (docs/math.md §10.2); the draws are the same as for a plain policy.
+        (docs/math.md §10.2); the draws are the same as for a plain policy.  Its samples (of a block)
+        are stepped in lockstep, the filter updating all of them in one call per control step
+        (:meth:`_run_lockstep`); each sample's numbers are those of simulating it alone.
         """
         policy, filtered = self._check_policy(policy)
         rng = as_rng(rng)
@@ -417,23 +492,16 @@ class MujocoTask(TaskBase):
         s = np.empty((M, T + 1, n))
         a = np.empty((M, T, m))
         workers = max(1, min(int(workers), M))
-        if filtered is not None and not can_fork():  # threads would only wait on the filter's Python
+        # a filtered policy's samples are stepped in lockstep (one call of its filter per step for all of them)
+        run = self._run_samples if filtered is None else self._run_lockstep
+        if filtered is not None and not parallel.spare_cpu():  # a second thread would only wait for the first's GIL
             workers = 1
         if workers == 1:
-            self._run_samples(range(M), K, offs, eps, x, s, a, x0, filtered)
-        elif filtered is not None:  # the filter is Python: processes, not threads
-            blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
-
-            def run_block(b):
-                self._run_samples(b.tolist(), K, offs, eps, x, s, a, x0, filtered)
-                return x[b], s[b], a[b]
-
-            for b, (xb, sb, ab) in zip(blocks, fork_map(run_block, blocks)):
-                x[b], s[b], a[b] = xb, sb, ab
+            run(range(M), K, offs, eps, x, s, a, x0, filtered)
         else:
             blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
             with ThreadPoolExecutor(max_workers=workers) as ex:
-                futs = [ex.submit(self._run_samples, b.tolist(), K, offs, eps, x, s, a, x0, filtered) for b in blocks]
+                futs = [ex.submit(run, b.tolist(), K, offs, eps, x, s, a, x0, filtered) for b in blocks]
                 errors = []
                 for f in futs:
                     try:

@@ -42,9 +42,10 @@ class KinematicConfig(Config):
                     against a true 33).  Default on since that round (off before it); doubles the
                     estimator's work (see ``parallel_starts``).
     parallel_starts: run the second EM start in a forked child process while this one runs the
-                    first (:func:`soc_opt.noise.kinematic.em.fit_starts`), when ``fork`` exists and
-                    more than one CPU is available; else in turn.  Results are identical either way
-                    (each start's arithmetic is unchanged); only the wall time differs.
+                    first (:func:`soc_opt.noise.kinematic.em.fit_starts`), when ``fork`` exists, more
+                    than one CPU is available and one is idle (:func:`soc_opt.parallel.spare_cpu`);
+                    else in turn.  Results are identical either way (each start's arithmetic is
+                    unchanged); only the wall time differs.
     start_select:   how the two EM starts of ``restart_from_data`` are compared: ``"previous"`` (the
                     likelihood each final map gives the previous batch, which the sampling policy's
                     filter was learned from and which was drawn under other gains: held out, one

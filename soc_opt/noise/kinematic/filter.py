@@ -113,7 +113,12 @@ class KinematicFilter:
         return AccelMap(self.accel_B, self.accel_D, self.accel_c, self.accel_S)
 
     def step(self, k: int, s_k, xhat_prev=None, a_prev=None) -> np.ndarray:
-        """``xhat_k (..., n)`` from ``s_k (..., n)`` and, for ``k >= 1``, ``xhat_{k-1}``, ``a_{k-1}``."""
+        """``xhat_k (..., n)`` from ``s_k (..., n)`` and, for ``k >= 1``, ``xhat_{k-1}``, ``a_{k-1}``.
+
+        The rows are independent to the last bit: a batch of ``B`` rollouts gives each row exactly what
+        that rollout gives alone (the vector-matrix products of a batch are stacked matrix-vector
+        products, :func:`_vm`; ``h``, the solves and the reductions are per row), so rollouts stepped
+        in lockstep (:meth:`KinematicFilteredPolicy.estimate_rows`) equal rollouts stepped one at a time."""
         s_k = np.asarray(s_k, dtype=float)
         if s_k.shape[-1] != self.n:
             raise ShapeError(f"measurement s_k must have shape (..., {self.n}), got {s_k.shape}")
@@ -125,7 +130,7 @@ class KinematicFilter:
             if xhat_prev is None or a_prev is None:
                 raise ValueError(f"kinematic filter step {k} needs the previous estimate and action")
             zp = np.asarray(xhat_prev, dtype=float)[..., self.zidx]
-            pred = zp @ self.A[k - 1].T + np.asarray(a_prev, dtype=float) @ self.Bz[k - 1].T + self.cz[k - 1]
+            pred = _vm(zp, self.A[k - 1].T) + _vm(np.asarray(a_prev, dtype=float), self.Bz[k - 1].T) + self.cz[k - 1]
         km = self.__dict__.get("_km")
         if km is not None and self.online:
             r2 = self.R[0, 0]
@@ -135,9 +140,9 @@ class KinematicFilter:
             return km.measure(pred + np.linalg.solve(self.Lm[k] + Ht @ H / r2, g[..., None])[..., 0], False)
         if km is None:
             dz = pred - self.zbar[k]
-            nu = s_k - self.h0[k] - dz @ self.H[k].T
-            return self.h0[k] + (dz + nu @ self.G[k].T) @ self.H[k].T
-        return km.measure(pred + (s_k - km.measure(pred, False)) @ self.G[k].T, False)
+            nu = s_k - self.h0[k] - _vm(dz, self.H[k].T)
+            return self.h0[k] + _vm(dz + _vm(nu, self.G[k].T), self.H[k].T)
+        return km.measure(pred + _vm(s_k - km.measure(pred, False), self.G[k].T), False)
 
     def attach(self, km) -> "KinematicFilter":
         """Evaluate ``h`` exactly (MuJoCo, ``km`` a :class:`~soc_opt.noise.kinematic.model.KinematicModel` of
@@ -164,6 +169,16 @@ class KinematicFilter:
     def from_dict(d) -> "KinematicFilter":
         """From :meth:`to_dict` output (a file saved before ``online`` existed reads as nominal gains)."""
         return KinematicFilter(**{k: np.asarray(d[k]) for k in _FIELDS if k in d or k != "online"})
+
+
+def _vm(x: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """``x @ A`` for ``x (..., i)`` and ``A (i, j)``, each row of a batch computed as the single vector is.
+
+    One vector ``(i,)`` is multiplied as ``x @ A`` (a matrix-vector BLAS call); a batch ``(..., i)`` as the
+    stack of ``(1, i)`` rows ``(x[..., None, :] @ A)[..., 0, :]``, which numpy's matmul evaluates with the
+    same call per row (a single ``(B, i) @ (i, j)`` product would be a matrix-matrix call, whose rounding
+    differs).  So a row's result does not depend on the batch it is in (tested bit for bit)."""
+    return x @ A if x.ndim == 1 else (x[..., None, :] @ A)[..., 0, :]
 
 
 def _gains(f: KinematicFilter):
@@ -226,6 +241,11 @@ class KinematicFilteredPolicy(FilteredPolicy):
         return self
 
     def estimate(self, k: int, s_k, xhat_prev=None, a_prev=None) -> np.ndarray:
+        return self.filter.step(k, s_k, xhat_prev, a_prev)
+
+    def estimate_rows(self, k: int, s_k, xhat_prev=None, a_prev=None) -> np.ndarray:
+        """:meth:`estimate` of ``B`` rollouts in one call: :meth:`KinematicFilter.step` on the batch, whose
+        rows are those of one rollout at a time bit for bit."""
         return self.filter.step(k, s_k, xhat_prev, a_prev)
 
     def to_dict(self) -> dict:

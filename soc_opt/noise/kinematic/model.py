@@ -37,6 +37,14 @@ _MUJOCO_TASK_ATTRS = ("qpos_adr", "dof_adr", "state_qpos_idx", "state_qvel_idx",
                       "_qinit", "x0")
 
 
+def _as_index(idx) -> slice | np.ndarray:
+    """A slice when ``idx`` is a contiguous ascending range (a cheaper copy), else the array."""
+    idx = np.asarray(idx, dtype=int)
+    if idx.size and np.all(np.diff(idx) == 1):
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
+
+
 def _task_name(task) -> str:
     return str(getattr(task, "name", None) or type(task).__name__)
 
@@ -221,12 +229,23 @@ class KinematicModel:
         return (hx.reshape(lead + (n,)), H.reshape(lead + (n, self.nz))) if jacobian else hx.reshape(lead + (n,))
 
     def _points(self, zf, hx, H, d):
+        """The point rows of ``hx (N, n)`` and, with ``H``, of ``H (N, n, nz)`` at ``zf (N, nz)``.
+
+        MuJoCo's kinematics run once per row (on ``d``), writing each point's position and Jacobians
+        (``mj_jacSite``/``mj_jacBody``, ``mj_jacDot``; translation only) into stacks; the products and
+        copies into ``hx`` and ``H`` then run once for all rows.  The velocity ``J_p(q) qd`` is a stack of
+        the matrix-vector products one row computes alone, so every row is independent of the others
+        to the last bit (and of how many rows there are)."""
         mj, m = self.mj, self.model
         nq, nv = self.nq, m.nv
+        N, P = zf.shape[0], len(self.points)
         dof, qadr = self.dof_adr, self.qpos_adr
-        jp, jr = np.zeros((3, nv)), np.zeros((3, nv))
-        jdp, jdr = np.zeros((3, nv)), np.zeros((3, nv))
+        dof_i, qadr_i = _as_index(dof), _as_index(qadr)
         o_p, o_v = self.pos_sl.start, self.vel_sl.start
+        jac = H is not None
+        pos_all = np.empty((N, P, 3))
+        jp_all = np.empty((N, P, 3, nv))
+        jdp_all = np.empty((N, P, 3, nv)) if jac else None
         # joints outside z keep their initial angle and zero velocity (written once: the
         # kinematics calls read qpos/qvel and never write them); check_task refuses a task where
         # such a joint moves a point, so they move none of the points read here
@@ -234,28 +253,32 @@ class KinematicModel:
         d.qvel[:] = 0.0
         plan = []
         for j, (kind, pid) in enumerate(self.points):
-            ps, vs = slice(o_p + 3 * j, o_p + 3 * j + 3), slice(o_v + 3 * j, o_v + 3 * j + 3)
             if kind == "site":
-                plan.append((d.site_xpos[pid], int(m.site_bodyid[pid]), mj.mj_jacSite, pid, ps, vs))
+                plan.append((j, d.site_xpos[pid], int(m.site_bodyid[pid]), mj.mj_jacSite, pid))
             else:
-                plan.append((d.xpos[pid], pid, mj.mj_jacBody, pid, ps, vs))
+                plan.append((j, d.xpos[pid], pid, mj.mj_jacBody, pid))
         qpos, qvel = d.qpos, d.qvel
         kin, compos, comvel, jacdot = mj.mj_kinematics, mj.mj_comPos, mj.mj_comVel, mj.mj_jacDot
-        for i in range(zf.shape[0]):
-            qd = zf[i, nq:]
-            qpos[qadr] = zf[i, :nq]
-            qvel[dof] = qd
+        for i in range(N):
+            qpos[qadr_i] = zf[i, :nq]
+            qvel[dof_i] = zf[i, nq:]
             kin(m, d)
             compos(m, d)
-            if H is not None:
+            if jac:
                 comvel(m, d)
-            for pos, body, jac, pid, ps, vs in plan:
-                jac(m, d, jp, jr, pid)
-                Jq = jp[:, dof]
-                hx[i, ps] = pos
-                hx[i, vs] = Jq @ qd
-                if H is not None:
-                    jacdot(m, d, jdp, jdr, pos, body)
-                    H[i, ps, :nq] = Jq
-                    H[i, vs, :nq] = jdp[:, dof]
-                    H[i, vs, nq:] = Jq
+            for j, pos, body, jacf, pid in plan:
+                jacf(m, d, jp_all[i, j], None, pid)
+                pos_all[i, j] = pos
+                if jac:
+                    jacdot(m, d, jdp_all[i, j], None, pos, body)
+        # (N, P, 3, nq), each (3, nq) matrix stored column by column, as numpy stores one row's ``jp[:, dof]``
+        # (the indexed axis outermost): the memory order of a matrix decides which BLAS kernel, and so which
+        # rounding, the product J_p qd takes
+        Jq = np.ascontiguousarray(np.swapaxes(jp_all[..., dof], -1, -2)).swapaxes(-1, -2)
+        vel = (Jq @ zf[:, None, nq:, None])[..., 0]  # (N, P, 3): J_p(q) qd, one matrix-vector product per row
+        hx[:, o_p:o_p + 3 * P] = pos_all.reshape(N, 3 * P)
+        hx[:, o_v:o_v + 3 * P] = vel.reshape(N, 3 * P)
+        if jac:
+            H[:, o_p:o_p + 3 * P, :nq] = Jq.reshape(N, 3 * P, nq)
+            H[:, o_v:o_v + 3 * P, :nq] = jdp_all[..., dof].reshape(N, 3 * P, nq)
+            H[:, o_v:o_v + 3 * P, nq:] = Jq.reshape(N, 3 * P, nq)
