@@ -326,13 +326,29 @@ class MujocoTask(TaskBase):
         return q
 
     # -- rollouts (hot path)
+    def _control_step(self):
+        """``(begin, finish)`` of one control step on an ``MjData``: ``begin(d)`` computes positions and
+        velocities (``mj_step1``, or ``mj_forward`` with RK4, which cannot be split), the state is read and
+        the control set in between, ``finish(d)`` completes the step and its remaining substeps."""
+        mj = import_mujoco()
+        m, nsub = self.model, self.substeps
+        step1, step2, step, forward = mj.mj_step1, mj.mj_step2, mj.mj_step, mj.mj_forward
+        if not self._split_step:
+            return (lambda d: forward(m, d)), (lambda d: step(m, d, nsub))
+
+        def finish(d):
+            step2(m, d)
+            if nsub > 1:
+                step(m, d, nsub - 1)
+
+        return (lambda d: step1(m, d)), finish
+
     def _run_samples(self, samples, K, offs, eps, x, s, a, x0, filtered=None):
         mj = import_mujoco()
         m = self.model
         d = mj.MjData(m)
-        step1, step2, step, forward = mj.mj_step1, mj.mj_step2, mj.mj_step, mj.mj_forward
-        nsub = self.substeps
-        split = self._split_step
+        begin, finish = self._control_step()
+        forward = mj.mj_forward
         ctrl = d.ctrl
         act = _as_index(self.actuator_ids)
         warn = d.warning.number
@@ -345,10 +361,7 @@ class MujocoTask(TaskBase):
             xi, si, ai, ei, oi = x[i], s[i], a[i], eps[i], offs[i]
             xhat = None
             for k in range(T):
-                if split:
-                    step1(m, d)
-                else:
-                    forward(m, d)
+                begin(d)
                 xk, sk, ak = xi[k], si[k], ai[k]
                 read(xk)
                 np.add(xk, ei[k], out=sk)
@@ -359,12 +372,7 @@ class MujocoTask(TaskBase):
                     dot(K[k], xhat, out=ak)
                 ak += oi[k]
                 ctrl[act] = ak
-                if split:
-                    step2(m, d)
-                    if nsub > 1:
-                        step(m, d, nsub - 1)
-                else:
-                    step(m, d, nsub)
+                finish(d)
                 if warn.any():
                     self._diverged(i, k, d, warn, bad)
             forward(m, d)
@@ -405,8 +413,8 @@ class MujocoTask(TaskBase):
         reads = [self._reader(d) for d in datas]
         ctrls = [d.ctrl for d in datas]
         warns = [d.warning.number for d in datas]
-        step1, step2, step, forward = mj.mj_step1, mj.mj_step2, mj.mj_step, mj.mj_forward
-        nsub, split, bad = self.substeps, self._split_step, self._bad_warn
+        begin, finish = self._control_step()
+        forward, bad = mj.mj_forward, self._bad_warn
         act = _as_index(self.actuator_ids)
         xb, sb, ab = np.empty((B, T + 1, self.n)), np.empty((B, T + 1, self.n)), np.empty((B, T, self.m))
         eb, ob = eps[idx], offs[idx]
@@ -417,10 +425,7 @@ class MujocoTask(TaskBase):
         xhat = None
         for k in range(T):
             for j, d, read, _, _ in rows:
-                if split:
-                    step1(m, d)
-                else:
-                    forward(m, d)
+                begin(d)
                 read(xb[j, k])
             sk = sb[:, k]
             np.add(xb[:, k], eb[:, k], out=sk)
@@ -429,12 +434,7 @@ class MujocoTask(TaskBase):
             np.add((Kc[k] @ xhat[:, :, None])[:, :, 0], ob[:, k], out=ak)
             for j, d, _, ctrl, warn in rows:
                 ctrl[act] = ak[j]
-                if split:
-                    step2(m, d)
-                    if nsub > 1:
-                        step(m, d, nsub - 1)
-                else:
-                    step(m, d, nsub)
+                finish(d)
                 if warn.any():
                     try:
                         self._diverged(int(idx[j]), k, d, warn, bad)
