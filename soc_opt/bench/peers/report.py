@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ...peers.rl import steps_to
+from .rl import PAPER_BUDGET
 
 __all__ = ["soc_curves", "sweep_curves", "rl_curves", "rl_table", "stored_rows", "main"]
 
@@ -296,6 +297,7 @@ def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.colors import to_rgb
 
     m = METRIC[task]
     rhos = sorted({k[2] for k in soc if k[1] == task} | {k[2] for k in rl if k[1] == task})
@@ -305,10 +307,12 @@ def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
     for j, rho2 in enumerate(rhos):
         # the paper-as-written rows are in the table; the figure shows the methods' defaults
         series = [(k[0], c) for k, c in soc.items() if k[1] == task and k[2] == rho2 and "as written" not in k[0]]
-        series += [(f"{k[0]} ({k[3] // 1000}k)", c) for k, c in rl.items() if k[1] == task and k[2] == rho2]
-        for label, c in series:
+        series += [(f"{k[0]} ({k[3] // 1000}k)", c, k[3]) for k, c in rl.items() if k[1] == task and k[2] == rho2]
+        for label, c, *budget in series:
             base = label.split(" (")[0]
             color = _COLORS.get(base.replace(" noise-aware", "").replace(" kinematic", ""), "gray")
+            if budget and budget[0] > PAPER_BUDGET:  # the longer runs of one method: darker, no markers
+                color = tuple(0.55 * x for x in to_rgb(color))
             ls = ":" if "noise-aware" in base else "-." if "kinematic" in base else \
                 ("-" if base.startswith(("LQR", "DPSOC")) else "--")
             for i, key in enumerate((m, "cost")):
@@ -319,7 +323,9 @@ def _figure(task: str, soc: dict, rl: dict, path: Path) -> None:
                     with warnings.catch_warnings():
                         warnings.simplefilter("ignore", RuntimeWarning)
                         mu, sd = np.nanmean(v, axis=0), np.nanstd(v, axis=0)
-                axes[i, j].plot(c["steps"], mu, ls, color=color, marker=".", label=label)
+                long = bool(budget) and budget[0] > PAPER_BUDGET
+                axes[i, j].plot(c["steps"], mu, ls, color=color, marker=None if long else ".", lw=1.2 if long else 1.5,
+                                label=label)
                 axes[i, j].fill_between(c["steps"], mu - sd, mu + sd, color=color, alpha=0.12)
         axes[0, j].set_title(f"{task}, rho^2 = {rho2:g}")
         axes[0, j].set_ylabel({"success_rate": "success rate", "min_hinge": "min hinge angle (rad)"}[m])
