@@ -28,6 +28,7 @@ __all__ = [
     "as_generator",
     "symmetrize",
     "schur_pd_margin",
+    "as_index",
 ]
 
 
@@ -180,3 +181,11 @@ def schur_pd_margin(M: np.ndarray, split: int) -> np.ndarray:
     rounding = 8 * d * np.finfo(float).eps * np.maximum(np.abs(np.linalg.eigvalsh(A)).max(-1), tiny)
     ratio_S = np.where(wS[..., 0] <= rounding, np.minimum(ratio_S, 0.0), ratio_S)
     return np.minimum(ratio_D, ratio_S)
+
+
+def as_index(idx) -> slice | np.ndarray:
+    """A slice when ``idx`` is a contiguous ascending range (indexing with it copies less), else the array."""
+    idx = np.asarray(idx, dtype=int)
+    if idx.size and np.all(np.diff(idx) == 1):
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx

@@ -29,6 +29,7 @@ import numpy as np
 
 from .. import parallel
 from ..config import ConfigError
+from ..linalg import as_index
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
 from . import linearize as _linearize
 from .base import SimulationError, TaskBase, as_rng
@@ -41,14 +42,6 @@ def import_mujoco():
     import mujoco
 
     return mujoco
-
-
-def _as_index(idx) -> slice | np.ndarray:
-    """A slice when ``idx`` is a contiguous ascending range (cheaper to copy), else the array."""
-    idx = np.asarray(idx, dtype=int)
-    if idx.size and np.all(np.diff(idx) == 1):
-        return slice(int(idx[0]), int(idx[-1]) + 1)
-    return idx
 
 
 #: Degrees of freedom per joint type (free, ball, slide, hinge).
@@ -350,7 +343,7 @@ class MujocoTask(TaskBase):
         begin, finish = self._control_step()
         forward = mj.mj_forward
         ctrl = d.ctrl
-        act = _as_index(self.actuator_ids)
+        act = as_index(self.actuator_ids)
         warn = d.warning.number
         bad = self._bad_warn
         read = self._reader(d)
@@ -415,7 +408,7 @@ class MujocoTask(TaskBase):
         warns = [d.warning.number for d in datas]
         begin, finish = self._control_step()
         forward, bad = mj.mj_forward, self._bad_warn
-        act = _as_index(self.actuator_ids)
+        act = as_index(self.actuator_ids)
         xb, sb, ab = np.empty((B, T + 1, self.n)), np.empty((B, T + 1, self.n)), np.empty((B, T, self.m))
         eb, ob = eps[idx], offs[idx]
         Kc = K[:, None]  # (T, 1, m, n): K_k xhat_k for every row as a stack of matrix-vector products
@@ -575,7 +568,7 @@ class MujocoSimulator:
         self.task = task
         self.data = mj.MjData(task.model)
         self.read_state = task._reader(self.data)
-        self.actuator_ids = _as_index(task.actuator_ids)
+        self.actuator_ids = as_index(task.actuator_ids)
         self.x = np.empty(task.n)
         self.k = 0
         self.reset()

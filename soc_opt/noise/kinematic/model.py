@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...config import ConfigError
+from ...linalg import as_index
 from ...models import ShapeError, check_array
 
 __all__ = ["KinematicModel", "AccelMap", "transition", "check_task"]
@@ -35,14 +36,6 @@ __all__ = ["KinematicModel", "AccelMap", "transition", "check_task"]
 #: What the model reads off a MuJoCo task (:class:`soc_opt.tasks.mujoco.MujocoTask`, gym: tasks included).
 _MUJOCO_TASK_ATTRS = ("qpos_adr", "dof_adr", "state_qpos_idx", "state_qvel_idx", "point_refs", "layout", "substeps",
                       "_qinit", "x0")
-
-
-def _as_index(idx) -> slice | np.ndarray:
-    """A slice when ``idx`` is a contiguous ascending range (a cheaper copy), else the array."""
-    idx = np.asarray(idx, dtype=int)
-    if idx.size and np.all(np.diff(idx) == 1):
-        return slice(int(idx[0]), int(idx[-1]) + 1)
-    return idx
 
 
 def _task_name(task) -> str:
@@ -240,7 +233,7 @@ class KinematicModel:
         nq, nv = self.nq, m.nv
         N, P = zf.shape[0], len(self.points)
         dof, qadr = self.dof_adr, self.qpos_adr
-        dof_i, qadr_i = _as_index(dof), _as_index(qadr)
+        dof_i, qadr_i = as_index(dof), as_index(qadr)
         o_p, o_v = self.pos_sl.start, self.vel_sl.start
         jac = H is not None
         pos_all = np.empty((N, P, 3))
