@@ -139,3 +139,57 @@ def test_final_modes_oracle_map_is_the_m_step_on_the_true_states_and_estimates_t
     q = km.zidx[:km.nq]
     err = [np.sqrt(np.mean((f.states(batch.s, batch.a)[..., q] - batch.x[..., q]) ** 2)) for f in (filt, oracle.filter)]
     assert err[1] < err[0], err
+
+
+def test_first_fit_study_parses_variants_and_averages_the_relative_error_over_steps():
+    """examples/studies/noise_kinematic_first_fit.py: ``KEY=VALUE+...`` typed from the defaults; the error is
+    ``mean_k ||X_k - Y_k||_F / ||Y_k||_F`` over the selected rows."""
+    import numpy as np
+
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_kinematic_first_fit.py"))
+    assert mod["parse_variant"]("em_iters=30+segments=2+start_map=rigid_body+q_noise=0.01") == {
+        "em_iters": 30, "segments": 2, "start_map": "rigid_body", "q_noise": 0.01}
+    assert mod["parse_variant"]("") == {}
+    Y = np.stack([np.eye(2), 2.0 * np.eye(2)])
+    X = Y.copy()
+    X[:, 0, 0] += 1.0
+    assert mod["relative_error"](Y, Y) == 0.0
+    np.testing.assert_allclose(mod["relative_error"](X, Y), np.mean([1 / np.sqrt(2), 1 / np.sqrt(8)]), rtol=1e-14)
+    np.testing.assert_allclose(mod["relative_error"](X, Y, [1]), 0.0)
+
+
+def test_oracle_loop_split_variants_take_exactly_their_part_from_the_true_states():
+    """examples/studies/noise_kinematic_oracles_loop.py: ``oracle object rows`` is the smoothed fit with the door's
+    rows (hinge, handle) from the true-state fit and no noise coupling between the two blocks; ``oracle mean
+    dynamics`` is the true-state fit's ``A, B, c`` with the smoothed fit's ``W``."""
+    import numpy as np
+
+    from soc_opt.experiments.run import load_run_config
+    from soc_opt.noise.aware import NoiseConfig
+    from soc_opt.noise.strategy import resolve
+    from soc_opt.tasks import load_task
+
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_kinematic_oracles_loop.py"))
+    task = load_task("door", overrides={"rho2": 0.1, "T": 12})
+    fc = load_run_config("door", paper=True, method="lqr-flm").baseline.fit
+    strategy = resolve(task, NoiseConfig(estimator="kinematic"))
+    pol = task.initial_policy()
+    ro = task.rollouts(pol, 6, np.random.default_rng(0))
+    est = strategy.estimate(None, ro, fc, pol, np.random.default_rng(1))
+    args = (strategy, est.data(ro), fc, est, pol)
+    smoothed, true = mod["_fit"](*args), mod["_oracle_dynamics"](*args)
+    assert not np.allclose(smoothed.A, true.A)
+    rows = np.array([("hinge" in lb or "handle" in lb) for lb in task.state_labels])
+    assert 0 < rows.sum() < task.n
+    obj = mod["_oracle_object_rows"](*args)
+    for f in ("A", "B", "c"):
+        np.testing.assert_array_equal(getattr(obj, f)[:, rows], getattr(true, f)[:, rows])
+        np.testing.assert_array_equal(getattr(obj, f)[:, ~rows], getattr(smoothed, f)[:, ~rows])
+    np.testing.assert_array_equal(obj.cov[:, rows][:, :, rows], true.cov[:, rows][:, :, rows])
+    np.testing.assert_array_equal(obj.cov[:, ~rows][:, :, ~rows], smoothed.cov[:, ~rows][:, :, ~rows])
+    assert not obj.cov[:, rows][:, :, ~rows].any()
+    assert np.all(np.linalg.eigvalsh(obj.cov) > -1e-12)
+    mean = mod["_oracle_mean_dynamics"](*args)
+    for f in ("A", "B", "c"):
+        np.testing.assert_array_equal(getattr(mean, f), getattr(true, f))
+    np.testing.assert_array_equal(mean.cov, smoothed.cov)

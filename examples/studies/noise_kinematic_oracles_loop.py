@@ -12,6 +12,19 @@ experiment configuration with ``--paper``), each final policy scored on 20 fresh
   policy's gains only), the learner still sees ``x + eps`` through the kinematic smoother;
   it isolates the fit.
 
+``oracle fit`` splits into the learner's parts (issue 30, item 3); each gives *one* part the true
+states and leaves the rest on the smoothed ones:
+
+* ``oracle dynamics``: the per-step regression ``(A_k, B_k, c_k, W_k)`` on the true states (no posterior
+  moments), with the mixture prior fitted on the smoothed states;
+* ``oracle prior``: the mixture prior on the true states' tuples;
+* ``oracle expansion``: the cost expanded around the true states' mean trajectory;
+* ``oracle mean dynamics`` / ``oracle dynamics noise``: ``oracle dynamics`` split once more: ``A_k, B_k,
+  c_k`` from the true states with the smoothed fit's ``W_k``, or the smoothed fit's ``A_k, B_k, c_k``
+  with the true states' ``W_k``;
+* ``oracle object rows``: the smoothed fit with the rows of the states of the door (its hinge, its
+  handle's position and velocity: the labels naming ``hinge`` or ``handle``) from the true states' fit.
+
 Both oracles are diagnostics, not methods.  The estimator uses the robot's kinematics (not its
 masses, inertia or damping), which the paper's learner does not assume.
 
@@ -33,9 +46,69 @@ from soc_opt.experiments.run import load_run_config, run_experiment
 from soc_opt.methods.registry import get_method
 from soc_opt.noise.aware import NoiseConfig, gains
 from soc_opt.noise.kinematic import loop
+from soc_opt.noise.kinematic_strategy import KinematicEstimator
+from soc_opt.noise.strategy import Estimates, NoiseStrategy
 from soc_opt.tasks import load_task
 
 _learn = loop.learn
+_estimate, _fit, _expansion = KinematicEstimator.estimate, KinematicEstimator.fit, KinematicEstimator.expansion_point
+
+
+def _true(rollouts):
+    return dataclasses.replace(rollouts, s=rollouts.x)
+
+
+def _oracle_dynamics(self, rollouts, fit_cfg, estimates, sampler, *, include_y=False):
+    return NoiseStrategy.fit(self, _true(rollouts), fit_cfg, estimates, sampler, include_y=include_y)
+
+
+def _oracle_mean_dynamics(self, rollouts, fit_cfg, estimates, sampler, *, include_y=False):
+    true = _oracle_dynamics(self, rollouts, fit_cfg, estimates, sampler)
+    return dataclasses.replace(true, cov=_fit(self, rollouts, fit_cfg, estimates, sampler).cov)
+
+
+def _oracle_dynamics_noise(self, rollouts, fit_cfg, estimates, sampler, *, include_y=False):
+    smoothed = _fit(self, rollouts, fit_cfg, estimates, sampler)
+    return dataclasses.replace(smoothed, cov=_oracle_dynamics(self, rollouts, fit_cfg, estimates, sampler).cov)
+
+
+def _oracle_object_rows(self, rollouts, fit_cfg, estimates, sampler, *, include_y=False):
+    smoothed = _fit(self, rollouts, fit_cfg, estimates, sampler)
+    true = _oracle_dynamics(self, rollouts, fit_cfg, estimates, sampler)
+    rows = np.array([("hinge" in label or "handle" in label) for label in self.task.state_labels])
+    A, B, c, W = (np.array(getattr(smoothed, f)) for f in ("A", "B", "c", "cov"))
+    A[:, rows], B[:, rows], c[:, rows] = true.A[:, rows], true.B[:, rows], true.c[:, rows]
+    W[:, rows] = true.cov[:, rows]
+    W[:, :, rows] = true.cov[:, :, rows]
+    W[:, rows[:, None] != rows[None, :]] = 0.0  # no noise couplings between the two blocks
+    return dataclasses.replace(smoothed, A=A, B=B, c=c, cov=W)
+
+
+def _oracle_prior(self, prior, rollouts, fit_cfg, sampler, rng, previous=None):
+    learn, filt, diag = loop.learn(self.task, rollouts, sampler, self.cfg.kinematic, previous)
+    base = NoiseStrategy.estimate(self, prior, _true(learn), fit_cfg, sampler, rng)
+    return Estimates(prior=base.prior, learn=learn, filter=filt, moments=diag.get("posterior"),
+                     timings={"estimator": diag["kin_time"]})
+
+
+def _oracle_expansion(self, rollouts, dynamics):
+    return rollouts.x.mean(axis=0)
+
+
+def _patches():
+    """The parts of the learner each variant replaces: ``(learn, estimate, fit, expansion_point)``."""
+    return {"oracle fit": (_true_state_learn, _estimate, _fit, _expansion),
+            "oracle dynamics": (_learn, _estimate, _oracle_dynamics, _expansion),
+            "oracle prior": (_learn, _oracle_prior, _fit, _expansion),
+            "oracle expansion": (_learn, _estimate, _fit, _oracle_expansion),
+            "oracle mean dynamics": (_learn, _estimate, _oracle_mean_dynamics, _expansion),
+            "oracle dynamics noise": (_learn, _estimate, _oracle_dynamics_noise, _expansion),
+            "oracle object rows": (_learn, _estimate, _oracle_object_rows, _expansion)}
+
+
+def _install(parts):
+    loop.learn = parts[0]
+    KinematicEstimator.estimate, KinematicEstimator.fit, KinematicEstimator.expansion_point = parts[1:]
 
 
 def _true_state_learn(task, rollouts, sampler, cfg, previous=None):
@@ -66,7 +139,7 @@ def run_one(task_name: str, variant: str, seed: int, rho2: float) -> dict:
     cfg = load_run_config(task_name, paper=True, method="lqr-flm")
     cfg = cfg.replace(baseline=cfg.baseline.replace(noise=NoiseConfig(estimator="kinematic")))
     learner, eval_task = task, task
-    loop.learn = _true_state_learn if variant == "oracle fit" else _learn
+    _install(_patches().get(variant, (_learn, _estimate, _fit, _expansion)))
     if variant == "oracle state":
         twin = load_task(task_name, overrides={"rho2": 0.0})
         learner = _TrueStateActor(task, twin)
@@ -74,7 +147,7 @@ def run_one(task_name: str, variant: str, seed: int, rho2: float) -> dict:
     try:
         st = run_experiment(learner, "lqr-flm", cfg, seed, None)
     finally:
-        loop.learn = _learn
+        _install((_learn, _estimate, _fit, _expansion))
     final = get_method("lqr-flm").final_policy(cfg, st)  # the returned policy (docs/math.md §12.3)
     pol = gains(final) if variant == "oracle state" else final
     ro = (twin if variant == "oracle state" else eval_task).rollouts(pol, 20, np.random.default_rng(10000 + seed))
