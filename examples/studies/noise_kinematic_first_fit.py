@@ -39,14 +39,19 @@ def parse_variant(text: str) -> dict:
     default = KinematicConfig()
     for item in filter(None, text.split("+")):
         key, _, value = item.partition("=")
-        out[key] = type(getattr(default, key))(value)
+        kind = type(getattr(default, key))
+        out[key] = value.lower() in ("true", "1", "yes") if kind is bool else kind(value)
     return out
+
+
+def _step_norms(X: np.ndarray, rows) -> np.ndarray:
+    """``||X_k[rows]||_F`` per step ``k``."""
+    return np.linalg.norm(X[:, rows].reshape(len(X), -1), axis=1)
 
 
 def relative_error(X: np.ndarray, Y: np.ndarray, rows=slice(None)) -> float:
     """Mean over steps of ``||X_k[rows] - Y_k[rows]||_F / ||Y_k[rows]||_F``."""
-    num = np.linalg.norm((X - Y)[:, rows].reshape(len(X), -1), axis=1)
-    return float(np.mean(num / np.linalg.norm(Y[:, rows].reshape(len(Y), -1), axis=1)))
+    return float(np.mean(_step_norms(X - Y, rows) / _step_norms(Y, rows)))
 
 
 def kinds(labels) -> dict:
@@ -57,10 +62,6 @@ def kinds(labels) -> dict:
                 else "point velocities" if ".v" in label else "point positions")
         out[kind].append(i)
     return {k: v for k, v in out.items() if v}
-
-
-def _norm(X: np.ndarray, rows) -> float:
-    return float(np.mean(np.linalg.norm(X[:, rows].reshape(len(X), -1), axis=1)))
 
 
 def main(argv=None):
@@ -74,8 +75,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     task = load_task(args.task, overrides={"rho2": args.rho2})
     fc = load_run_config(args.task, paper=True, method="lqr-flm").baseline.fit
-    points = [i for i, label in enumerate(task.state_labels) if "." in label and ".v" not in label]
     groups = kinds(task.state_labels)
+    points = groups.get("point positions", [])
     if args.by_kind:
         print("| seed | variant | rows | ||A - A*|| | ||A*|| | ||B - B*|| | ||B*|| |")
         print("|---|---|---|---|---|---|---|")
@@ -94,8 +95,7 @@ def main(argv=None):
             dyn = strategy.fit(est.data(ro), fc, est, policy)
             if args.by_kind:
                 for kind, rows in groups.items():
-                    vals = [_norm(dyn.A - oracle.A, rows), _norm(oracle.A, rows), _norm(dyn.B - oracle.B, rows),
-                            _norm(oracle.B, rows)]
+                    vals = [float(np.mean(_step_norms(X, rows))) for X in (dyn.A - oracle.A, oracle.A, dyn.B - oracle.B, oracle.B)]
                     print(f"| {seed} | {text or 'default'} | {kind} | " + " | ".join(f"{v:.3g}" for v in vals) + " |")
                 continue
             row = [relative_error(dyn.B, oracle.B), relative_error(dyn.B, oracle.B, points),

@@ -52,6 +52,7 @@ from soc_opt.tasks import load_task
 
 _learn = loop.learn
 _estimate, _fit, _expansion = KinematicEstimator.estimate, KinematicEstimator.fit, KinematicEstimator.expansion_point
+_UNPATCHED = (_learn, _estimate, _fit, _expansion)
 
 
 def _true(rollouts):
@@ -139,7 +140,7 @@ def run_one(task_name: str, variant: str, seed: int, rho2: float) -> dict:
     cfg = load_run_config(task_name, paper=True, method="lqr-flm")
     cfg = cfg.replace(baseline=cfg.baseline.replace(noise=NoiseConfig(estimator="kinematic")))
     learner, eval_task = task, task
-    _install(_patches().get(variant, (_learn, _estimate, _fit, _expansion)))
+    _install(_patches().get(variant, _UNPATCHED))
     if variant == "oracle state":
         twin = load_task(task_name, overrides={"rho2": 0.0})
         learner = _TrueStateActor(task, twin)
@@ -147,7 +148,7 @@ def run_one(task_name: str, variant: str, seed: int, rho2: float) -> dict:
     try:
         st = run_experiment(learner, "lqr-flm", cfg, seed, None)
     finally:
-        _install((_learn, _estimate, _fit, _expansion))
+        _install(_UNPATCHED)
     final = get_method("lqr-flm").final_policy(cfg, st)  # the returned policy (docs/math.md §12.3)
     pol = gains(final) if variant == "oracle state" else final
     ro = (twin if variant == "oracle state" else eval_task).rollouts(pol, 20, np.random.default_rng(10000 + seed))
