@@ -193,3 +193,17 @@ def test_oracle_loop_split_variants_take_exactly_their_part_from_the_true_states
     for f in ("A", "B", "c"):
         np.testing.assert_array_equal(getattr(mean, f), getattr(true, f))
     np.testing.assert_array_equal(mean.cov, smoothed.cov)
+
+
+def test_oracle_loop_variant_names_say_how_it_learns_and_where_it_is_scored():
+    """examples/studies/noise_kinematic_oracles_loop.py: `` @ true state`` learns as the variant without the
+    suffix and scores on the true state; ``oracle state`` always scores there; a misspelt name is an error."""
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_kinematic_oracles_loop.py"))
+    parse = mod["parse_variant"]
+    assert parse("kinematic") == ("kinematic", False)
+    assert parse("oracle fit") == ("oracle fit", False)
+    assert parse("oracle fit @ true state") == ("oracle fit", True)
+    assert parse("kinematic @ true state") == ("kinematic", True)
+    assert parse("oracle state") == ("oracle state", True)
+    with pytest.raises(ValueError, match="oracle fitt"):
+        parse("oracle fitt @ true state")
