@@ -287,6 +287,19 @@ def test_dynamax_agrees_with_the_estep_without_its_diagonal_boost(monkeypatch):
     assert row["dynamax_max_dloglik"] < 1e-10
 
 
+def test_dynamax_runs_in_float64_without_switching_jax_to_float64_for_the_rest_of_the_process():
+    """The dynamax peer computes in float64 inside ``jax.enable_x64`` only: left on globally, sbx-rl's SAC
+    later in the same process fails (its optimiser's float32 learning rate meets float64)."""
+    _peer("dynamax")
+    import jax
+
+    before = bool(jax.config.jax_enable_x64)
+    row = psm.compare(np.random.default_rng(4), 3, T=10, M=2, m=2, repeats=1, peers=("dynamax",))
+    assert row["dynamax_max_dmean"] < 1e-6  # float64 agreement up to dynamax's 1e-9 diagonal boost
+    assert bool(jax.config.jax_enable_x64) == before
+    assert jax.numpy.asarray([1.0]).dtype == (jax.numpy.float64 if before else jax.numpy.float32)
+
+
 def test_mpc_lqr_step_agrees_with_lqr_and_the_kl_step():
     _peer("torch")
     _peer("mpc")

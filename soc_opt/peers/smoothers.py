@@ -180,18 +180,20 @@ def _dynamax_params(lg: LGSSM, mu0, P0):
 
 def _dynamax_call(lg: LGSSM, Y, mu0, P0):
     """A timed dynamax call ``() -> SmootherOutput`` (jit + vmap over the sequences) and the first
-    call's time (trace + XLA compile + one run)."""
+    call's time (trace + XLA compile + one run).  float64 inside ``jax.enable_x64`` only: switching
+    JAX's global flag would leave every later JAX user in the process (sbx-rl's SAC) on float64."""
     jax = require("jax")
-    jax.config.update("jax_enable_x64", True)
     inference = require("dynamax.linear_gaussian_ssm.inference")
-    params = _dynamax_params(lg, mu0, P0)
-    fn = jax.jit(jax.vmap(lambda y: inference.lgssm_smoother(params, y[:, None]), in_axes=0))
-    Yj = jax.numpy.asarray(Y)
+    with jax.enable_x64(True):
+        params = _dynamax_params(lg, mu0, P0)
+        fn = jax.jit(jax.vmap(lambda y: inference.lgssm_smoother(params, y[:, None]), in_axes=0))
+        Yj = jax.numpy.asarray(Y)
 
     def call() -> SmootherOutput:
-        t0 = time.perf_counter()
-        post = jax.block_until_ready(fn(Yj))
-        dt = time.perf_counter() - t0
+        with jax.enable_x64(True):
+            t0 = time.perf_counter()
+            post = jax.block_until_ready(fn(Yj))
+            dt = time.perf_counter() - t0
         return SmootherOutput(np.asarray(post.smoothed_means), np.asarray(post.smoothed_covariances)[0],
                               np.asarray(post.marginal_loglik), dt)
 
