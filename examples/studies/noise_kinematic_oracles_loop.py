@@ -158,11 +158,9 @@ def run_one(task_name: str, variant: str, seed: int, rho2: float) -> dict:
     task = load_task(task_name, overrides={"rho2": rho2})
     cfg = load_run_config(task_name, paper=True, method="lqr-flm")
     cfg = cfg.replace(baseline=cfg.baseline.replace(noise=NoiseConfig(estimator="kinematic")))
-    learner = task
-    twin = load_task(task_name, overrides={"rho2": 0.0})
+    twin = load_task(task_name, overrides={"rho2": 0.0}) if on_true else None  # "oracle state" is on_true
+    learner = _TrueStateActor(task, twin) if learned_as == "oracle state" else task
     _install(_patches().get(learned_as, _UNPATCHED))
-    if learned_as == "oracle state":
-        learner = _TrueStateActor(task, twin)
     t0 = time.perf_counter()
     try:
         st = run_experiment(learner, "lqr-flm", cfg, seed, None)
