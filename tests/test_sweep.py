@@ -484,3 +484,24 @@ def test_worker_killed_past_its_retries_fails_and_a_rerun_resumes_it(reference, 
     result = json.loads((tmp_path / "k" / spec.trials[0].relpath / "result.json").read_text())
     assert result["resumed_from"] == 2
     _same_metrics(spec, ref_out, tmp_path / "k")
+
+
+@pytest.mark.parametrize("path", sorted((problems_dir() / "sweeps").glob("*.toml")), ids=lambda p: p.stem)
+def test_every_committed_sweep_file_loads_and_is_named_after_its_file(path):
+    """Every sweep a document cites as a command (docs/results/*.md) is a valid sweep whose output directory
+    ``runs/sweep-NAME`` is the one the documents name, with at least one trial."""
+    spec = load_sweep(str(path))
+    assert spec.name == path.stem and len(spec.trials) >= 1
+
+
+def test_the_cap_sweep_varies_only_the_door_cap_on_the_tuning_seeds():
+    """``cap_tuning.toml`` (docs/results/acceptance.md §4): the door without noise, step acceptance on, tuning seeds
+    200-209, the door experiment's cap of 10 against 30 and none (the library default 1e4), nothing else changed."""
+    spec = load_sweep(str(problems_dir() / "sweeps" / "cap_tuning.toml"))
+    assert set(spec.seeds) == set(range(200, 210)) and {t.task for t in spec.trials} == {"door"}
+    caps = {t.setting.split(",")[0]: t.config.baseline.kl.mult_max for t in spec.trials}
+    assert caps == {"default": 10.0, "cap30": 30.0, "uncapped": 1e4}
+    base = next(t.config for t in spec.trials if t.setting.startswith("default"))
+    for t in spec.trials:
+        assert t.config.baseline.acceptance.enabled and t.task_overrides["rho2"] == 0.0
+        assert t.config.baseline.kl.mult_min == base.baseline.kl.mult_min and t.config.baseline.init_var == base.baseline.init_var
