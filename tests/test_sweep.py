@@ -496,7 +496,8 @@ def test_every_committed_sweep_file_loads_and_is_named_after_its_file(path):
 
 def test_the_cap_sweep_varies_only_the_door_cap_on_the_tuning_seeds():
     """``cap_tuning.toml`` (docs/results/acceptance.md §4): the door without noise, step acceptance on, tuning seeds
-    200-209, the door experiment's cap of 10 against 30 and none (the library default 1e4), nothing else changed."""
+    200-209, the door experiment's cap of 10 against 30 and none (the library default 1e4); acceptance on, floor and
+    initial variance those of the default setting."""
     spec = load_sweep(str(problems_dir() / "sweeps" / "cap_tuning.toml"))
     assert set(spec.seeds) == set(range(200, 210)) and {t.task for t in spec.trials} == {"door"}
     caps = {t.setting.split(",")[0]: t.config.baseline.kl.mult_max for t in spec.trials}
