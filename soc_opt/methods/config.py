@@ -69,8 +69,11 @@ class AcceptanceConfig(Config):
     shrink:   on a rejection the next step is taken around the last accepted policy with its
               multiplier times ``shrink`` (0.1, the GPS rule's ``factor_min``), floored at ``kl.mult_min``.
     cost:     the cost the test reads: "measured" (default; the total cost of the measured states,
-              which is all a learner on a real robot observes) or "true" (the simulator's true states,
-              what the run records; identical without sensor noise).
+              which is all a learner on a real robot observes), "estimated" (the cost of the states the
+              learner fits on: the state estimator's, e.g. the kinematic smoother's ``h(E[z | s, a])``,
+              computed from the measurements alone; the measured states when the estimator learns on
+              them; docs/math.md §12.1) or "true" (the simulator's true states, what the run records;
+              identical without sensor noise).
     ceiling:  after a rejection the multiplier is kept below ``ceiling`` times the multiplier of the
               rejected step until a step at that size is accepted (0.5; 1.0 turns it off), so that the
               step-size rule does not grow straight back to the size that just failed.
@@ -79,16 +82,16 @@ class AcceptanceConfig(Config):
               predicted and actual improvements come from fitted models, unreliable under sensor
               noise); off by default.
     actual:   the actual improvement the GPS rule reads on an accepted step: "laplace" (default, §6: the
-              new samples' fitted model's expected cost, as the paper) or "samples" (the measured mean
-              cost of the last accepted batch minus the new batch's, the trust-region ratio's numerator
-              read from the samples the acceptance test already has).
+              new samples' fitted model's expected cost, as the paper) or "samples" (the mean cost of the
+              last accepted batch minus the new batch's, on the cost the test reads (``cost``): the
+              trust-region ratio's numerator read from the samples the acceptance test already has).
     """
 
     enabled: bool = True
     kappa: float = 2.0
     eps: float = 0.02
     shrink: float = 0.1
-    cost: Literal["measured", "true"] = "measured"
+    cost: Literal["measured", "estimated", "true"] = "measured"
     ceiling: float = 0.5
     hold_when_improved: bool = False
     actual: Literal["laplace", "samples"] = "laplace"
@@ -97,7 +100,7 @@ class AcceptanceConfig(Config):
         "kappa": [Interval(0)],
         "eps": [Interval(0)],
         "shrink": [Interval(0, 1, "neither")],
-        "cost": [Options(("measured", "true"))],
+        "cost": [Options(("measured", "estimated", "true"))],
         "ceiling": [Interval(0, 1, "right")],
         "actual": [Options(("laplace", "samples"))],
     }

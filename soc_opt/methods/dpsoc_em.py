@@ -99,15 +99,19 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
         previous = state.last_rollouts
         accepted = state.accepted
         acc_cfg = cfg.baseline.acceptance
-        first = None
+        first = first_est = None
         if acc_cfg.enabled:
             first = sample(task, cfg.baseline, state, rng)
             first_rec = record(state.iteration, "em", task, first[0])
-            c_s, se_s = acceptance_cost(acc_cfg, first_rec)
+            first_est = None
+            if acc_cfg.cost == "estimated":  # the test reads the estimator's states: estimate the batch first
+                first_est = noise.estimate(prior, first[0], cfg.baseline.fit, policy, rng, previous=previous)
+                first[1].update(first_est.timings)
+            c_s, se_s = acceptance_cost(acc_cfg, first_rec, None if first_est is None else first_est.data(first[0]))
             threshold = acceptance_threshold(acc_cfg, se_s, accepted)
             if not c_s <= threshold:  # the policy to start EM from is rejected: an ordinary rejected step
                 return lqr_flm_iteration(task, cfg.baseline, dataclasses.replace(state, rng_state=rng.bit_generator.state),
-                                         noise=noise, batch=first)
+                                         noise=noise, batch=first, estimates=first_est)
         for r in range(cfg.em.n_em):
             if r == 0 and first is not None:
                 rollouts, timings = first
@@ -115,8 +119,11 @@ def dpsoc_iteration(task: Task, cfg: DPSOCConfig, state: RunState) -> RunState:
                 t0 = time.perf_counter()
                 rollouts = task.rollouts(policy, cfg.baseline.samples, rng, workers=cfg.baseline.workers)
                 timings = {"rollouts": time.perf_counter() - t0}
-            est = noise.estimate(prior, rollouts, cfg.baseline.fit, policy, rng, previous=previous)
-            timings.update(est.timings)
+            if r == 0 and first_est is not None:
+                est = first_est
+            else:
+                est = noise.estimate(prior, rollouts, cfg.baseline.fit, policy, rng, previous=previous)
+                timings.update(est.timings)
             prior = est.prior
             extra = {}
             if r == 0 and first is not None:

@@ -35,7 +35,7 @@ from .state import AcceptedPolicy, IterationRecord, PreviousStep, RunState, impr
 if TYPE_CHECKING:
     from ..tasks import Task
 
-__all__ = ["initial_state", "lqr_flm_iteration", "accepted_iteration", "acceptance_limit", "acceptance_threshold",
+__all__ = ["initial_state", "lqr_flm_iteration", "shaped_gains", "accepted_iteration", "acceptance_limit", "acceptance_threshold",
            "acceptance_cost",
            "final_policy", "sample", "fit_batch", "Batch", "LQRFLM", "LQR_FLM"]
 
@@ -100,21 +100,39 @@ def fit_batch(task: Task, cfg: LQRFLMConfig, state: RunState, rollouts: Rollouts
     return Batch(rollouts, est, local, wrap, timings)
 
 
+def shaped_gains(noise: NoiseStrategy, res, b: Batch, wrap: Callable | None = None) -> LinearGaussianPolicy:
+    """The KL step's policy ``res.policy`` as the next policy acts (``[baseline.noise] feedback``,
+    docs/math.md §13.2): as solved (``"estimate"``), its gains calibrated to how well the new filter's
+    estimates of the batch ``b`` predict the learner's states (``"calibrated"``), or without feedback
+    (``"open_loop"``).  ``wrap``: what makes the new policy acting on its filter (default ``b.wrap``)."""
+    mode = noise.cfg.feedback
+    if mode == "estimate" or (mode == "calibrated" and float(noise.task.rho2) == 0.0):
+        return res.policy  # without sensor noise the estimate is the state
+    if mode == "open_loop":
+        return noise_aware.open_loop_gains(res.policy, res.marginals.a_mean)
+    wrapped = (b.wrap if wrap is None else wrap)(res.policy)
+    estimated = noise_aware.policy_estimates(wrapped.for_task(noise.task) if hasattr(wrapped, "for_task") else wrapped,
+                                             b.rollouts)
+    gamma = noise_aware.calibration(b.estimates.data(b.rollouts).s, estimated)
+    return noise_aware.calibrated_gains(res.policy, gamma, res.marginals.mean)
+
+
 def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
                       reference: LinearGaussianPolicy | FilteredPolicy | None = None,
                       phase: str = "baseline", noise: NoiseStrategy | None = None,
-                      batch: tuple[Rollouts, dict] | None = None) -> RunState:
+                      batch: tuple[Rollouts, dict] | None = None, estimates: Estimates | None = None) -> RunState:
     """One LQR-FLM iteration (module docstring, steps 1–5). Pure: returns a new state.
 
     ``noise``: the run's noise strategy (default: resolved from ``cfg.noise`` for ``task``).
     ``batch``: the rollouts of ``state.policy`` and their timings when they are already drawn (with
-    ``state.rng_state`` past them); default: drawn here.  With ``cfg.acceptance.enabled`` the
+    ``state.rng_state`` past them); default: drawn here.  ``estimates``: the noise strategy's
+    :class:`Estimates` of that batch when already made (the prior updated past it); default: made here.  With ``cfg.acceptance.enabled`` the
     sampled policy is first judged against the last accepted one (:func:`accepted_iteration`).
     """
     noise = resolve(task, cfg.noise) if noise is None else noise
     rng = state_rng(state)
     rollouts, timings = sample(task, cfg, state, rng) if batch is None else batch
-    b = fit_batch(task, cfg, state, rollouts, timings, rng, noise)
+    b = fit_batch(task, cfg, state, rollouts, timings, rng, noise, estimates=estimates)
     ref = noise.gains(state.policy if reference is None else reference)
     if cfg.acceptance.enabled:
         return accepted_iteration(task, cfg, state, b, ref, rng, phase, noise)
@@ -130,6 +148,7 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     t0 = time.perf_counter()
     nu = _budget(cfg, task.T, mult)
     res = lqg.kl_step_local(local, ref, nu, method=cfg.kl_method, config=cfg.kl)
+    gains = shaped_gains(noise, res, b)
     timings["lqg"] = time.perf_counter() - t0
 
     rec = record(
@@ -141,7 +160,7 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     return dataclasses.replace(
         state,
         iteration=state.iteration + 1,
-        policy=b.wrap(res.policy),
+        policy=b.wrap(gains),
         mult=mult,
         prior=b.estimates.prior,
         rng_state=rng.bit_generator.state,
@@ -152,10 +171,17 @@ def lqr_flm_iteration(task: Task, cfg: LQRFLMConfig, state: RunState,
     )
 
 
-def acceptance_cost(cfg: AcceptanceConfig, rec: IterationRecord) -> tuple[float, float]:
+def acceptance_cost(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollouts | None = None) -> tuple[float, float]:
     """``(C_i, se_i)``: the mean total cost of a batch and its standard error, on the cost the
-    acceptance test reads (``cfg.cost``: measured or true states; docs/math.md §12.1)."""
-    c = np.asarray(rec.cost if cfg.cost == "true" else rec.cost_measured, float)
+    acceptance test reads (``cfg.cost``: measured, estimated or true states; docs/math.md §12.1).
+    ``learned``: the batch as the learner sees it (:meth:`Estimates.data`), whose costs are the
+    estimated ones; needed with ``cost = "estimated"``."""
+    if cfg.cost == "estimated":
+        if learned is None:
+            raise ValueError("acceptance cost 'estimated' needs the batch's estimated states")
+        c = np.asarray(learned.total_cost(), float)
+    else:
+        c = np.asarray(rec.cost if cfg.cost == "true" else rec.cost_measured, float)
     return float(np.mean(c)), float(np.std(c, ddof=1) / np.sqrt(c.size)) if c.size > 1 else float("inf")
 
 
@@ -179,7 +205,7 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
     acc_cfg = cfg.acceptance
     timings = b.timings
     rec0 = record(state.iteration, phase, task, b.rollouts)
-    c_i, se_i = acceptance_cost(acc_cfg, rec0)
+    c_i, se_i = acceptance_cost(acc_cfg, rec0, b.estimates.data(b.rollouts))
     acc = state.accepted
     threshold = acceptance_threshold(acc_cfg, se_i, acc)
     accept = bool(c_i <= threshold)
@@ -213,7 +239,8 @@ def accepted_iteration(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch,
     floor = False
     try:
         res = lqg.kl_step_local(step.model, step.reference, nu, method=cfg.kl_method, config=cfg.kl)
-        gains, kl, eta_mean, predicted_cost = res.policy, float(np.sum(res.kl)), float(np.mean(res.eta)), float(res.expected_cost)
+        gains = shaped_gains(noise, res, b, None if accept else (lambda g: noise_aware.with_gains(acc.child, g)))
+        kl, eta_mean, predicted_cost = float(np.sum(res.kl)), float(np.mean(res.eta)), float(res.expected_cost)
     except lqg.SolverError as e:
         if "not reachable" not in str(e) or not mult < 1.0:
             raise  # at the base budget or above, an unreachable budget is a failure (e.g. a diverged fit)

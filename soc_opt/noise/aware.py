@@ -17,6 +17,11 @@ loop then calls exactly what it called before this module existed.
   ``docs/noise.md`` §10): E-step the RTS smoother of :func:`soc_opt.noise.noisefit.smooth_states`, M-step
   the smoothed tuple moments combined with the (noise-corrected) NIW prior of the step exactly as
   the plain fit combines empirical moments with it, then conditioned (:func:`ssm_em_fit`).
+* ``"eiv"``: errors in variables (docs/math.md §13.1): the same maximum a posteriori fit with latent
+  ``x``, run to convergence with SQUAREM-accelerated EM and no floor on ``W`` beyond a numerical one
+  relative to ``R`` (:func:`eiv_local`, :func:`soc_opt.noise.eiv.eiv_fit`), so that a plant without
+  process noise gets ``W`` near zero; started from the paper's fit, or from the estimator's own fit
+  (the kinematic estimator's fit on its smoothed states).
 
 ``time_window = h > 0`` pools the tuple moments of steps ``k-h..k+h`` before either noise-aware
 fit (:func:`pool_moments`): with ``M`` rollouts of a few tens of steps and ``rho2`` comparable to
@@ -55,6 +60,7 @@ from ..models import (
     symmetrize,
 )
 from ..plugins import ESTIMATORS
+from .eiv import eiv_fit
 from .estimator import (
     FilteredPolicy,
     KalmanFilter,
@@ -84,6 +90,11 @@ __all__ = [
     "update_prior",
     "denoise",
     "ssm_em_fit",
+    "eiv_local",
+    "policy_estimates",
+    "calibration",
+    "calibrated_gains",
+    "open_loop_gains",
     "loop_filter",
     "innovation_local_model",
     "expansion_point",
@@ -107,8 +118,9 @@ class NoiseConfig(Config):
                      the other options at their defaults).  Allowed at ``rho2 = 0`` (the filter
                      is then ``xhat = s``).
     fit_correction:  ``"none"`` (the paper's fit), ``"moments"`` (bias-corrected NIW posterior
-                     moments) or ``"ssm_em"`` (EM with latent true state and the NIW prior,
-                     started from the paper's fit).
+                     moments), ``"ssm_em"`` (EM with latent true state and the NIW prior,
+                     started from the paper's fit, ``em_max_iter`` iterations) or ``"eiv"``
+                     (the same model fitted to convergence, docs/math.md §13.1: ``eiv_*``).
     min_reliability: reliability floor of the moment correction (``noisefit.correct_joint``).
     filter_w_floor:  the filter's (and the innovation form's) process noise ``W_k`` has its
                      eigenvalues floored at ``filter_w_floor * rho2`` (a fitted ``W`` near zero
@@ -123,6 +135,10 @@ class NoiseConfig(Config):
                      separate settings.  ``min_reliability`` has the same meaning and default in both.
     em_tol:          ``"ssm_em"`` stops when ``log p(s | a)`` changes by less than ``em_tol`` per
                      sequence and time step.
+    eiv_max_iter:    ``"eiv"``: at most this many EM updates (E-steps) per fit (SQUAREM cycles of three).
+    eiv_tol:         ``"eiv"`` stops when ``log p(s | a)`` changes by less than ``eiv_tol`` relative.
+    eiv_w_floor:     ``"eiv"``: eigenvalue floor of the fitted ``W_k`` as a fraction of ``rho2`` (only
+                     to keep the smoother's covariances positive definite; 1e-6).
     expand_at:       where LQR-FLM expands the cost (docs/math.md §3): ``"measured"`` (the sample mean of
                      the measured ``s_k``: the paper) or ``"smoothed"`` (the sample mean of the RTS
                      smoother's ``E[x_k | s, a]`` under the iteration's fitted model, which
@@ -135,6 +151,13 @@ class NoiseConfig(Config):
     pool:            how ``time_window`` pools (:func:`pool_moments`): ``"union"`` (the moments of
                      the union of the window's tuples) or ``"anchored"`` (step ``k``'s own mean, the
                      window's second moments about it).
+    feedback:        what the policy's gains act on (docs/math.md §13.2): ``"estimate"`` (the KL step's
+                     gains on the estimator's state, certainty equivalence: the paper and every
+                     estimator so far), ``"calibrated"`` (the gains times ``Gamma_k``, the regression of
+                     the learner's states on the new policy's own estimates of the batch, so that the
+                     feedback responds to an estimate only as far as it predicts the state:
+                     :func:`calibrated_gains`) or ``"open_loop"`` (no feedback: ``K = 0`` and the KL
+                     step's mean actions ``E[a_k]``; the baseline).
     time_window:     ``h``: the noise-aware fits pool the tuple moments of the steps ``k-h..k+h``
                      (:func:`pool_moments`); ``0``: per step (docs/math.md §2's time-varying fit), ``h >= T``:
                      one time-invariant model.  Needs a ``fit_correction``.
@@ -149,12 +172,16 @@ class NoiseConfig(Config):
     """
 
     estimator: str = "none"
-    fit_correction: Literal["none", "moments", "ssm_em"] = "none"
+    fit_correction: Literal["none", "moments", "ssm_em", "eiv"] = "none"
     min_reliability: float = 0.05
     filter_w_floor: float = 1e-3
     estep_p0_jitter: float = 1e-6
     em_max_iter: int = 20
     em_tol: float = 1e-4
+    eiv_max_iter: int = 60
+    eiv_tol: float = 1e-7
+    eiv_w_floor: float = 1e-6
+    feedback: Literal["estimate", "calibrated", "open_loop"] = "estimate"
     time_window: int = 0
     expand_at: Literal["measured", "smoothed"] = "measured"
     prior_data: Literal["measured", "smoothed"] = "measured"
@@ -163,12 +190,16 @@ class NoiseConfig(Config):
 
     _constraints = {
         "estimator": [Options(lambda: tuple(ESTIMATORS))],
-        "fit_correction": [Options(("none", "moments", "ssm_em"))],
+        "fit_correction": [Options(("none", "moments", "ssm_em", "eiv"))],
         "min_reliability": [Interval(0.0, 1.0, "right")],
         "filter_w_floor": [Interval(0.0)],
         "estep_p0_jitter": [Interval(0.0, None, "neither")],
         "em_max_iter": [Interval(1)],
         "em_tol": [Interval(0.0)],
+        "eiv_max_iter": [Interval(1)],
+        "eiv_tol": [Interval(0.0)],
+        "eiv_w_floor": [Interval(0.0, None, "neither")],
+        "feedback": [Options(("estimate", "calibrated", "open_loop"))],
         "time_window": [Interval(0)],
         "expand_at": [Options(("measured", "smoothed"))],
         "prior_data": [Options(("measured", "smoothed"))],
@@ -183,15 +214,15 @@ class NoiseConfig(Config):
         if self.prior_data == "smoothed" and self.fit_correction != "ssm_em":
             raise config_error("prior_data", "'smoothed' fits the prior on smoothed states and needs "
                                f"fit_correction = 'ssm_em' (got {self.fit_correction!r})")
-        if self.time_window > 0 and self.fit_correction == "none":
+        if self.time_window > 0 and self.fit_correction in ("none", "eiv"):
             raise config_error("time_window", "pools the noise-aware fits' moments; it needs fit_correction "
-                               "'moments' or 'ssm_em' (the paper's fit is per step)")
+                               f"'moments' or 'ssm_em' (got {self.fit_correction!r}, a per-step fit)")
 
     @property
     def paper(self) -> bool:
         """Whether this is the paper's method (nothing noise-aware selected)."""
         return (self.estimator == "none" and self.fit_correction == "none" and self.expand_at == "measured"
-                and self.prior_data == "measured")
+                and self.prior_data == "measured" and self.feedback == "estimate")
 
     @property
     def label(self) -> str:
@@ -338,6 +369,10 @@ def fit_local(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Nois
         hook = moment_correction(noise.R, X, rollouts.n, rollouts.m, noise_cfg.min_reliability, noise_cfg.time_window,
                                  noise_cfg.pool)
         return fitter(rollouts, fit_cfg, prior, correct=hook)
+    if noise_cfg.fit_correction == "eiv":
+        start = fitter(rollouts if denoised is None else denoised, fit_cfg, prior)
+        return eiv_local(rollouts, fit_cfg, prior, noise_cfg, noise, start, X=X if denoised is None else None,
+                         prior_tuples=rollouts if denoised is None else denoised)
     if denoised is not None:
         return ssm_em_fit(rollouts, fit_cfg, prior, noise_cfg, noise, X, fitter(denoised, fit_cfg, prior),
                           include_y=include_y, prior_measured=False)
@@ -460,6 +495,77 @@ def ssm_em_fit(rollouts: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: Noi
         Lam[:, idx, idx] += lam
         Ao, co, So = condition_joint(mu, Lam, nz, fit_cfg.min_eig)
     return _as_model(Ao, co, So, n, include_y)
+
+
+def eiv_local(measured: Rollouts, fit_cfg: fit.FitConfig, prior, noise_cfg: NoiseConfig, noise: NoiseModel,
+              start, *, X: np.ndarray | None = None, prior_tuples: Rollouts | None = None):
+    """``fit_correction = "eiv"`` (docs/math.md §13.1): :func:`soc_opt.noise.eiv.eiv_fit` of the *measured*
+    batch from ``start`` (its kind, dynamics or augmented model, is the kind returned), with the step's NIW
+    prior from the mixture ``prior`` at the tuples of ``prior_tuples`` (default ``measured``): corrected for
+    the sensor noise with the sampler's ``X`` when given (a prior fitted on measured tuples), as is otherwise
+    (a prior fitted on state estimates)."""
+    include_y = isinstance(start, AugmentedModel)
+    pri = None
+    if prior is not None and fit_cfg.prior == "mixture":
+        mu0p, S0p = prior.step_prior(fit.tuples(measured if prior_tuples is None else prior_tuples, include_y),
+                                     include_y)
+        if X is not None:
+            cm = correct_joint(mu0p, S0p, measured.n, measured.m, noise.R, X, min_reliability=noise_cfg.min_reliability)
+            mu0p, S0p = cm.mean, cm.cov
+        pri = (mu0p, S0p)
+    return eiv_fit(measured, start, noise.R, noise.mu0, noise.P0, prior=pri, k0=fit_cfg.k0, n0=fit_cfg.n0,
+                   reg=fit_cfg.reg, min_eig=fit_cfg.min_eig, w_floor=noise_cfg.eiv_w_floor,
+                   max_iter=noise_cfg.eiv_max_iter, tol=noise_cfg.eiv_tol).model
+
+
+def policy_estimates(policy, rollouts: Rollouts) -> np.ndarray:
+    """``(M, T+1, n)``: the states ``policy`` would have acted on along ``rollouts`` (its filter run on
+    their measurements and actions; the measurements themselves for a policy without a filter)."""
+    if not isinstance(policy, FilteredPolicy):
+        return np.array(rollouts.s)
+    s, a = rollouts.s, rollouts.a
+    out = np.empty_like(s)
+    out[:, 0] = policy.estimate_rows(0, s[:, 0])
+    for k in range(1, s.shape[1]):
+        out[:, k] = policy.estimate_rows(k, s[:, k], out[:, k - 1], a[:, k - 1])
+    return out
+
+
+def calibration(learned: np.ndarray, estimated: np.ndarray, window: int = 5, ridge: float = 1e-3) -> np.ndarray:
+    """``Gamma (T+1, n, n)``: per step the least-squares regression of the learner's states ``learned``
+    on the estimates ``estimated`` (both ``(M, T+1, n)``), each centred at its step's mean and pooled over
+    the steps ``k-window..k+window``; ridge ``ridge`` times the mean variance of the estimates::
+
+        Gamma_k = Cov(x~, xhat) (Cov(xhat) + lam I)^{-1}
+
+    ``Gamma_k = I`` when the estimates are the learner's states; below ``I`` in the directions where the
+    estimate carries more than the state's spread (docs/math.md §13.2)."""
+    Y = learned - learned.mean(axis=0)
+    X = estimated - estimated.mean(axis=0)
+    T1, n = X.shape[1], X.shape[2]
+    Sxx = np.einsum("mti,mtj->tij", X, X)
+    Syx = np.einsum("mti,mtj->tij", Y, X)
+    c = np.concatenate([np.zeros((1, n, n)), np.cumsum(Sxx, axis=0)])
+    d = np.concatenate([np.zeros((1, n, n)), np.cumsum(Syx, axis=0)])
+    lo = np.clip(np.arange(T1) - window, 0, T1)
+    hi = np.clip(np.arange(T1) + window + 1, 0, T1)
+    Sxx_w, Syx_w = c[hi] - c[lo], d[hi] - d[lo]
+    lam = ridge * np.maximum(np.trace(Sxx_w, axis1=1, axis2=2) / n, 1e-12)
+    G = symmetrize(Sxx_w) + lam[:, None, None] * np.eye(n)
+    return np.swapaxes(np.linalg.solve(G, np.swapaxes(Syx_w, 1, 2)), 1, 2)
+
+
+def calibrated_gains(gains_: LinearGaussianPolicy, Gamma: np.ndarray, nominal: np.ndarray) -> LinearGaussianPolicy:
+    """``K_k Gamma_k`` with the offset moved so that the mean action at the ``nominal (T+1, n)`` state is
+    unchanged: ``k' = k + (K - K Gamma) nominal`` (docs/math.md §13.2)."""
+    K2 = gains_.K @ Gamma[:-1]
+    k2 = gains_.k + np.einsum("tij,tj->ti", gains_.K - K2, nominal[:-1])
+    return LinearGaussianPolicy(K2, k2, gains_.cov)
+
+
+def open_loop_gains(gains_: LinearGaussianPolicy, a_mean: np.ndarray) -> LinearGaussianPolicy:
+    """No feedback: ``K = 0`` and ``k`` the mean actions ``a_mean (T, m)`` (docs/math.md §13.2's baseline)."""
+    return LinearGaussianPolicy(np.zeros_like(gains_.K), np.array(a_mean, dtype=float), gains_.cov)
 
 
 def loop_filter(dynamics: LinearGaussianDynamics, noise: NoiseModel, noise_cfg: NoiseConfig,

@@ -12,6 +12,8 @@ holds none of it.  Its options are :class:`~soc_opt.noise.kinematic.config.Kinem
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from ..config import config_error
@@ -64,9 +66,12 @@ class KinematicEstimator(NoiseStrategy):
     @classmethod
     def check_config(cls, cfg) -> None:
         """The shared options that change what the learner fits (fit correction, expansion point, prior
-        data, time window) must stay at their defaults: it learns from its own smoothed states."""
-        other = {"fit_correction": "none", "expand_at": "measured", "prior_data": "measured", "time_window": 0}
+        data, time window) must stay at their defaults: it learns from its own smoothed states; the one
+        correction it takes is ``"eiv"``, which refits its fit with the states latent (docs/math.md §13.1)."""
+        other = {"expand_at": "measured", "prior_data": "measured", "time_window": 0}
         bad = [f"{k} = {getattr(cfg, k)!r}" for k, v in other.items() if getattr(cfg, k) != v]
+        if cfg.fit_correction not in ("none", "eiv"):
+            bad.insert(0, f"fit_correction = {cfg.fit_correction!r}")
         if bad:
             raise config_error("estimator", f"'kinematic' learns from its own smoothed states; {', '.join(bad)} "
                                "cannot be combined with it (leave them at their defaults)")
@@ -83,12 +88,22 @@ class KinematicEstimator(NoiseStrategy):
         learn, filt, diag = kinematic_loop.learn(self.task, rollouts, sampler, self.cfg.kinematic, previous)
         base = super().estimate(prior, learn, fit_cfg, sampler, rng)
         return base._replace(learn=learn, filter=filt, moments=diag.get("posterior"),
-                             timings={"estimator": diag["kin_time"]})
+                             timings={"estimator": diag["kin_time"]}, measured=rollouts)
 
     def fit(self, rollouts, fit_cfg, estimates: Estimates, sampler, *, include_y: bool = False):
         """The paper's fit of the smoothed rollouts; with ``fit_moments = "posterior"`` on their expected
         sufficient statistics (:func:`posterior_correction`); with ``structured_prior > 0`` pulled towards
-        the filter's structured transition (:func:`~soc_opt.noise.kinematic.dynamics.structured_prior`)."""
+        the filter's structured transition (:func:`~soc_opt.noise.kinematic.dynamics.structured_prior`).
+        With ``fit_correction = "eiv"`` that fit starts the errors-in-variables fit of the measured batch
+        (:func:`~soc_opt.noise.aware.eiv_local`; prior at the smoothed tuples, uncorrected)."""
+        start = self._fit(rollouts, fit_cfg, estimates, sampler, include_y=include_y)
+        if self.cfg.fit_correction != "eiv" or estimates.measured is None or float(self.task.rho2) == 0.0:
+            return start
+        measured = dataclasses.replace(estimates.measured, y=rollouts.y) if include_y else estimates.measured
+        return noise_aware.eiv_local(measured, fit_cfg, estimates.prior, self.cfg, self.noise, start,
+                                     prior_tuples=rollouts)
+
+    def _fit(self, rollouts, fit_cfg, estimates: Estimates, sampler, *, include_y: bool = False):
         kin = self.cfg.kinematic
         use_structured = kin.structured_prior > 0 and isinstance(estimates.filter, KinematicFilter)
         if estimates.moments is None and not use_structured:

@@ -71,6 +71,8 @@ class Estimates(NamedTuple):
     moments: the posterior covariances of the states in :attr:`learn`, for a fit on expected
              sufficient statistics (``(Px (T+1, n, n), Cx (T, n, n))``; ``None``: the states are
              taken as they are)
+    measured: the batch as measured, when :attr:`learn` replaced its states (for a fit that models
+             the sensor, ``fit_correction = "eiv"``; ``None``: :attr:`learn` is not set)
     timings: seconds the estimator spent, by name (merged into the iteration's timings, not
              counted in its ``fit`` time)
     """
@@ -81,6 +83,7 @@ class Estimates(NamedTuple):
     filter: Any = None
     moments: Any = None
     timings: Mapping[str, float] = types.MappingProxyType({})
+    measured: Rollouts | None = None
 
     def data(self, rollouts: Rollouts) -> Rollouts:
         """The rollouts the learner fits on: :attr:`learn`, or the measured ``rollouts``."""
