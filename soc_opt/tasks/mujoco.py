@@ -13,8 +13,9 @@ of that name.
 Rollouts: from ``x_0`` (``q0`` + condition offset, zero velocity) the action
 ``a_k = K_k s_k + k_k + L_k w_k`` is computed from the *measured* state and held
 as ``ctrl`` for ``substeps`` calls of ``mj_step`` (``dt = timestep * substeps``).
-All noise (``eps`` then ``w``) is drawn from the Generator before simulating,
-so results do not depend on ``workers``.  The stage cost ``Y_k`` is evaluated on
+All noise (``eps``, ``w``, then the start offsets and actuation noise of ``[process_noise]`` when
+on: docs/math.md §8.1) is drawn from the Generator before simulating, so results do not depend on
+``workers``.  The stage cost ``Y_k`` is evaluated on
 the measured ``s_k`` (docs/math.md §0) and ``y_k = exp(-y_scale * Y_k)``.
 
 The finite-difference linearisation in task coordinates (:meth:`MujocoTask.linearize`) is in
@@ -484,12 +485,15 @@ class MujocoTask(TaskBase):
         """``M`` sampled trajectories (docs/math.md §0).
 
         Noise ``eps (M,T+1,n) ~ N(0, rho2 I)`` then ``w (M,T,m) ~ N(0, I)`` is drawn from
-        ``rng`` up front (``noise=False``: both zero, the policy mean on the true state).
+        ``rng`` up front, then ``[process_noise]``'s start offsets (added to the angles of
+        ``state.joints`` at the start) and actuation noise (added to ``ctrl``, not to the recorded
+        ``a``) when on (docs/math.md §8.1; ``noise=False``: none of them, the policy mean on the true
+        state from the nominal start).
         ``workers > 1`` simulates contiguous blocks of samples in threads, one ``MjData``
         per sample (MuJoCo releases the GIL while stepping); results are identical for any ``workers``.
         A filtered policy's blocks run in one thread when no CPU is idle (:func:`soc_opt.parallel.spare_cpu`):
         its filter holds the GIL between the physics steps.  ``x0``: another initial state in task coordinates (its joint
-        components are used; default ``self.x0``).  ``a`` records the policy's action
+        components are used, plus the start offsets; default ``self.x0``).  ``a`` records the policy's action
         before MuJoCo clamps it to ``ctrlrange``.  Raises :class:`SimulationError`
         naming the sample and step on divergence.  A :class:`~soc_opt.noise.estimator.FilteredPolicy`
         acts on ``xhat_k``, its filter run online on the measurements and the recorded actions
