@@ -18,8 +18,10 @@ agent's actions instead of a linear-Gaussian policy:
 
 * ``reset(seed=s)`` draws the episode's noise from ``self.np_random`` with
   :meth:`Task.draw_noise` (``M = 1``: ``eps``, then ``w`` -- unused, the agent acts --, then
-  the process noise of linear tasks), exactly as ``task.rollouts(policy, 1,
-  np.random.default_rng(s))`` does;
+  the process noise of linear tasks, then the start offset and the actuation noise of the task's
+  ``[process_noise]`` when on), exactly as ``task.rollouts(policy, 1, np.random.default_rng(s))``
+  does; the episode starts at the offset start and each step's control gets its actuation noise
+  (docs/math.md §8.1), the agent's action being recorded as it gave it;
 * the observation is the *measured* state ``s_k = x_k + eps_k`` (docs/math.md §0; ``rho2`` as
   configured by the task), ``float64 (n,)``;
 * ``step(a_k)`` advances the task's own simulator (:meth:`LinearTask.simulator`,
@@ -132,7 +134,8 @@ class SocOptEnv(gymnasium.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Start an episode at the task's ``x_0`` with fresh noise from ``self.np_random``.
 
-        ``options``: ``{"x0": array (n,)}`` starts from another true state.
+        ``options``: ``{"x0": array (n,)}`` starts from another true state (plus the start offset of
+        ``[process_noise] start``, as ``Task.rollouts(..., x0=)``).
         """
         super().reset(seed=seed)
         task = self.task
@@ -140,6 +143,7 @@ class SocOptEnv(gymnasium.Env):
         noise = task.draw_noise(1, self.np_random)
         self._eps = noise.eps[0]
         self._xi = None if noise.xi is None else noise.xi[0]
+        self._nu = None if noise.actuation is None else noise.actuation[0]
         x0 = None
         if options:
             unknown = sorted(set(options) - {"x0"})
@@ -149,7 +153,7 @@ class SocOptEnv(gymnasium.Env):
         self._x = np.zeros((1, T + 1, n))
         self._s = np.zeros((1, T + 1, n))
         self._a = np.zeros((1, T, m))
-        self._x[0, 0] = self._sim.reset(x0)
+        self._x[0, 0] = self._sim.reset(x0, None if noise.start is None else noise.start[0])
         self._s[0, 0] = self._x[0, 0] + self._eps[0]
         self._k = 0
         return self._s[0, 0].copy(), {"true_state": self._x[0, 0].copy(), "step": 0}
@@ -168,7 +172,7 @@ class SocOptEnv(gymnasium.Env):
             raise ValueError(f"soc_opt env: action {a} is not finite")
         self._a[0, k] = a
         xi = None if self._xi is None else self._xi[k]
-        self._x[0, k + 1] = self._sim.step(a, xi)
+        self._x[0, k + 1] = self._sim.step(a, xi, None if self._nu is None else self._nu[k])
         self._s[0, k + 1] = self._x[0, k + 1] + self._eps[k + 1]
         stage = task.stage_cost(self._s[0, k], self._a[0, k], k)  # O(1); = task.cost(s, a)[0, k] bit for bit
         self._k = k + 1

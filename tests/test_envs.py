@@ -54,9 +54,15 @@ def _episode(env, seed, actions):
     return np.array(s), np.array(x), np.array(r), infos
 
 
+#: ``[process_noise]`` of the tasks (docs/math.md §8.1): a start range and actuation noise, both drawn by
+#: ``reset`` after ``eps`` and ``w`` as the rollouts draw them.
+PROCESS = {"start": 0.1, "actuation": 0.3}
+
+
+@pytest.mark.parametrize("process", [None, PROCESS])
 @pytest.mark.parametrize("name", ["linear2d", "peg", "door"])
-def test_seeded_episode_equals_seeded_rollout_of_the_same_actions(name):
-    task = load_task(name, overrides={"T": 25})
+def test_seeded_episode_equals_seeded_rollout_of_the_same_actions(name, process):
+    task = load_task(name, overrides={"T": 25} | ({"process_noise": process} if process else {}))
     rng = np.random.default_rng(3)
     lo = np.maximum(envs.SocOptEnv(task).action_space.low, -3.0)
     hi = np.minimum(envs.SocOptEnv(task).action_space.high, 3.0)
@@ -71,13 +77,18 @@ def test_seeded_episode_equals_seeded_rollout_of_the_same_actions(name):
     np.testing.assert_array_equal(infos[-1]["episode"]["a"], ro.a[0])
     # measured observations: the noise is there and has the configured variance scale
     assert task.rho2 > 0 and not np.array_equal(s, x)
+    if process:  # the start is not the nominal one, and the plant's control is not the recorded action
+        assert not np.array_equal(x[0], task.x0)
+        assert not np.array_equal(x, task.rollouts(_open_loop(task, u), 1, np.random.default_rng(0), noise=False).x[0])
 
 
+@pytest.mark.parametrize("process", [None, PROCESS])
 @pytest.mark.parametrize("name", ["linear2d", "door"])
-def test_closed_loop_episode_reproduces_a_stochastic_policy_rollout(name):
+def test_closed_loop_episode_reproduces_a_stochastic_policy_rollout(name, process):
     """Driving the env with a linear-Gaussian policy on its observations, with the policy noise
-    ``w`` taken from the same draw, reproduces ``Task.rollouts`` of that policy."""
-    task = load_task(name, overrides={"T": 20})
+    ``w`` taken from the same draw, reproduces ``Task.rollouts`` of that policy (also with a start
+    range and actuation noise, which ``reset`` draws after ``w``)."""
+    task = load_task(name, overrides={"T": 20} | ({"process_noise": process} if process else {}))
     rng = np.random.default_rng(0)
     T, m, n = task.T, task.m, task.n
     K = 0.05 * rng.standard_normal((T, m, n))

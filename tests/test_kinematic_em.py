@@ -110,3 +110,39 @@ def test_an_error_in_the_forked_start_is_raised_in_the_caller(data, monkeypatch)
     warm = real(km, ro.s[:3], ro.a[:3], 0.1, KinematicConfig()).accel
     with pytest.raises(np.linalg.LinAlgError, match="start from the data failed"):
         em.fit_starts(km, ro.s, ro.a, 0.1, KinematicConfig(), [warm, None], parallel=True)
+
+
+def test_with_a_start_range_the_smoothed_start_is_not_pulled_to_the_nominal_start():
+    """``[process_noise] start`` (docs/math.md §8.1): the smoother's ``z_0`` prior is ``p0 I`` plus the range's
+    ``r^2 / 3`` on the state joints' angles, so the smoothed ``q_0`` follows the true one.  Oracle: the
+    regression slope of the error ``E[q_0 | s, a] - q_0`` on the true offset is the shrinkage a Gaussian
+    prior of that variance implies, ``-Var(q_0 | s, a) / (r^2 / 3)`` (about -0.05 here), within 4 standard
+    errors; with the prior of a known start (``p0 I`` alone) the estimate stays at the nominal start
+    (slope -1).  At ``rho^2 = 0`` the smoother still reads ``z`` off the measurements."""
+    r = 0.2
+    task = load_task("peg", overrides={"T": 20, "rho2": 0.01, "process_noise": {"start": r}})
+    km = KinematicModel(task)
+    nj = len(task.config.state.joints)
+    np.testing.assert_allclose(km.start_cov, np.diag(np.r_[np.full(nj, r * r / 3), np.zeros(km.nz - nj)]), rtol=1e-15)
+    ro = task.rollouts(task.initial_policy(0.1), 40, np.random.default_rng(3))
+    delta = ro.x[:, 0, :nj] - task.x0[:nj]
+    slopes = {}
+    for prior in ("range", "known"):
+        if prior == "known":
+            km.start_cov = None
+        res = em.fit(km, ro.s, ro.a, task.rho2, KinematicConfig(em_iters=2))
+        e = res.smoothed.mean[:, 0, :nj] - ro.x[:, 0, :nj]
+        slope = float((e * delta).sum() / (delta ** 2).sum())
+        slopes[prior] = slope
+        if prior == "range":
+            var = res.smoothed.cov[:, 0, np.arange(nj), np.arange(nj)]
+            expected = -float(var.mean()) / (r * r / 3)
+            resid = e - slope * delta
+            se = float(np.sqrt((resid ** 2).sum() / (e.size - 1) / (delta ** 2).sum()))
+            assert abs(slope - expected) < 4 * se, (slope, expected, se)
+    assert slopes["known"] < -0.9, slopes
+    exact = load_task("peg", overrides={"T": 20, "rho2": 0.0, "process_noise": {"start": r}})
+    ro0 = exact.rollouts(exact.initial_policy(0.1), 3, np.random.default_rng(3))
+    km0 = KinematicModel(exact)
+    res0 = em.fit(km0, ro0.s, ro0.a, 0.0, KinematicConfig(em_iters=1))
+    np.testing.assert_array_equal(res0.smoothed.mean, km0.z_of(ro0.s))

@@ -146,3 +146,17 @@ def test_a_key_absent_from_the_record_is_a_difference_unless_its_absence_is_decl
     paper_new = {"baseline": {"noise": NoiseConfig().to_dict()}}
     paper_old = {"baseline": {"noise": dict(paper_new["baseline"]["noise"], kinematic=old["baseline"]["noise"]["kinematic"])}}
     assert [d.split(":")[0] for d in differences(paper_old, paper_new)] == ["baseline.noise.kinematic.w_floor"]
+
+
+def test_a_task_record_from_before_process_noise_matches_the_task_without_it():
+    """``task.json`` of a run recorded before ``[process_noise]`` existed lacks the table: that is a task
+    without process noise (docs/math.md §8.1), so it resumes against a task without it and not against
+    one with it."""
+    from soc_opt.experiments.rundir import _task_settings, differences
+    from soc_opt.tasks import load_task
+
+    new = _task_settings({"config": load_task("peg").config.to_dict()})
+    old = {k: v for k, v in new.items() if k != "process_noise"}
+    assert differences(old, new) == []
+    noisy = _task_settings({"config": load_task("peg", overrides={"process_noise": {"start": 0.1}}).config.to_dict()})
+    assert [d.split(":")[0] for d in differences(old, noisy)] == ["process_noise"]

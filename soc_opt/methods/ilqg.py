@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import files, lqg
 from ..config import Config, ConfigError, Interval, config_error
-from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
+from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts, symmetrize
 from ..noise.estimator import FilteredPolicy, kalman_filter, measurement_noise
 from .base import MethodBase
 from .state import BestPolicy
@@ -64,7 +64,8 @@ class ILQGConfig(Config):
                  process noise, ``W`` stands for the linearisation's error).  Door at rho^2 = 0.1, mean action:
                  1e-3 min hinge -1.010 (cost 4.6), 1e-2 -0.874 (98.5).
     filter_p0:   prior variance of the start state in that filter (``P0 = filter_p0 I`` around the task's
-                 ``x_0``, 1e-6): iLQG plans from the task's known start.  With the measurement's own variance
+                 ``x_0``, 1e-6, plus the task's ``start_cov`` with ``[process_noise] start``): iLQG plans from
+                 the task's nominal start.  With the measurement's own variance
                  (``rho^2 + 1e-6``) the door's mean action reaches only -0.16.
     init_policy: path of a policy ``.npz`` (e.g. a learned run's ``final_policy.npz``) whose mean action,
                  run once without noise from the task's start, gives the initial actions (default: zero
@@ -318,14 +319,18 @@ def filtered_policy(task: Task, state: ILQGState, cfg: ILQGConfig = ILQGConfig()
     ``task.linearize`` the iterations plan with, step ``fd_eps``), process noise ``W = filter_q^2 I``
     for the linearisation's error, measurement noise ``R = (rho^2 + 1e-6) I`` (the task's), prior
     ``N(x_0, filter_p0 I)`` at the task's start.  The policy ``a_k = K_k xhat_k + k_k`` (covariance
-    ``policy_var I``) is the iterate's, read on the estimate instead of the raw measurement.
+    ``policy_var I``) is the iterate's, read on the estimate instead of the raw measurement.  With a start
+    range (``[process_noise] start``) the prior covariance adds the task's ``start_cov``.
     """
     lin = linearize(task, state.x, state.u, cfg.fd_eps)
     T, n = lin.T, lin.n
     W = np.broadcast_to((cfg.filter_q ** 2) * np.eye(n), (T, n, n)).copy()
     R = measurement_noise(float(getattr(task, "rho2", 0.0)) + 1e-6, n)
-    kf = kalman_filter(LinearGaussianDynamics(lin.A, lin.B, lin.c, W), R, np.asarray(state.x[0], float),
-                       cfg.filter_p0 * np.eye(n))
+    P0 = cfg.filter_p0 * np.eye(n)
+    pn = getattr(task, "process_noise", None)
+    if pn is not None and pn.start_on:  # a start range (docs/math.md §8.1): the prior covers it
+        P0 = symmetrize(P0 + task.start_cov)
+    kf = kalman_filter(LinearGaussianDynamics(lin.A, lin.B, lin.c, W), R, np.asarray(state.x[0], float), P0)
     return FilteredPolicy(state.policy, kf)
 
 

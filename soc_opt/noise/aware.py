@@ -33,10 +33,11 @@ model fitted in the iteration that produced it (:func:`loop_filter`); rollouts r
 The KL step and the step adaptation work on the innovation form (:func:`innovation_local_model`),
 DPSOC-EM's E-/M-step on the augmented model in ``xhat`` (:func:`filtered_em_model`).
 
-Filter prior.  Tasks start from a known state: ``task.P0 = (rho2 + 1e-6) I`` is the covariance of
-the *measured* ``s_0``, so the true ``x_0`` has covariance ``task.P0 - R = 1e-6 I``
-(:func:`noise_model`), which is positive definite, so ``S_0 = P0 + R`` is too, also at ``rho2 = 0``
-(where the filter is exactly ``xhat = s``).
+Filter prior.  ``task.P0`` is the covariance of the *measured* ``s_0``: ``(rho2 + 1e-6) I`` for a known
+start, plus the task's ``start_cov`` with a start range (``[process_noise] start``, docs/math.md §8.1).
+So the true ``x_0`` has covariance ``task.P0 - R`` (:func:`noise_model`): ``1e-6 I`` for a known start,
+``start_cov + 1e-6 I`` with a start range; positive definite either way, so ``S_0 = P0 + R`` is too,
+also at ``rho2 = 0`` (where the filter is exactly ``xhat = s``).
 """
 
 from __future__ import annotations

@@ -55,8 +55,9 @@ class KinematicEstimator(NoiseStrategy):
 
     ``NoiseConfig`` requires the fit correction, expansion point, prior data and time window at
     their defaults with this estimator, so the inherited ``fit`` and ``expansion_point`` are the
-    paper's, applied to the smoothed rollouts.  The known start ``x_0 ~ N(mu0, task.P0 - R)``
-    (docs/math.md §10) is the initial distribution of the KL step and the E-step.
+    paper's, applied to the smoothed rollouts.  The start ``x_0 ~ N(mu0, task.P0 - R)`` (docs/math.md §10;
+    with a start range ``task.P0 - R`` holds its ``start_cov``, §8.1) is the initial distribution of the KL
+    step and the E-step.
     """
 
     name = "kinematic"
@@ -129,7 +130,7 @@ class KinematicEstimator(NoiseStrategy):
 
     def lqg_model(self, dynamics, cost, estimates: Estimates, where: str = "") -> LoopModel:
         """The fit on the smoothed states (or, with ``dynamics = "structured"``, the filter's own
-        transition: :mod:`soc_opt.noise.kinematic.dynamics`) from the known start (``kl_model = "plain"``), or its
+        transition: :mod:`soc_opt.noise.kinematic.dynamics`) from the task's start (``kl_model = "plain"``), or its
         innovation form with the Kalman filter of that fit (``"innovation"``, docs/math.md §10.2).
         With ``filter = "fit"`` the policy acts on that Kalman filter (as ``estimator = "kalman"``)."""
         kin = self.cfg.kinematic
@@ -146,7 +147,7 @@ class KinematicEstimator(NoiseStrategy):
 
     def em_model(self, model, estimates: Estimates, where: str = "") -> EMModel:
         """The fit on the smoothed states as is (its state rows replaced by the filter's transition with
-        ``dynamics = "structured"``), from the known start (``P0`` plus ``estep_p0_jitter``);
+        ``dynamics = "structured"``), from the task's start (``P0`` plus ``estep_p0_jitter``);
         with ``filter = "fit"`` the augmented model in the estimate of that fit's Kalman filter."""
         kin = self.cfg.kinematic
         if kin.filter == "fit":

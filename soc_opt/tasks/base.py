@@ -27,8 +27,10 @@ from ..models import (
     QuadraticCost,
     Rollouts,
     ShapeError,
+    symmetrize,
 )
 from ..noise.estimator import FilteredPolicy
+from . import process_noise
 from .config import (
     MetricConfig,
     PointTermConfig,
@@ -49,16 +51,23 @@ class SimulationError(RuntimeError):
 class RolloutNoise:
     """The random draws of ``M`` rollouts, in the order :meth:`TaskBase.draw_noise` takes them.
 
-    eps: (M, T+1, n) measurement noise ``s_k - x_k`` (already scaled by ``sqrt(rho2)``).
-    w:   (M, T, m)   standard normal policy noise (``a_k = K_k s_k + k_k + L_k w_k``; ``xhat_k``
-                     in place of ``s_k`` for a filtered policy, docs/math.md §10.2).
-    xi:  (M, T, n)   process noise added to the transition (scaled), or ``None`` when the
-                     task has none (MuJoCo tasks).
+    eps:   (M, T+1, n) measurement noise ``s_k - x_k`` (already scaled by ``sqrt(rho2)``).
+    w:     (M, T, m)   standard normal policy noise (``a_k = K_k s_k + k_k + L_k w_k``; ``xhat_k``
+                       in place of ``s_k`` for a filtered policy, docs/math.md §10.2).
+    xi:    (M, T, n)   process noise added to the transition (scaled), or ``None`` when the
+                       task has none (MuJoCo tasks).
+    start: (M, k)      offsets of the start coordinates of ``x_0`` (``task.process_noise.start_idx``:
+                       the angles of ``state.joints``, every component of a linear task), uniform in
+                       ``[-r, r]``; ``None`` without ``[process_noise] start`` (docs/math.md §8.1).
+    actuation: (M, T, m) actuation noise added to the control the plant receives (scaled); ``None``
+                       without ``[process_noise] actuation``.
     """
 
     eps: np.ndarray
     w: np.ndarray
     xi: np.ndarray | None = None
+    start: np.ndarray | None = None
+    actuation: np.ndarray | None = None
 
 
 @runtime_checkable
@@ -115,6 +124,21 @@ class TaskBase:
         self._label_index = {lab: i for i, lab in enumerate(self.state_labels)}
         self._cost = CostSum([self._build_term(i, t) for i, t in enumerate(c.cost)], self.n, self.m)
         self._metric = self._build_metric(c.metric)
+        names, idx, what = self._start_coordinates()
+        self.process_noise = process_noise.resolve(c.process_noise, names, idx, self._action_names(), what)
+        self._start_cov = None
+
+    def _start_coordinates(self) -> tuple[list[str], np.ndarray, str]:
+        """``(names, state indices, what they are)`` of the coordinates ``[process_noise] start`` offsets."""
+        raise NotImplementedError
+
+    def _action_names(self) -> list[str]:
+        """One name per action (for the errors of ``[process_noise] actuation``)."""
+        return [f"a{i}" for i in range(self.m)]
+
+    def _start_jacobian(self) -> np.ndarray:
+        """``(n, k)``: ``d x_0 / d`` (start coordinates) at the nominal start."""
+        raise NotImplementedError
 
     # -- cost
     def _site_indices(self, sites, key) -> list[int]:
@@ -272,13 +296,30 @@ class TaskBase:
     # -- initial distribution and policy
     @property
     def mu0(self) -> np.ndarray:
-        """Mean of the measured initial state ``s_0``: the true initial state ``x_0``."""
+        """Mean of the measured initial state ``s_0``: the nominal initial state ``x_0`` (with
+        ``[process_noise] start``, the mean of the true start to first order: docs/math.md §8.1)."""
         return self.x0.copy()
 
     @property
+    def start_cov(self) -> np.ndarray:
+        """``(n, n)`` covariance of the true initial state: zero for a known start, else the start range's
+        ``J diag(r^2 / 3) J^T`` (:meth:`soc_opt.tasks.process_noise.ProcessNoise.start_cov`; exact on the
+        joint rows, first order on the point rows; docs/math.md §8.1)."""
+        if not self.process_noise.start_on:
+            return np.zeros((self.n, self.n))
+        if self._start_cov is None:
+            self._start_cov = self.process_noise.start_cov(self._start_jacobian())
+            self._start_cov.setflags(write=False)
+        return self._start_cov.copy()
+
+    @property
     def P0(self) -> np.ndarray:
-        """Covariance of ``s_0 = x_0 + eps_0``: ``(rho2 + 1e-6) I`` (jitter keeps it PD for ``rho2 = 0``)."""
-        return (self.rho2 + 1e-6) * np.eye(self.n)
+        """Covariance of ``s_0 = x_0 + eps_0``: ``(rho2 + 1e-6) I`` (jitter keeps it PD for ``rho2 = 0``),
+        plus :attr:`start_cov` with ``[process_noise] start``."""
+        P0 = (self.rho2 + 1e-6) * np.eye(self.n)
+        if self.process_noise.start_on:
+            P0 = symmetrize(P0 + self.start_cov)
+        return P0
 
     def initial_policy(self, var: float | None = None) -> LinearGaussianPolicy:
         """Zero gains and offsets (zero torque: with gravity off the arm holds still), cov ``var I``."""
@@ -286,7 +327,9 @@ class TaskBase:
         return LinearGaussianPolicy.zeros(self.T, self.n, self.m, var)
 
     def draw_noise(self, M: int, rng: np.random.Generator) -> RolloutNoise:
-        """The noise of ``M`` rollouts drawn from ``rng``: ``eps`` then ``w`` (docs/math.md §0).
+        """The noise of ``M`` rollouts drawn from ``rng`` in this order (docs/math.md §0, §8.1):
+        ``eps``, ``w``, the transition noise ``xi`` of linear tasks, then the start offsets and the
+        actuation noise of ``[process_noise]``, each of the last two only when it is on.
 
         :meth:`rollouts` draws through this method, so a caller replaying a rollout step by
         step (e.g. :class:`soc_opt.envs.SocOptEnv`) gets the same numbers from the same
@@ -295,7 +338,13 @@ class TaskBase:
         T, n, m = self.T, self.n, self.m
         eps = rng.standard_normal((M, T + 1, n)) * math.sqrt(self.rho2)
         w = rng.standard_normal((M, T, m))
-        return RolloutNoise(eps, w)
+        xi = self._draw_transition_noise(M, rng)
+        start, act = self.process_noise.draw(M, T, rng)
+        return RolloutNoise(eps, w, xi, start, act)
+
+    def _draw_transition_noise(self, M: int, rng: np.random.Generator) -> np.ndarray | None:
+        """The transition noise ``xi (M, T, n)`` of the task's own model (linear tasks), else ``None``."""
+        return None
 
     def simulate(self, policy: LinearGaussianPolicy, x0=None) -> Rollouts:
         """One noise-free rollout of the policy mean (``eps = 0``, ``w = 0``) from ``x0`` (default ``x_0``)."""

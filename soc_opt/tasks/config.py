@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from ..config import Config, ConfigError
+from ..config import Config, ConfigError, config_error
 
 __all__ = [
     "Ramp",
@@ -23,6 +23,7 @@ __all__ = [
     "MetricConfig",
     "LinearConfig",
     "GymConfig",
+    "ProcessNoiseConfig",
     "GYM_PREFIX",
     "PKG_PREFIX",
     "TaskConfig",
@@ -202,6 +203,37 @@ class GymConfig(Config):
 
 
 @dataclass(frozen=True)
+class ProcessNoiseConfig(Config):
+    """``[process_noise]``: randomness of the plant itself, beside the sensor noise ``rho2``
+    (docs/math.md §8.1; ``docs/tasks.md``, "Process noise").  Both default to 0: nothing is drawn.
+
+    start:     half-width ``r`` of a uniform range around the start: the true ``x_0`` of each rollout
+               has the joint angles ``q0 + U(-r, r)`` (rad, or m for slide joints) for the joints of
+               ``state.joints`` (velocities as without it, zero for MJCF tasks; points by forward
+               kinematics); a number for every joint or one per joint.  Linear tasks: one per state
+               component (``x_0 + U(-r, r)``).
+    actuation: standard deviation of Gaussian noise added to the control the plant receives, drawn
+               per control step and actuator and held over the step's substeps (the units of the
+               action); a number for every actuator or one per actuator.  The recorded action ``a``
+               stays the policy's, so a learner sees it as process noise.  Linear tasks: added to
+               ``a`` before ``B``.
+    """
+
+    start: FloatOrList = 0.0
+    actuation: FloatOrList = 0.0
+
+    def __post_init__(self):
+        for key in ("start", "actuation"):
+            value = getattr(self, key)
+            values = value if isinstance(value, (tuple, list)) else (value,)
+            if not values:
+                raise config_error(key, "an empty list; give a number or one per entry")
+            for i, v in enumerate(values):
+                if not v >= 0:
+                    raise config_error(f"{key}[{i}]" if isinstance(value, (tuple, list)) else key, f"must be >= 0, got {v!r}")
+
+
+@dataclass(frozen=True)
 class TaskConfig(Config):
     """A task: model, horizon, state definition, cost terms, noise, metric (see ``docs/tasks.md``).
 
@@ -233,6 +265,10 @@ class TaskConfig(Config):
     linear: LinearConfig = field(default_factory=LinearConfig)
     gym: GymConfig = field(default_factory=GymConfig)
     camera: str | None = None
+    process_noise: ProcessNoiseConfig = field(default_factory=ProcessNoiseConfig)
+
+    #: Run directories recorded before ``[process_noise]`` existed ran without it (docs/tasks.md).
+    _implied_when_absent = {"process_noise": ({"start": 0.0, "actuation": 0.0}, {})}
 
     def __post_init__(self):
         checks = [

@@ -9,7 +9,8 @@ task's, with the environment's ``frame_skip`` as ``substeps``.
 * Actions: every actuator, in the model's order (the environment's action vector).
 * Initial state ``x_0``: the environment's state after ``env.reset(seed=gym.reset_seed +
   condition)``, positions *and* velocities; fixed for the run (measurement noise ``rho2``
-  is the only initial randomness, docs/math.md §0).
+  is the only initial randomness, docs/math.md §0, unless ``[process_noise] start`` offsets the
+  joint angles, §8.1).
 * Cost: ``l(s_k, a_k) = -r(s_k, a_k)``, the environment's reward for taking ``a_k`` in state
   ``s_k`` (:class:`EnvReward`: reset the data, ``set_state``, ``env.unwrapped.step``), so it
   needs no reimplementation of any reward.  Its quadratic expansion (:class:`RewardCost`)

@@ -9,7 +9,7 @@ import scipy.linalg
 
 from ..config import ConfigError
 from ..models import LinearGaussianDynamics, Rollouts
-from .base import RolloutNoise, TaskBase, as_rng
+from .base import TaskBase, as_rng
 from .config import TaskConfig
 
 __all__ = ["LinearTask", "LinearSimulator"]
@@ -72,18 +72,22 @@ class LinearTask(TaskBase):
         self._setup_common()
 
     def rollouts(self, policy, M, rng, noise=True, workers=1, x0=None) -> Rollouts:
-        """``M`` rollouts (vectorised; ``workers`` is ignored).  Draw order: ``eps``, ``w``, process noise.
+        """``M`` rollouts (vectorised; ``workers`` is ignored).  Draw order: ``eps``, ``w``, process noise
+        ``xi``, then ``[process_noise]``'s start offsets and actuation noise when on (:meth:`draw_noise`).
 
         A :class:`~soc_opt.noise.estimator.FilteredPolicy` acts on ``xhat_k``, its filter run online
         (causal: ``xhat_k`` from ``s_0..s_k`` and ``a_0..a_{k-1}``, docs/math.md §10.2); the draws are the
-        same as for a plain policy.
+        same as for a plain policy.  ``[process_noise]``: ``x_0 + U(-r, r)`` per component (also with
+        ``x0``), and ``x_{k+1} = A x_k + B (a_k + nu_k) + c + xi_k`` (docs/math.md §8.1); ``noise=False``
+        draws none of them.
         """
         policy, filtered = self._check_policy(policy)
         rng = as_rng(rng)
         T, n, m = self.T, self.n, self.m
+        start = nu = None
         if noise:
             draws = self.draw_noise(M, rng)
-            eps, w, xi = draws.eps, draws.w, draws.xi
+            eps, w, xi, start, nu = draws.eps, draws.w, draws.xi, draws.start, draws.actuation
         else:
             eps = np.zeros((M, T + 1, n))
             w = np.zeros((M, T, m))
@@ -92,6 +96,8 @@ class LinearTask(TaskBase):
         x = np.empty((M, T + 1, n))
         a = np.empty((M, T, m))
         x[:, 0] = self.x0 if x0 is None else np.asarray(x0, dtype=float)
+        if start is not None:
+            x[:, 0, self.process_noise.start_idx] += start
         s = x.copy()
         xhat = None
         for k in range(T):
@@ -101,15 +107,19 @@ class LinearTask(TaskBase):
             else:
                 xhat = filtered.estimate(k, s[:, k]) if k == 0 else filtered.estimate(k, s[:, k], xhat, a[:, k - 1])
                 a[:, k] = xhat @ policy.K[k].T + policy.k[k] + w[:, k] @ L[k].T
-            x[:, k + 1] = self.step(x[:, k], a[:, k]) + xi[:, k]
+            x[:, k + 1] = self.step(x[:, k], a[:, k] if nu is None else a[:, k] + nu[:, k]) + xi[:, k]
         s[:, T] = x[:, T] + eps[:, T]
         return self._finish(x, s, a)
 
-    def draw_noise(self, M: int, rng: np.random.Generator) -> RolloutNoise:
-        """``eps``, ``w`` (as for every task), then the process noise ``xi (M, T, n)``."""
-        base = super().draw_noise(M, rng)
-        xi = rng.standard_normal((M, self.T, self.n)) * math.sqrt(self.config.linear.process_var)
-        return RolloutNoise(base.eps, base.w, xi)
+    def _draw_transition_noise(self, M: int, rng: np.random.Generator) -> np.ndarray:
+        """The process noise ``xi (M, T, n)`` of ``linear.process_var``, drawn after ``eps`` and ``w``."""
+        return rng.standard_normal((M, self.T, self.n)) * math.sqrt(self.config.linear.process_var)
+
+    def _start_coordinates(self):
+        return list(self.state_labels), np.arange(self.n), "state component"
+
+    def _start_jacobian(self) -> np.ndarray:
+        return np.eye(self.n)
 
     def step(self, x, u) -> np.ndarray:
         """Noise-free transition ``A x + B u + c`` of ``x (..., n)``, ``u (..., m)`` (batched)."""
@@ -153,13 +163,19 @@ class LinearSimulator:
         self.task = task
         self.x = task.x0.copy()
 
-    def reset(self, x0=None) -> np.ndarray:
-        """Back to ``x0`` (default the task's ``x_0``); returns a copy of the state."""
+    def reset(self, x0=None, start=None) -> np.ndarray:
+        """Back to ``x0`` (default the task's ``x_0``) plus the start offsets ``start`` (one per component,
+        a row of :attr:`RolloutNoise.start`); returns a copy of the state."""
         self.x = self.task.x0.copy() if x0 is None else np.array(x0, dtype=float)
+        if start is not None:
+            self.x[self.task.process_noise.start_idx] += start
         return self.x.copy()
 
-    def step(self, u, xi=None) -> np.ndarray:
-        """``x <- A x + B u + c (+ xi)``; returns a copy of the new state."""
-        nxt = self.task.step(self.x[None], np.asarray(u, dtype=float)[None])[0]
+    def step(self, u, xi=None, actuation=None) -> np.ndarray:
+        """``x <- A x + B (u + actuation) + c (+ xi)``; returns a copy of the new state."""
+        u = np.asarray(u, dtype=float)
+        if actuation is not None:
+            u = u + actuation
+        nxt = self.task.step(self.x[None], u[None])[0]
         self.x = nxt if xi is None else nxt + xi
         return self.x.copy()

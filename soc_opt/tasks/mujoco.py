@@ -13,8 +13,9 @@ of that name.
 Rollouts: from ``x_0`` (``q0`` + condition offset, zero velocity) the action
 ``a_k = K_k s_k + k_k + L_k w_k`` is computed from the *measured* state and held
 as ``ctrl`` for ``substeps`` calls of ``mj_step`` (``dt = timestep * substeps``).
-All noise (``eps`` then ``w``) is drawn from the Generator before simulating,
-so results do not depend on ``workers``.  The stage cost ``Y_k`` is evaluated on
+All noise (``eps``, ``w``, then the start offsets and actuation noise of ``[process_noise]`` when
+on: docs/math.md §8.1) is drawn from the Generator before simulating, so results do not depend on
+``workers``.  The stage cost ``Y_k`` is evaluated on
 the measured ``s_k`` (docs/math.md §0) and ``y_k = exp(-y_scale * Y_k)``.
 
 The finite-difference linearisation in task coordinates (:meth:`MujocoTask.linearize`) is in
@@ -113,6 +114,7 @@ class MujocoTask(TaskBase):
         }
         jids = self._joint_ids + self._extra_ids
         self.qpos_adr = np.array([model.jnt_qposadr[j] for j in jids], dtype=int)
+        self._start_adr = as_index(self.qpos_adr[:nj])  # the joints [process_noise] start offsets
         self.dof_adr = np.array([model.jnt_dofadr[j] for j in jids], dtype=int)
         self.state_qpos_idx = np.r_[np.arange(nj), o_e + np.arange(ne)].astype(int)
         self.state_qvel_idx = np.r_[nj + np.arange(nj), o_e + ne + np.arange(ne)].astype(int)
@@ -257,6 +259,29 @@ class MujocoTask(TaskBase):
             d.qpos[self.qpos_adr] = x0[self.state_qpos_idx]
             d.qvel[self.dof_adr] = x0[self.state_qvel_idx]
 
+    def reset_start(self, d, x0, start=None):
+        """:meth:`reset_data`, then the start offsets ``start (nj,)`` added to the angles of ``state.joints``
+        (a row of :attr:`RolloutNoise.start <soc_opt.tasks.base.RolloutNoise>`; docs/math.md §8.1)."""
+        self.reset_data(d, x0)
+        if start is not None:
+            d.qpos[self._start_adr] += start
+
+    def _start_coordinates(self):
+        nj = len(self.config.state.joints)
+        return list(self.config.state.joints), self.state_qpos_idx[:nj], "joint of state.joints"
+
+    def _action_names(self) -> list[str]:
+        return list(self.actuated)
+
+    def _start_jacobian(self) -> np.ndarray:
+        """``d x_0 / d q`` over the joints of ``state.joints`` at the nominal start: the output Jacobian
+        (:func:`soc_opt.tasks.linearize.output_jacobian`) at ``x_0``, its position columns of those joints."""
+        mj = import_mujoco()
+        d = mj.MjData(self.model)
+        self.reset_data(d, None)
+        mj.mj_forward(self.model, d)
+        return _linearize.output_jacobian(self, d)[:, self.dof_adr[: len(self.config.state.joints)]]
+
     def _reader(self, d):
         """A function ``read(out)`` writing the task state of ``d`` into ``out (n,)``.
 
@@ -336,7 +361,7 @@ class MujocoTask(TaskBase):
 
         return (lambda d: step1(m, d)), finish
 
-    def _run_samples(self, samples, K, offs, eps, x, s, a, x0, filtered=None):
+    def _run_samples(self, samples, K, offs, eps, x, s, a, x0, filtered=None, proc=(None, None)):
         mj = import_mujoco()
         m = self.model
         d = mj.MjData(m)
@@ -349,9 +374,11 @@ class MujocoTask(TaskBase):
         read = self._reader(d)
         dot = np.dot
         T = self.T
+        start, nu = proc
         for i in samples:
-            self.reset_data(d, x0)
+            self.reset_start(d, x0, None if start is None else start[i])
             xi, si, ai, ei, oi = x[i], s[i], a[i], eps[i], offs[i]
+            nui = None if nu is None else nu[i]
             xhat = None
             for k in range(T):
                 begin(d)
@@ -364,7 +391,7 @@ class MujocoTask(TaskBase):
                     xhat = filtered.estimate(k, sk) if k == 0 else filtered.estimate(k, sk, xhat, ai[k - 1])
                     dot(K[k], xhat, out=ak)
                 ak += oi[k]
-                ctrl[act] = ak
+                ctrl[act] = ak if nui is None else ak + nui[k]  # the plant's control (docs/math.md §8.1)
                 finish(d)
                 if warn.any():
                     self._diverged(i, k, d, warn, bad)
@@ -376,7 +403,7 @@ class MujocoTask(TaskBase):
                 kk = int(bad_k[0]) if bad_k.size else T
                 raise SimulationError(f"sample {i} diverged at control step {kk}: non-finite state or action")
 
-    def _run_lockstep(self, samples, K, offs, eps, x, s, a, x0, filtered):
+    def _run_lockstep(self, samples, K, offs, eps, x, s, a, x0, filtered, proc=(None, None)):
         """The rollouts ``samples`` of a filtered policy, all stepped together: one ``MjData`` per rollout,
         and per control step one call of the filter for all of them
         (:meth:`~soc_opt.noise.estimator.FilteredPolicy.estimate_rows`) instead of one per rollout.
@@ -389,14 +416,14 @@ class MujocoTask(TaskBase):
         """
         idx = np.asarray(samples, dtype=int)
         try:
-            out = self._lockstep(idx, K, offs, eps, x0, filtered)
+            out = self._lockstep(idx, K, offs, eps, x0, filtered, proc)
         except Exception:  # noqa: BLE001 -- replayed one sample at a time below, which raises its own error
             out = None
         if out is None:
-            return self._run_samples(samples, K, offs, eps, x, s, a, x0, filtered)
+            return self._run_samples(samples, K, offs, eps, x, s, a, x0, filtered, proc)
         x[idx], s[idx], a[idx] = out
 
-    def _lockstep(self, idx, K, offs, eps, x0, filtered):
+    def _lockstep(self, idx, K, offs, eps, x0, filtered, proc=(None, None)):
         """``(x, s, a)`` of the samples ``idx`` stepped together (:meth:`_run_lockstep`), or ``None`` on a
         divergence."""
         mj = import_mujoco()
@@ -413,8 +440,10 @@ class MujocoTask(TaskBase):
         eb, ob = eps[idx], offs[idx]
         Kc = K[:, None]  # (T, 1, m, n): K_k xhat_k for every row as a stack of matrix-vector products
         rows = list(zip(range(B), datas, reads, ctrls, warns))
-        for d in datas:
-            self.reset_data(d, x0)
+        start, nu = proc
+        for j, d in enumerate(datas):
+            self.reset_start(d, x0, None if start is None else start[idx[j]])
+        nub = None if nu is None else nu[idx]
         xhat = None
         for k in range(T):
             for j, d, read, _, _ in rows:
@@ -426,7 +455,7 @@ class MujocoTask(TaskBase):
             ak = ab[:, k]
             np.add((Kc[k] @ xhat[:, :, None])[:, :, 0], ob[:, k], out=ak)
             for j, d, _, ctrl, warn in rows:
-                ctrl[act] = ak[j]
+                ctrl[act] = ak[j] if nub is None else ak[j] + nub[j, k]
                 finish(d)
                 if warn.any():
                     try:
@@ -456,12 +485,15 @@ class MujocoTask(TaskBase):
         """``M`` sampled trajectories (docs/math.md §0).
 
         Noise ``eps (M,T+1,n) ~ N(0, rho2 I)`` then ``w (M,T,m) ~ N(0, I)`` is drawn from
-        ``rng`` up front (``noise=False``: both zero, the policy mean on the true state).
+        ``rng`` up front, then ``[process_noise]``'s start offsets (added to the angles of
+        ``state.joints`` at the start) and actuation noise (added to ``ctrl``, not to the recorded
+        ``a``) when on (docs/math.md §8.1; ``noise=False``: none of them, the policy mean on the true
+        state from the nominal start).
         ``workers > 1`` simulates contiguous blocks of samples in threads, one ``MjData``
         per sample (MuJoCo releases the GIL while stepping); results are identical for any ``workers``.
         A filtered policy's blocks run in one thread when no CPU is idle (:func:`soc_opt.parallel.spare_cpu`):
         its filter holds the GIL between the physics steps.  ``x0``: another initial state in task coordinates (its joint
-        components are used; default ``self.x0``).  ``a`` records the policy's action
+        components are used, plus the start offsets; default ``self.x0``).  ``a`` records the policy's action
         before MuJoCo clamps it to ``ctrlrange``.  Raises :class:`SimulationError`
         naming the sample and step on divergence.  A :class:`~soc_opt.noise.estimator.FilteredPolicy`
         acts on ``xhat_k``, its filter run online on the measurements and the recorded actions
@@ -473,10 +505,12 @@ class MujocoTask(TaskBase):
         rng = as_rng(rng)
         M = int(M)
         T, n, m = self.T, self.n, self.m
+        proc = (None, None)
         if noise:
             draws = self.draw_noise(M, rng)
             eps, w = draws.eps, draws.w
             offs = policy.k[None] + np.einsum("tij,mtj->mti", policy.chol, w)
+            proc = (draws.start, draws.actuation)
         else:
             eps = np.zeros((M, T + 1, n))
             offs = np.broadcast_to(policy.k, (M, T, m))
@@ -490,11 +524,11 @@ class MujocoTask(TaskBase):
         if filtered is not None and not parallel.spare_cpu():  # a second thread would only wait for the first's GIL
             workers = 1
         if workers == 1:
-            run(range(M), K, offs, eps, x, s, a, x0, filtered)
+            run(range(M), K, offs, eps, x, s, a, x0, filtered, proc)
         else:
             blocks = [b for b in np.array_split(np.arange(M), workers) if b.size]
             with ThreadPoolExecutor(max_workers=workers) as ex:
-                futs = [ex.submit(run, b.tolist(), K, offs, eps, x, s, a, x0, filtered) for b in blocks]
+                futs = [ex.submit(run, b.tolist(), K, offs, eps, x, s, a, x0, filtered, proc) for b in blocks]
                 errors = []
                 for f in futs:
                     try:
@@ -573,25 +607,28 @@ class MujocoSimulator:
         self.k = 0
         self.reset()
 
-    def reset(self, x0=None) -> np.ndarray:
-        """Back to ``x0`` (task coordinates; default the task's ``x_0``); returns a copy of the state."""
+    def reset(self, x0=None, start=None) -> np.ndarray:
+        """Back to ``x0`` (task coordinates; default the task's ``x_0``) with the start offsets ``start``
+        (``(nj,)``, :meth:`MujocoTask.reset_start`); returns a copy of the state."""
         mj = import_mujoco()
-        self.task.reset_data(self.data, x0)
+        self.task.reset_start(self.data, x0, start)
         mj.mj_forward(self.task.model, self.data)
         self.read_state(self.x)
         self.k = 0
         return self.x.copy()
 
-    def step(self, u, xi=None) -> np.ndarray:
-        """Hold ``u (m,)`` as ``ctrl`` for ``substeps`` physics steps; returns a copy of the new state.
+    def step(self, u, xi=None, actuation=None) -> np.ndarray:
+        """Hold ``u (m,)`` (plus the actuation noise ``actuation (m,)``, docs/math.md §8.1) as ``ctrl`` for
+        ``substeps`` physics steps; returns a copy of the new state.
 
         Raises :class:`SimulationError` on a divergence warning or a non-finite state.
         """
         if xi is not None:
-            raise ValueError(f"task {self.task.name!r}: MuJoCo tasks have no process noise (xi must be None)")
+            raise ValueError(f"task {self.task.name!r}: MuJoCo tasks have no transition noise xi (it must be None; "
+                             "[process_noise] actuation is passed as actuation)")
         mj = import_mujoco()
         task, d = self.task, self.data
-        d.ctrl[self.actuator_ids] = u
+        d.ctrl[self.actuator_ids] = u if actuation is None else np.asarray(u, dtype=float) + actuation
         mj.mj_step(task.model, d, task.substeps)
         warn = d.warning.number
         if warn.any():

@@ -29,7 +29,9 @@ class KinematicConfig(Config):
     q_noise:        standard deviation (rad, or m for slide joints) per control step of the
                     process noise on the joint-angle rows (residual of the kinematic rows).
     s_floor:        eigenvalue floor of the acceleration noise ``S`` ((rad/s^2)^2).
-    p0:             variance of the known start state ``z_0`` (times ``I``).
+    p0:             variance of the start state ``z_0`` around ``z(x_0)`` (times ``I``); a task with a start
+                    range (``[process_noise] start``, docs/math.md §8.1) adds its covariance (``r^2 / 3`` on
+                    the angles of ``state.joints``).
     warm_start:     start EM from the acceleration map of the sampling policy's filter (the
                     previous iteration's) instead of the batch's own initial map (``B = D = c = 0``,
                     ``S`` from the measured velocities' second differences).

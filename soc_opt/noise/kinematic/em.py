@@ -47,9 +47,14 @@ def initial_map(km: KinematicModel, s, rho2: float, floor: float, start_map: str
 
 
 def z_model(km: KinematicModel, accel: AccelMap, cfg: KinematicConfig) -> LinearGaussianZ:
-    """The transition in ``z`` of ``accel`` with the task's known start ``z_0 ~ N(z(x_0), p0 I)``."""
+    """The transition in ``z`` of ``accel`` from the task's start ``z_0 ~ N(z(x_0), p0 I + P_start)``, where
+    ``P_start`` is the covariance of the start range of ``[process_noise] start`` in ``z`` (``r^2 / 3`` on the
+    angles of ``state.joints``; :attr:`KinematicModel.start_cov`, docs/math.md §8.1), absent for a known start."""
     A, Bz, cz, Q = transition(accel, km.dt, km.c2, cfg.q_noise ** 2)
-    return LinearGaussianZ(A, Bz, cz, Q, km.z_of(km.task.x0), cfg.p0 * np.eye(km.nz))
+    P0 = cfg.p0 * np.eye(km.nz)
+    if km.start_cov is not None:
+        P0 = P0 + km.start_cov
+    return LinearGaussianZ(A, Bz, cz, Q, km.z_of(km.task.x0), P0)
 
 
 def _stats(sm: Smoothed, a: np.ndarray, nq: int, dt: float):

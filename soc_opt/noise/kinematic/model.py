@@ -135,7 +135,10 @@ class KinematicModel:
     (``gym:`` tasks included; :func:`check_task` says what it refuses).
 
     Attributes: ``n`` (task state), ``nq``, ``nz = 2 nq``, ``m``, ``T``, ``dt``, ``c2``,
-    ``zidx (nz,)`` (positions of ``(q, qd)`` in the task state, so ``z = x[..., zidx]``).
+    ``zidx (nz,)`` (positions of ``(q, qd)`` in the task state, so ``z = x[..., zidx]``),
+    ``start_cov (nz, nz)``: the covariance of the true ``z_0`` of a task with ``[process_noise] start``
+    (the rows and columns of ``z`` of ``task.start_cov``: ``r^2 / 3`` on the angles of ``state.joints``),
+    ``None`` for a known start (docs/math.md §8.1).
     """
 
     def __init__(self, task):
@@ -157,6 +160,8 @@ class KinematicModel:
         self.points = list(task.point_refs)
         self.pos_sl, self.vel_sl = task.layout["site_pos"], task.layout["site_vel"]
         self._qinit = np.array(task._qinit)
+        pn = getattr(task, "process_noise", None)
+        self.start_cov = np.asarray(task.start_cov)[np.ix_(self.zidx, self.zidx)] if pn is not None and pn.start_on else None
         self._local = threading.local()
 
     def __getstate__(self):
