@@ -47,7 +47,7 @@ class Capture:
 
     def __init__(self):
         self.values: dict[str, np.ndarray] = {}
-        self._saved = []
+        self.saved = []
 
     def wrap(self, module, name: str, pick):
         original = getattr(module, name)
@@ -58,11 +58,11 @@ class Capture:
                 self.values[key] = np.array(value, dtype=float)
             return out
 
-        self._saved.append((module, name, original))
+        self.saved.append((module, name, original))
         setattr(module, name, wrapped)
 
     def restore(self):
-        for module, name, original in reversed(self._saved):
+        for module, name, original in reversed(self.saved):
             setattr(module, name, original)
 
 
