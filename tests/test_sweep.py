@@ -500,9 +500,9 @@ def test_the_cap_sweep_varies_only_the_door_cap_on_the_tuning_seeds():
     initial variance those of the default setting."""
     spec = load_sweep(str(problems_dir() / "sweeps" / "cap_tuning.toml"))
     assert set(spec.seeds) == set(range(200, 210)) and {t.task for t in spec.trials} == {"door"}
-    caps = {t.setting.split(",")[0]: t.config.baseline.kl.mult_max for t in spec.trials}
+    caps = {t.setting.split(",")[0]: t.config.baseline.step_size.mult_max for t in spec.trials}
     assert caps == {"default": 10.0, "cap30": 30.0, "uncapped": 1e4}
     base = next(t.config for t in spec.trials if t.setting.startswith("default"))
     for t in spec.trials:
         assert t.config.baseline.acceptance.enabled and t.task_overrides["rho2"] == 0.0
-        assert t.config.baseline.kl.mult_min == base.baseline.kl.mult_min and t.config.baseline.init_var == base.baseline.init_var
+        assert t.config.baseline.step_size.mult_min == base.baseline.step_size.mult_min and t.config.baseline.init_var == base.baseline.init_var
