@@ -80,7 +80,7 @@ class AcceptanceConfig(Config):
     }
 
 
-#: The paper as written; also the acceptance table of a run recorded before acceptance existed.
+#: The paper as written; also what a run record without an acceptance table ran with.
 AS_WRITTEN = AcceptanceConfig(enabled=False)
 
 

@@ -73,7 +73,7 @@ class LQRFLMConfig(Config):
                  (dual solved to ``kl_rtol = 1e-6``).
     step_size:   the GPS rule on the multiplier (:class:`soc_opt.lqg.step_size.StepSizeConfig`:
                  ``factor_min``, ``factor_max``, ``min_gap``, ``mult_min``, ``mult_max``).  A ``[baseline.kl]``
-                 table may still hold these keys (files written before this table existed); they are read
+                 table may hold these keys too (older files do); they are read
                  into this table, over its value.
     noise:       noise-aware variants (docs/math.md §10: corrected fit, estimator in the loop); the
                  defaults are the paper's method (:class:`soc_opt.noise.aware.NoiseConfig`).
