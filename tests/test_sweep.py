@@ -505,4 +505,5 @@ def test_the_cap_sweep_varies_only_the_door_cap_on_the_tuning_seeds():
     base = next(t.config for t in spec.trials if t.setting.startswith("default"))
     for t in spec.trials:
         assert t.config.baseline.acceptance.enabled and t.task_overrides["rho2"] == 0.0
-        assert t.config.baseline.step_size.mult_min == base.baseline.step_size.mult_min and t.config.baseline.init_var == base.baseline.init_var
+        assert t.config.baseline.step_size.mult_min == base.baseline.step_size.mult_min
+        assert t.config.baseline.init_var == base.baseline.init_var
