@@ -23,7 +23,7 @@ import numpy as np
 from soc_opt import lqg
 from soc_opt.experiments.run import load_run_config
 from soc_opt.learning import fit as fit_module
-from soc_opt.methods import lqr_flm
+from soc_opt.methods.lqr_flm import iteration as lqr_flm  # the module whose globals the iteration calls
 from soc_opt.methods.registry import get_method
 from soc_opt.models import LinearGaussianPolicy
 from soc_opt.noise import kinematic_strategy
@@ -47,7 +47,7 @@ class Capture:
 
     def __init__(self):
         self.values: dict[str, np.ndarray] = {}
-        self._saved = []
+        self.saved = []
 
     def wrap(self, module, name: str, pick):
         original = getattr(module, name)
@@ -58,11 +58,11 @@ class Capture:
                 self.values[key] = np.array(value, dtype=float)
             return out
 
-        self._saved.append((module, name, original))
+        self.saved.append((module, name, original))
         setattr(module, name, wrapped)
 
     def restore(self):
-        for module, name, original in reversed(self._saved):
+        for module, name, original in reversed(self.saved):
             setattr(module, name, original)
 
 

@@ -61,13 +61,13 @@ class StateFileError(ValueError):
 def _core_types() -> list[type]:
     from .. import models
     from ..learning import mixture
-    from ..lqg import step_size
+    from ..lqg import problem
     from ..methods import state
     from ..noise import estimator
 
     return [state.RunState, state.IterationRecord, state.EMDiagnostics, state.BestPolicy, state.PreviousStep,
             state.AcceptedPolicy, models.LinearGaussianPolicy, models.LinearGaussianDynamics, models.QuadraticCost,
-            models.Rollouts, estimator.FilteredPolicy, estimator.KalmanFilter, step_size.LocalModel,
+            models.Rollouts, estimator.FilteredPolicy, estimator.KalmanFilter, problem.LocalModel,
             mixture.MixturePrior, mixture.VBState]
 
 
