@@ -29,18 +29,18 @@ from ..state import AcceptedPolicy, EMDiagnostics, PreviousStep, RunState, impro
 
 if TYPE_CHECKING:
     from ...tasks import Task
-    from ..config import DPSOCConfig
 
 __all__ = ["em_update", "em_phase"]
 
 
-def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | FilteredPolicy, rollouts: Rollouts,
+def em_update(task: Task, cfg, policy: LinearGaussianPolicy | FilteredPolicy, rollouts: Rollouts,
               prior: fit.MixturePrior | None, rng: np.random.Generator,
               recursion: int = 0, estimates: Estimates | None = None, noise: NoiseStrategy | None = None
               ) -> tuple[LinearGaussianPolicy | FilteredPolicy, EMDiagnostics]:
     """One EM recursion (paper Algorithm 1): fit augmented model, generate ``Y``, E-step, DP M-step.
 
-    ``rollouts`` are samples of ``policy``.  Returns the EM policy and the recursion's
+    ``cfg``: the run configuration (:class:`~soc_opt.methods.config.DPSOCConfig`; ``[em]`` and ``[baseline]``
+    are read).  ``rollouts`` are samples of ``policy``.  Returns the EM policy and the recursion's
     :class:`EMDiagnostics` (surrogate and ``log p(Y)`` before/after, timings).  With the
     estimator (docs/math.md §10.2) the E-/M-step run on the augmented model in ``xhat``, ``policy``'s gains
     read as acting on the new filter's estimate, and the EM policy is returned with that filter.
@@ -83,7 +83,7 @@ def em_update(task: Task, cfg: DPSOCConfig, policy: LinearGaussianPolicy | Filte
     return wrap(new), diag
 
 
-def em_phase(cfg: DPSOCConfig, task: Task, state: RunState, drawn: Drawn, verdict: Verdict, rng: np.random.Generator,
+def em_phase(cfg, task: Task, state: RunState, drawn: Drawn, verdict: Verdict, rng: np.random.Generator,
              noise: NoiseStrategy) -> RunState:
     """The EM phase on the accepted batch ``drawn`` of ``state.policy`` ``p_s`` (an
     :data:`~soc_opt.methods.lqr_flm.iteration.EMStep` once ``cfg`` is bound): ``cfg.em.n_em`` recursions of
