@@ -111,58 +111,22 @@ def _run_method(args, task, out: Path) -> int:
 
 
 def _final_evaluation(task, method: str, cfg, seed: int, state, out: Path) -> str:
-    """The returned policy on fresh rollouts (docs/math.md §12.3), sampled and with its mean action,
-    under the task's sensor noise; ``final_policy.npz``, ``final_eval.npz`` and
-    ``final_eval_mean_action.npz`` in ``out``; one line saying what was evaluated."""
-    from .experiments.compare import evaluate_policy
+    """The method's final evaluation (``Method.evaluate_final``, docs/math.md §12.3): ``final_policy.npz`` and
+    each batch of fresh rollouts as ``<stem>.npz`` in ``out``; one line saying what was evaluated."""
     from .experiments.run import headline_metric
     from .experiments.rundir import atomic_write_bytes, npz_bytes
-    from .methods.registry import get_method
-    from .models import LinearGaussianPolicy
-    from .noise.aware import mean_action
-
-    meth = get_method(method)
-    policy = meth.final_policy(cfg, state)
-    samples = cfg.evaluation.samples or cfg.baseline.samples
-    ro = evaluate_policy(task, policy, samples, seed, cfg.baseline.workers, cfg.evaluation)
-    ro_mean = evaluate_policy(task, mean_action(policy), samples, seed, cfg.baseline.workers, cfg.evaluation)
-    atomic_write_bytes(out / "final_policy.npz", npz_bytes(**policy.to_dict()))
-    atomic_write_bytes(out / "final_eval.npz", npz_bytes(**ro.to_dict()))
-    atomic_write_bytes(out / "final_eval_mean_action.npz", npz_bytes(**ro_mean.to_dict()))
+    from .plugins import METHODS
 
     def score(r):
         m = headline_metric(task.metrics(r))
         txt = ", ".join(f"{k} {v:.4g}" for k, v in m.items())
         return f"cost {float(np.mean(task.true_cost(r).sum(-1))):.4g}" + (f", {txt}" if txt else "")
 
-    acc = getattr(state, "accepted", None)
-    which = (f"the last accepted policy (iteration {acc.iteration})" if acc is not None and policy is acc.policy
-             else "the last iterate")
-    rho2 = float(getattr(task, "rho2", 0.0))
-    note = ""
-    if not meth.sample_based:
-        note = (f"; {method} plans on the noise-free model and its iterations are scored without sensor noise, "
-                f"this evaluation acts on the raw measurements (rho^2 = {rho2:g})")
-        ilqg_cfg = getattr(cfg, "ilqg", None)
-        if ilqg_cfg is not None and getattr(state, "x", None) is not None and rho2 > 0:
-            from .methods.ilqg import filtered_policy
-
-            fp = filtered_policy(task, state, ilqg_cfg)  # feedback on a Kalman filter of its own model
-            ro_f = evaluate_policy(task, fp, samples, seed, cfg.baseline.workers, cfg.evaluation)
-            ro_fm = evaluate_policy(task, mean_action(fp), samples, seed, cfg.baseline.workers, cfg.evaluation)
-            atomic_write_bytes(out / "final_eval_filtered.npz", npz_bytes(**ro_f.to_dict()))
-            atomic_write_bytes(out / "final_eval_filtered_mean_action.npz", npz_bytes(**ro_fm.to_dict()))
-            note += (f"; acting on a Kalman filter of its linearised model: sampled {score(ro_f)}, "
-                     f"mean action {score(ro_fm)}")
-        u = getattr(state, "u", None)
-        if u is not None:  # the nominal actions without feedback: what sensor noise cannot reach
-            T, m = u.shape
-            open_loop = LinearGaussianPolicy(np.zeros((T, m, task.n)), u, np.zeros((T, m, m)), allow_singular=True)
-            ro_open = evaluate_policy(task, open_loop, samples, seed, cfg.baseline.workers, cfg.evaluation)
-            atomic_write_bytes(out / "final_eval_open_loop.npz", npz_bytes(**ro_open.to_dict()))
-            note += f"; its nominal actions open loop: {score(ro_open)}"
-    return (f"final policy = {which}, {samples} fresh rollouts at rho^2 = {rho2:g}: sampled {score(ro)}; "
-            f"mean action {score(ro_mean)}{note} (final_eval*.npz)")
+    ev = METHODS.lookup(method).evaluate_final(task, cfg, seed, state, score)
+    atomic_write_bytes(out / "final_policy.npz", npz_bytes(**ev.policy.to_dict()))
+    for stem, ro in ev.rollouts.items():
+        atomic_write_bytes(out / f"{stem}.npz", npz_bytes(**ro.to_dict()))
+    return ev.line
 
 
 def _load_run_config(args, method: str):

@@ -145,10 +145,13 @@ kl_budget = 0.5
 prior = "mixture"
 n_components = 20
 
-[baseline.kl]             # KL-step dual solver and step adaptation (docs/math.md §6)
+[baseline.kl]             # KL-step solver options (docs/math.md §6)
 kl_rtol = 1e-6
+
+[baseline.step_size]      # the GPS rule on the KL-budget multiplier (docs/math.md §6)
 factor_min = 0.1
 factor_max = 5.0
+mult_max = 10000.0
 
 [em]                      # EM phase (docs/math.md §3-§5)
 n_em = 1

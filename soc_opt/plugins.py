@@ -10,10 +10,14 @@ A plug-in is an object (a method instance, an estimator class) with
   named tuples), which the state file's schema then accepts.
 
 It is registered by one line in its registry module (:mod:`soc_opt.methods.registry`,
-:mod:`soc_opt.noise.registry`) or by :meth:`Registry.register`.  The core (run configuration,
-state files, run directories) reads the tables :data:`METHODS` and :data:`ESTIMATORS` and never
-imports a plug-in module: a table fills itself on first use by importing its registry module, the
-one place that names the built-in plug-ins.
+:mod:`soc_opt.noise.registry`) or, from a script, by :meth:`Registry.register`: the one registration
+API, which checks the plug-in (:func:`check_plugin`, then the table's ``check``: the method protocol,
+an estimator class) whichever way it is added; :meth:`Registry.lookup` is the one lookup.  The core
+(run configuration, state files, run directories) reads the tables :data:`METHODS` and
+:data:`ESTIMATORS` and never imports a plug-in module: a table fills itself on first use by importing
+its registry module (``loader``), the one place that names the built-in plug-ins and installs the
+table's ``check``.  That import is made at run time, from this floor up to the methods' and the
+estimators' floors; ``tests/test_layers.py`` checks that it names exactly these two registry modules.
 """
 
 from __future__ import annotations
@@ -52,14 +56,16 @@ class Registry(MutableMapping):
     ``kind`` names the plug-ins in messages; ``loader`` is the module whose import registers the
     built-in ones, imported on first read; ``selector``: the key that picks one of them in the table
     holding their settings tables (``estimator`` in ``[baseline.noise]``; ``None``: picked elsewhere, as
-    a method is by ``--method``).  :attr:`version` counts the changes (caches of the assembled schema
-    key on it).
+    a method is by ``--method``).  ``check(plugin)``: the table's own test of a plug-in, raising
+    ``TypeError`` (installed by the loader).  :attr:`version` counts the changes (caches of the
+    assembled schema key on it).
     """
 
     def __init__(self, kind: str, loader: str, selector: str | None = None):
         self.kind = kind
         self.loader = loader
         self.selector = selector
+        self.check = None
         self.version = 0
         self._entries: dict[str, Any] = {}
         self._loaded = False
@@ -80,6 +86,8 @@ class Registry(MutableMapping):
     def __setitem__(self, name: str, plugin) -> None:
         self._load()
         check_plugin(plugin, self.kind)
+        if self.check is not None:
+            self.check(plugin)
         if plugin.name != name:
             raise ValueError(f"{self.kind} {plugin.name!r} registered under another name {name!r}")
         self._entries[name] = plugin
@@ -102,12 +110,12 @@ class Registry(MutableMapping):
         return f"Registry({self.kind!r}, {list(self._entries)!r})"
 
     def register(self, plugin, *, replace: bool = False):
-        """Add ``plugin`` under its ``name`` (``replace`` to overwrite); returns it."""
+        """Add ``plugin`` under its ``name`` (``replace`` to overwrite) once it passes the checks; returns it."""
         self._load()
-        check_plugin(plugin, self.kind)
-        if plugin.name in self._entries and not replace:
-            raise ValueError(f"a {self.kind} named {plugin.name!r} is already registered")
-        self[plugin.name] = plugin
+        name = getattr(plugin, "name", None)
+        if name in self._entries and not replace:
+            raise ValueError(f"a {self.kind} named {name!r} is already registered")
+        self[name] = plugin
         return plugin
 
     def lookup(self, name: str):

@@ -195,7 +195,7 @@ def test_em_update_passes_its_mstep_config_to_the_m_step(monkeypatch):
 
 def test_loop_kl_tolerance_comes_from_the_config_with_the_loop_default():
     """A partial [baseline.kl] table keeps the loop's tolerance (1e-6), not the library's (1e-10)."""
-    cfg = DPSOCConfig.from_dict({"baseline": {"kl": {"factor_min": 0.2}}})
+    cfg = DPSOCConfig.from_dict({"baseline": {"kl": {"max_backward": 400}}})
     assert cfg.baseline.kl.kl_rtol == LQRFLMConfig().kl.kl_rtol == 1e-6
     assert lqg.KLStepConfig().kl_rtol == 1e-10
     assert isinstance(cfg.baseline.kl, lqg.KLStepConfig)

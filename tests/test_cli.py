@@ -78,7 +78,7 @@ def _one_error_line(err: str) -> str:
 
 
 @pytest.mark.parametrize("key,value", [("baseline", "kl_budget = nan"), ("baseline", "init_var = inf"),
-                                       ("em", "cov_floor_scale = -inf"), ("baseline.kl", "min_gap = nan")])
+                                       ("em", "cov_floor_scale = -inf"), ("baseline.step_size", "min_gap = nan")])
 def test_nan_or_inf_in_the_config_is_refused_before_anything_is_written(tmp_path, capsys, key, value):
     p = tmp_path / "bad.toml"
     p.write_text(f"i_switch = 0\n[{key}]\n{value}\n")

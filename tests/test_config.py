@@ -117,7 +117,7 @@ def test_docs_configuration_md_is_the_generated_reference():
 
 
 def test_configs_check_themselves_when_built_in_python_naming_key_and_value():
-    from soc_opt.lqg import KLStepConfig
+    from soc_opt.lqg import StepSizeConfig
     from soc_opt.methods.config import EMConfig, LQRFLMConfig
     from soc_opt.noise.aware import NoiseConfig
 
@@ -128,7 +128,7 @@ def test_configs_check_themselves_when_built_in_python_naming_key_and_value():
         (LQRFLMConfig, {"samples": "20"}, "samples", "'20'"),
         (EMConfig, {"variant": "nope"}, "variant", "'nope'"),
         (EMConfig, {"y_samples": 0}, "y_samples", "0"),
-        (KLStepConfig, {"mult_max": -1.0}, "mult_max", "-1.0"),
+        (StepSizeConfig, {"mult_max": -1.0}, "mult_max", "-1.0"),
         (NoiseConfig, {"estimator": "ekf"}, "estimator", "'ekf'"),
     ]
     for cls, kwargs, key, shown in cases:
@@ -152,8 +152,8 @@ def test_a_bad_value_in_a_toml_file_names_the_file_the_table_path_and_the_value(
     from soc_opt.methods.config import DPSOCConfig
 
     path = tmp_path / "bad.toml"
-    path.write_text("[baseline.kl]\nmult_min = 0.0\n")
+    path.write_text("[baseline.step_size]\nmult_min = 0.0\n")
     with pytest.raises(ConfigError) as info:
         DPSOCConfig.from_toml(path)
     msg = str(info.value)
-    assert str(path) in msg and "baseline.kl.mult_min" in msg and "0.0" in msg, msg
+    assert str(path) in msg and "baseline.step_size.mult_min" in msg and "0.0" in msg, msg

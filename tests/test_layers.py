@@ -135,3 +135,50 @@ def test_the_core_importing_a_plug_in_breaks_the_plug_in_contract(tmp_path):
     for module in _CORE_IMPORTS_OF_PLUGINS:
         name = "soc_opt." + module.removesuffix(".py").replace("/", ".")
         assert f"{name} -> soc_opt." in report, (name, report)  # the injected line, reported as a direct import
+
+
+def _contract_layers() -> list[set[str]]:
+    """The layers of pyproject's layers contract, from the top: each a set of module names without ``soc_opt.``."""
+    import tomllib
+
+    contracts = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    layers = next(c["layers"] for c in contracts if c["type"] == "layers")
+    return [{m.strip().removeprefix("soc_opt.") for m in row.replace(":", "|").split("|")} for row in layers]
+
+
+def _documented_layers() -> list[set[str]]:
+    """The rows of the layer table of docs/architecture.md ("Layers"), from the top, as module-name sets."""
+    import re
+
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    table = text.split("## Layers", 1)[1].split("\n## ", 1)[0]
+    rows = [ln for ln in table.splitlines() if ln.startswith("| ") and not ln.startswith(("| layer", "|---"))]
+    return [set(re.findall(r"`([a-z_]+)`", ln.split("|", 2)[2])) for ln in rows]
+
+
+def test_the_layer_table_of_the_architecture_page_is_the_import_contract():
+    assert _documented_layers() == _contract_layers()
+
+
+def test_every_top_level_module_is_in_a_layer():
+    modules = {p.stem for p in (ROOT / "soc_opt").glob("*.py") if p.stem != "__init__"}
+    modules |= {p.parent.name for p in (ROOT / "soc_opt").glob("*/__init__.py")}
+    assert not modules - set().union(*_contract_layers())
+
+
+def test_the_plugin_tables_import_at_run_time_only_their_registry_modules_which_the_core_may_not_import():
+    """The one import the contracts cannot see: a plug-in table importing its registry module on first read
+    (soc_opt/plugins.py, floor 2, up to the methods' and the noise's floors).  It is exactly these two modules,
+    and the contract "The core imports no plug-in" forbids the core to import them statically."""
+    import re
+    import tomllib
+
+    from soc_opt import plugins
+
+    source = (ROOT / "soc_opt" / "plugins.py").read_text()
+    assert re.findall(r"import_module\(([^)]*)\)", source) == ["self.loader"]
+    loaders = {plugins.METHODS.loader, plugins.ESTIMATORS.loader}
+    assert loaders == {"soc_opt.methods.registry", "soc_opt.noise.registry"}
+    contracts = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    core = next(c for c in contracts if c["name"].startswith("The core imports no plug-in"))
+    assert loaders <= set(core["forbidden_modules"]) and "soc_opt.plugins" in core["source_modules"]

@@ -19,6 +19,7 @@ from soc_opt.lqg import (
     KLStepConfig,
     LocalModel,
     SolverError,
+    StepSizeConfig,
     adapt_multiplier,
     expected_cost,
     forward,
@@ -775,7 +776,7 @@ def test_config_is_strict():
 
 
 def test_adapt_step_gps_rule():
-    cfg = KLStepConfig(factor_min=0.1, factor_max=5.0, mult_min=1e-3, mult_max=10.0)
+    cfg = StepSizeConfig(factor_min=0.1, factor_max=5.0, mult_min=1e-3, mult_max=10.0)
     # mult = pred / (2 (pred - act)), clipped to [0.1, 5]
     assert adapt_multiplier(1.0, 2.0, 0.0, cfg) == pytest.approx(0.5)  # no actual improvement: halve
     assert adapt_multiplier(1.0, 2.0, 1.0, cfg) == pytest.approx(1.0)  # half realised: keep

@@ -1,4 +1,4 @@
-"""Step acceptance of the sample-based methods (soc_opt/methods/lqr_flm.py, dpsoc_em.py; docs/math.md §12).
+"""Step acceptance of the sample-based methods (soc_opt/methods/lqr_flm/, dpsoc_em/; docs/math.md §12).
 
 A step is made bad on purpose by wrapping the KL step so that one chosen call returns a policy with
 its offsets pushed far off (the damage a step at the multiplier's cap does on the door): the run
@@ -98,7 +98,7 @@ def test_rejected_step_is_retried_around_the_accepted_policy_with_a_smaller_mult
     assert rec[2].extra["accepted"] == 0.0
     assert rec[2].extra["test_cost"] > rec[2].extra["accept_threshold"]
     assert rec[2].extra["accepted_iteration"] == 1.0
-    assert rec[2].mult == pytest.approx(max(rec[1].mult * cfg.baseline.acceptance.shrink, cfg.baseline.kl.mult_min))
+    assert rec[2].mult == pytest.approx(max(rec[1].mult * cfg.baseline.acceptance.shrink, cfg.baseline.step_size.mult_min))
     # the retry p_3 is accepted again and is not the wrecked policy: its cost is close to p_1's
     assert rec[3].extra["accepted"] == 1.0
     assert np.mean(rec[3].cost) < 2.0 * np.mean(rec[1].cost)
@@ -160,10 +160,10 @@ def test_samples_actual_improvement_adapts_the_multiplier_from_the_batch_means(t
         if cur.extra["accepted"] != 1.0 or prev.extra["accepted"] != 1.0 or not np.isfinite(cur.extra["predicted_improvement"]):
             continue
         seen = prev.extra["test_cost"] - cur.extra["test_cost"]
-        expected = lqg.adapt_multiplier(prev.mult, cur.extra["predicted_improvement"], seen, cfg.baseline.kl)
+        expected = lqg.adapt_multiplier(prev.mult, cur.extra["predicted_improvement"], seen, cfg.baseline.step_size)
         assert cur.mult == pytest.approx(expected, rel=1e-12)
         laplace = lqg.adapt_multiplier(prev.mult, cur.extra["predicted_improvement"], cur.extra["actual_improvement"],
-                                       cfg.baseline.kl)
+                                       cfg.baseline.step_size)
         checked += not np.isclose(laplace, expected, rtol=1e-9)
     assert checked >= 1  # at least one step where the two rules differ, so the option is what was read
 
@@ -239,7 +239,7 @@ def test_a_retry_below_the_dual_s_resolution_samples_the_accepted_policy_again(t
     def kl_step(*args, **kwargs):
         calls.append(1)
         if len(calls) == 3:  # the retry after the rejected p_2
-            raise lqg.SolverError("KL budget nu=0.005 not reachable: KL(eta_max=1e+16) = 4.1e-01")
+            raise lqg.BudgetUnreachable("KL budget nu=0.005 not reachable: KL(eta_max=1e+16) = 4.1e-01")
         res = real(*args, **kwargs)
         if len(calls) == 2:
             res = res._replace(policy=LinearGaussianPolicy(res.policy.K, res.policy.k + 200.0, res.policy.cov))

@@ -1,5 +1,5 @@
 """What the policy's gains act on under sensor noise (docs/math.md §13.2; soc_opt/noise/aware.py
-``calibration``, ``calibrated_gains``, ``open_loop_gains``; ``shaped_gains`` in soc_opt/methods/lqr_flm.py)
+``calibration``, ``calibrated_gains``, ``open_loop_gains``; ``shaped_gains`` in soc_opt/methods/lqr_flm/iteration.py)
 and the acceptance test on the estimated cost (§13.3)."""
 
 import numpy as np

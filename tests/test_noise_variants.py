@@ -55,7 +55,7 @@ def _paper_iteration(task, cfg, state):
     mult = state.mult
     if state.prev is not None:
         pred, act = lqg.laplace_improvements(state.prev.reference, state.policy, state.prev.model, model)
-        mult = lqg.adapt_multiplier(mult, pred, act, cfg.kl)
+        mult = lqg.adapt_multiplier(mult, pred, act, cfg.step_size)
     res = lqg.kl_step(dyn, cost, state.policy, cfg.kl_budget * task.T * mult, task.mu0, task.P0, config=cfg.kl)
     return res.policy, mult, ro
 

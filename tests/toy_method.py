@@ -67,6 +67,7 @@ class Shoot(MethodBase):
     sections = ("shoot",)
     settings = ShootConfig
     state_types = (ShootState,)
+    flags = ("iterations", "samples")  # --iterations, --samples set its own table; the others are refused
 
     def apply_overrides(self, cfg, values: dict, paper: bool):
         return cfg.replace(shoot=cfg.shoot.replace(**values)) if values else cfg

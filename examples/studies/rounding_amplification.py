@@ -23,7 +23,7 @@ import numpy as np
 from soc_opt import lqg
 from soc_opt.experiments.run import load_run_config
 from soc_opt.learning import fit as fit_module
-from soc_opt.methods import lqr_flm
+from soc_opt.methods.lqr_flm import iteration as lqr_flm  # the module whose globals the iteration calls
 from soc_opt.methods.registry import get_method
 from soc_opt.models import LinearGaussianPolicy
 from soc_opt.noise import kinematic_strategy

@@ -4,7 +4,7 @@
 
 Reads every ``metrics.json`` under the roots (run, compare or sweep directories).  Step ``i`` is the KL
 step taken in iteration ``i`` with multiplier ``mult_i``; it produced the policy sampled in iteration
-``i + 1`` (baseline rows only); the cap is the run's ``kl.mult_max`` (its ``config.json``).  The step
+``i + 1`` (baseline rows only); the cap is the run's ``step_size.mult_max`` (its ``config.json``).  The step
 *degraded* the policy when that sample fails the acceptance
 test of docs/math.md §12.1 against the batch of iteration ``i`` (``kappa = 2, eps = 0.02`` on the
 recorded true-state costs; for runs with acceptance the recorded verdict is used instead).  Steps are
@@ -30,11 +30,12 @@ def _costs(run: Path) -> dict[int, np.ndarray]:
 
 
 def run_cap(run: Path, default: float | None) -> float:
-    """The run's ``kl.mult_max`` from its ``config.json`` (``default`` if given)."""
+    """The run's ``step_size.mult_max`` from its ``config.json`` (``default`` if given; a run recorded before
+    ``[baseline.step_size]`` existed holds it in ``kl``)."""
     if default is not None:
         return default
-    cfg = json.loads((run / "config.json").read_text())["config"]
-    return float(cfg["baseline"]["kl"]["mult_max"])
+    base = json.loads((run / "config.json").read_text())["config"]["baseline"]
+    return float(base["step_size"]["mult_max"] if "step_size" in base else base["kl"]["mult_max"])
 
 
 def degraded_steps(run: Path, cap: float, kappa: float = 2.0, eps: float = 0.02) -> list[tuple[bool, bool]]:
@@ -70,7 +71,7 @@ def table(roots: list[str], cap: float | None = None) -> list[dict]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("roots", nargs="+")
-    ap.add_argument("--cap", type=float, help="the multiplier's cap (default: each run's kl.mult_max)")
+    ap.add_argument("--cap", type=float, help="the multiplier's cap (default: each run's step_size.mult_max)")
     a = ap.parse_args(argv)
     rows = table(a.roots, a.cap)
     keys = list(rows[0]) if rows else []

@@ -251,7 +251,7 @@ def settings_table(
     seed: int = 0,
     config: FitConfig = FitConfig(),
 ) -> list[dict]:
-    """Fit time vs held-out one-step prediction error per mixture-prior setting (issue 10).
+    """Fit time vs held-out one-step prediction error per mixture-prior setting.
 
     Every setting (``config`` with the given changes) replays the same sequence
     ``data`` (default :func:`peg_sequence`): at each iteration the prior is updated

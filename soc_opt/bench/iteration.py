@@ -1,4 +1,4 @@
-"""Wall time per iteration of each method at the paper's scale, split into phases (issue 10).
+"""Wall time per iteration of each method at the paper's scale, split into phases.
 
 Runs LQR-FLM and DPSOC-EM on a task with the paper's settings (:data:`soc_opt.methods.config.PAPER`:
 14 iterations x 20 samples, EM phase after iteration 4) and reports, per phase, the median and

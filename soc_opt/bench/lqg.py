@@ -46,7 +46,7 @@ on a loaded machine vary by up to a factor 2 between runs.
 ``n=26, m=7, T=100`` building fatrop's solver (CasADi AD of 100 stages of 377 states and 217
 controls) did not finish within 7 minutes (5.9 GB resident).  At ``n=4, m=2, T=20`` fatrop takes
 0.5-0.7 s to build and 0.02-0.03 s to solve (10-11 iterations), policy and multipliers within
-about 1e-9 of the closed form.  The rerun of issue 32 at ``(26, 7, 100)`` with CPU times and
+about 1e-9 of the closed form.  The run at ``(26, 7, 100)`` with CPU times and
 sqpmethod (``sqp=True``) is in docs/results/solvers/README.md ("KL step at the paper's size").
 """
 

@@ -91,7 +91,7 @@ def trust_region_reference(Q, r, f0, delta):
 
 def offset_reference(Q, r, idx, b):
     """Maximiser of ``-1/2 f^T Q f + r^T f`` with ``|f_i| <= b_i`` on the offset entries ``idx``: the
-    exact KKT solve of :func:`kkt_box_reference` (until issue 32: scipy L-BFGS-B)."""
+    exact KKT solve of :func:`kkt_box_reference`."""
     return kkt_box_reference(Q, -np.asarray(r, dtype=float), idx, b)[0]
 
 

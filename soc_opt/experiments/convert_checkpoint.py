@@ -1,6 +1,6 @@
 """``soc-opt convert-checkpoint --trust DIR``: old pickle checkpoints to the data-only format.
 
-Before issue 18 run directories held ``checkpoint.pkl``, ``checkpoint.prev.pkl`` and (``soc-opt
+Run directories of the pickle format hold ``checkpoint.pkl``, ``checkpoint.prev.pkl`` and (``soc-opt
 compare``) ``seed_*/fork_state.pkl``: pickles, which run whatever code they contain when read.
 soc_opt now refuses them (:class:`soc_opt.experiments.rundir.LegacyCheckpointError`).  This module is the
 only place in soc_opt that unpickles, and only for a directory the user vouches for with
@@ -36,8 +36,8 @@ def legacy_files(directory: str | Path) -> list[Path]:
 _MOVED = {"soc_opt.estimator": "soc_opt.noise.estimator", "soc_opt.mixture": "soc_opt.learning.mixture",
           "soc_opt.fit": "soc_opt.learning.fit", "soc_opt.noise_aware": "soc_opt.noise.aware"}
 
-#: The classes the old ``soc_opt.algorithms`` module defined (before the methods package; the
-#: module is gone since issue 33) and the modules that hold them now.
+#: The classes the ``soc_opt.algorithms`` module of pickled checkpoints defined and the modules that
+#: hold them now.
 _MOVED_FROM_ALGORITHMS = {
     **dict.fromkeys(("PaperScale", "LoopKLStepConfig", "LQRFLMConfig", "EMConfig", "EvalConfig", "DPSOCConfig"),
                     "soc_opt.methods.config"),

@@ -48,7 +48,7 @@ def environment() -> dict:
 
 def environment_differences(old: dict | None, new: dict) -> list[str]:
     """``"what: old -> new"`` for every recorded entry of ``old`` that differs in ``new`` (an empty list
-    when ``old`` records nothing: runs from before the record existed; entries of an unexpected type
+    when ``old`` records nothing (a run recorded without it); entries of an unexpected type
     in a hand-edited record are reported as they read, never raised on)."""
     if not isinstance(old, dict):
         return []

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from ..config import ConfigError, read_toml
-from ..methods.base import run_method
+from ..methods.base import apply_overrides, run_method
 from ..methods.config import DPSOCConfig, with_task_init_var
 from ..methods.state import RunState
 from ..plugins import METHODS
@@ -79,7 +79,7 @@ def load_run_config(task_name: str, config_file: str | Path | None = None, *, pa
         cfg = _read_run_config(default, method) if default.is_file() else DPSOCConfig()
     set_values = {k: v for k, v in (overrides or {}).items() if v is not None}
     try:
-        cfg = meth.apply_overrides(cfg, set_values, paper)
+        cfg = apply_overrides(meth, cfg, set_values, paper)  # a flag the method does not read: refused
     except ConfigError:
         raise
     except (TypeError, ValueError) as e:

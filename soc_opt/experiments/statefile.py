@@ -23,8 +23,8 @@ buffer spanning it, writeable flag) and rebuilt with the same strides.  The numb
 depend on it: the same product on a transposed view and on a C-ordered copy calls different BLAS
 kernels (``gemv`` N vs T) and rounds differently, and the previous KL step's model
 (``RunState.prev``) holds such views; a checkpoint that made them contiguous (as pickle does)
-let a resumed run drift from the uninterrupted one at the 1e-16 level from its first
-step-size adaptation on (issue 18).
+lets a resumed run drift from the uninterrupted one at the 1e-16 level from its first
+step-size adaptation on.
 """
 
 from __future__ import annotations
@@ -61,13 +61,13 @@ class StateFileError(ValueError):
 def _core_types() -> list[type]:
     from .. import models
     from ..learning import mixture
-    from ..lqg import step_size
+    from ..lqg import problem
     from ..methods import state
     from ..noise import estimator
 
     return [state.RunState, state.IterationRecord, state.EMDiagnostics, state.BestPolicy, state.PreviousStep,
             state.AcceptedPolicy, models.LinearGaussianPolicy, models.LinearGaussianDynamics, models.QuadraticCost,
-            models.Rollouts, estimator.FilteredPolicy, estimator.KalmanFilter, step_size.LocalModel,
+            models.Rollouts, estimator.FilteredPolicy, estimator.KalmanFilter, problem.LocalModel,
             mixture.MixturePrior, mixture.VBState]
 
 

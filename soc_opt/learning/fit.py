@@ -148,7 +148,7 @@ class FitConfig(Config):
         min_eig:              relative eigenvalue floor of ``So_k`` (times the mean diagonal of
                               the ``zeta`` block of ``Lambda_k``) [1e-9].
 
-    The settings before warm starts (issue 10) remain selectable:
+    The settings without warm starts remain selectable:
     ``prior_warm_start = false``, ``n_components = 20``, ``buffer_size = 10000``,
     ``max_iter = 100``.  The defaults were chosen by fit time against held-out
     one-step prediction error on peg (``soc_opt.bench.fit.settings_table``,

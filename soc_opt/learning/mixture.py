@@ -276,7 +276,7 @@ class Subspace(NamedTuple):
            rtol: float = DEGENERATE_RTOL) -> "Subspace | None":
         """The :class:`Subspace` of standardised data ``Z (N, D)`` whose ``varying (D,)`` columns are
         not constant (:func:`varying_columns`), or None when no direction of them is degenerate (the
-        mixture is then fitted on all ``D`` coordinates, as before subspaces existed).  With no more
+        mixture is then fitted on all ``D`` coordinates).  With no more
         tuples than varying columns the covariance is singular for want of data, not because of
         the coordinates: None too."""
         idx = np.flatnonzero(varying)

@@ -25,10 +25,12 @@ Modules (each imports only from those below it):
 * :mod:`.dual`: the scalar and vector dual solvers over the multipliers ``eta``.
 * :mod:`.backward`: the backward pass for fixed ``eta`` (closed form, Quu repair rule) and
   :func:`lqr`.
-* :mod:`.step_size`: step-size adaptation (GPS): :func:`laplace_improvements`, :func:`adapt_multiplier`.
+* :mod:`.step_size`: the step-size rule (GPS): :class:`StepSizeConfig`, :func:`laplace_improvements`,
+  :func:`adapt_multiplier`.
 * :mod:`.moments`: forward pass, expected cost and KL in closed form.
-* :mod:`.problem`: shared types (:class:`KLStepConfig`, :class:`KLStepResult`,
-  :class:`Marginals`, :class:`SolverError`), input validation and the per-step problem arrays.
+* :mod:`.problem`: shared types (:class:`LocalModel`, the step's model; :class:`KLStepConfig`,
+  :class:`KLStepResult`, :class:`Marginals`, :class:`SolverError`, :class:`BudgetUnreachable`), input
+  validation and the per-step problem arrays.
 
 Both the closed form and the CasADi/IPOPT NLP agree to about 1e-10 in policy and multipliers
 on the tested instances.
@@ -40,12 +42,13 @@ about 40 ms / 8 backward passes, per-step budgets about 80 ms / 16 passes
 
 from .backward import lqr
 from .moments import expected_cost, forward, kl_divergence
-from .problem import KLStepConfig, KLStepResult, Marginals, SolverError
+from .problem import BudgetUnreachable, KLStepConfig, KLStepResult, LocalModel, Marginals, SolverError
 from .step import KL_METHODS, kl_step, kl_step_local
-from .step_size import LocalModel, adapt_multiplier, laplace_improvements
+from .step_size import StepSizeConfig, adapt_multiplier, laplace_improvements
 
 __all__ = [
     "SolverError",
+    "BudgetUnreachable",
     "Marginals",
     "KLStepConfig",
     "KLStepResult",
@@ -57,6 +60,7 @@ __all__ = [
     "kl_step",
     "kl_step_local",
     "KL_METHODS",
+    "StepSizeConfig",
     "adapt_multiplier",
     "laplace_improvements",
 ]

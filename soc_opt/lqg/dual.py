@@ -26,7 +26,7 @@ from scipy.signal import lfilter
 
 from ..models import NotPositiveDefiniteError
 from .backward import DualEval, NotPDPoint, backward_pass, direct_dkl, evaluate_eta
-from .problem import KLProblem, KLStepConfig, SolverError
+from .problem import BudgetUnreachable, KLProblem, KLStepConfig, SolverError
 
 _MEM = 10
 _NEAR = 0.1  # L-BFGS memory is used only once every free |log(KL_k/nu_k)| < _NEAR ...
@@ -102,7 +102,7 @@ def solve_scalar(prob: KLProblem, nu: float, config: KLStepConfig, eta0) -> tupl
         if f > 0:
             lo = max(lo, x)
             if x >= xmax:
-                raise SolverError(f"KL budget nu={nu:g} not reachable: KL(eta_max={config.eta_max:g}) = {ksum:.3e}")
+                raise BudgetUnreachable(f"KL budget nu={nu:g} not reachable: KL(eta_max={config.eta_max:g}) = {ksum:.3e}")
         else:
             hi = min(hi, x)
             if x <= xmin:
@@ -227,7 +227,7 @@ def solve_vector(prob: KLProblem, nu: np.ndarray, config: KLStepConfig, eta0) ->
         x, r, phi, g = xn, rn, phin, gn
         if np.any(x[free] >= xmax - 1e-12):
             t = int(np.flatnonzero(free & (x >= xmax - 1e-12))[0])
-            raise SolverError(f"KL budget nu[{t}]={nu[t]:g} not reachable below eta_max={config.eta_max:g}", step=t)
+            raise BudgetUnreachable(f"KL budget nu[{t}]={nu[t]:g} not reachable below eta_max={config.eta_max:g}", step=t)
 
 
 class _VectorDual:

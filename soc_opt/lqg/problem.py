@@ -34,6 +34,22 @@ class SolverError(errors.SolverError):
     (IPOPT failures), ``.step`` the step of an unreachable per-step budget (vector dual)."""
 
 
+class BudgetUnreachable(SolverError):
+    """The dual cannot make the step as small as the budget asks: ``KL(eta_max) > nu`` (scalar budget) or
+    ``KL_k(eta_max) > nu_k`` at ``.step`` (per-step budgets).  The limit of a vanishing step is the
+    reference itself (docs/math.md §12.2, the zero step of step acceptance)."""
+
+
+class LocalModel(NamedTuple):
+    """The KL step's model (docs/math.md §6): fitted dynamics, the quadratic cost expansion and the
+    initial state distribution ``N(mu0, P0)``."""
+
+    dynamics: LinearGaussianDynamics
+    cost: QuadraticCost
+    mu0: np.ndarray
+    P0: np.ndarray
+
+
 class Marginals(NamedTuple):
     """State-action marginals of a linear-Gaussian closed loop.
 
@@ -54,7 +70,7 @@ class Marginals(NamedTuple):
 
 @dataclass(frozen=True)
 class KLStepConfig(Config):
-    """Hyperparameters of :func:`kl_step` and :func:`adapt_multiplier` (docs/math.md §6).
+    """Options of the KL step's solvers, :func:`kl_step` (docs/math.md §6).
 
     Dual solver (closed form):
         kl_rtol, kl_atol: stop when ``|KL - nu| <= kl_rtol * nu + kl_atol`` for every active
@@ -93,11 +109,9 @@ class KLStepConfig(Config):
         fatrop_expand:  expand the NLP's MX graph into SX before solving (True: faster
                         evaluations; False saves build time and memory on large problems).
         fatrop_options: extra fatrop options (override the above).
-    Step-size adaptation (:func:`adapt_multiplier`, GPS rule, on the KL-budget multiplier):
-        factor_min, factor_max: clip of the per-iteration factor ``predicted / (2 (predicted - actual))``
-                        (0.1, 5.0).
-        min_gap:        floor of the denominator ``predicted - actual`` (1e-4, cost units).
-        mult_min, mult_max: clip of the adapted multiplier (1e-4, 1e4).
+
+    The step-size rule that sets the budget is not a solver option: its settings are
+    :class:`soc_opt.lqg.step_size.StepSizeConfig`.
     """
 
     kl_rtol: float = 1e-10
@@ -120,17 +134,11 @@ class KLStepConfig(Config):
     fatrop_max_iter: int = 1000
     fatrop_expand: bool = True
     fatrop_options: dict[str, Any] = field(default_factory=dict)
-    factor_min: float = 0.1
-    factor_max: float = 5.0
-    min_gap: float = 1e-4
-    mult_min: float = 1e-4
-    mult_max: float = 1e4
 
     _constraints = {
         **{name: [Interval(0, None, "neither")]
            for name in ("kl_rtol", "kl_atol", "eta_init", "eta_min", "eta_max", "max_log_step", "ipopt_tol",
-                        "ipopt_acceptable_tol", "chol_floor", "fatrop_tol", "factor_min", "factor_max", "min_gap",
-                        "mult_min", "mult_max")},
+                        "ipopt_acceptable_tol", "chol_floor", "fatrop_tol")},
         "repair_factor": [Interval(1.0, None, "neither")],
         "repair_margin": [Interval(0.0)],
         **{name: [Interval(1)] for name in ("max_backward", "ipopt_max_iter", "fatrop_max_iter")},
@@ -139,9 +147,8 @@ class KLStepConfig(Config):
     }
 
     def __post_init__(self):
-        for lo, hi in (("eta_min", "eta_max"), ("factor_min", "factor_max"), ("mult_min", "mult_max")):
-            if getattr(self, lo) > getattr(self, hi) or (lo == "eta_min" and self.eta_min == self.eta_max):
-                raise config_error(lo, f"must be below {hi} = {getattr(self, hi)!r}, got {getattr(self, lo)!r}")
+        if self.eta_min >= self.eta_max:
+            raise config_error("eta_min", f"must be below eta_max = {self.eta_max!r}, got {self.eta_min!r}")
 
 
 class KLStepResult(NamedTuple):

@@ -1,5 +1,5 @@
 """The KL-constrained LQG step (docs/math.md §6): the entries :func:`kl_step` (the model's pieces as
-arguments) and :func:`kl_step_local` (the same step on a :class:`~soc_opt.lqg.step_size.LocalModel`),
+arguments) and :func:`kl_step_local` (the same step on a :class:`~soc_opt.lqg.problem.LocalModel`),
 and the closed-form path.
 
 ``method="closed_form"`` solves the dual over the multipliers (:mod:`.dual`) with one backward
@@ -19,8 +19,7 @@ from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost
 from .casadi_nlp import kl_step_casadi
 from .dual import dual_objective, solve_scalar, solve_vector
 from .fatrop_nlp import kl_step_fatrop
-from .problem import KLProblem, KLStepConfig, KLStepResult, check_dims, check_init, check_nu, policy_from
-from .step_size import LocalModel
+from .problem import KLProblem, KLStepConfig, KLStepResult, LocalModel, check_dims, check_init, check_nu, policy_from
 
 
 def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: LinearGaussianPolicy, nu, mu0, P0,
@@ -56,7 +55,7 @@ def kl_step(dynamics: LinearGaussianDynamics, cost: QuadraticCost, reference: Li
 
 def kl_step_local(model: LocalModel, reference: LinearGaussianPolicy, nu, *, method: str = "closed_form",
                   config: KLStepConfig | None = None, eta0=None) -> KLStepResult:
-    """:func:`kl_step` on a fitted :class:`~soc_opt.lqg.step_size.LocalModel` (dynamics, cost expansion,
+    """:func:`kl_step` on a fitted :class:`~soc_opt.lqg.problem.LocalModel` (dynamics, cost expansion,
     ``mu0``, ``P0``): ``kl_step(model.dynamics, model.cost, reference, nu, model.mu0, model.P0, ...)``,
     the same arithmetic and the same :class:`KLStepResult`.  The form the loop uses (the model it
     solved on is also what :func:`~soc_opt.lqg.step_size.laplace_improvements` reads)."""

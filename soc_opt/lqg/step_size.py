@@ -1,25 +1,47 @@
-"""Step-size adaptation of the KL budget (GPS, docs/math.md §6 last bullet) under the Laplace
-approximation: :func:`laplace_improvements` and :func:`adapt_multiplier`."""
+"""The step-size rule of the KL budget (GPS, docs/math.md §6 last bullet) under the Laplace
+approximation: its settings :class:`StepSizeConfig`, :func:`laplace_improvements` and
+:func:`adapt_multiplier`.  Step acceptance (docs/math.md §12) decides when the rule is applied:
+:mod:`soc_opt.methods.lqr_flm.acceptance`."""
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from dataclasses import dataclass
 
 import numpy as np
 
-from ..models import LinearGaussianDynamics, LinearGaussianPolicy, QuadraticCost
+from ..config import Config, Interval, config_error
+from ..models import LinearGaussianPolicy
 from .moments import expected_cost
-from .problem import KLStepConfig
+from .problem import LocalModel
+
+__all__ = ["StepSizeConfig", "LocalModel", "laplace_improvements", "adapt_multiplier"]
 
 
-class LocalModel(NamedTuple):
-    """A fitted local model: dynamics, quadratic cost expansion and initial state distribution."""
+@dataclass(frozen=True)
+class StepSizeConfig(Config):
+    """The GPS rule on the KL-budget multiplier (:func:`adapt_multiplier`; ``[baseline.step_size]``).
 
-    dynamics: LinearGaussianDynamics
-    cost: QuadraticCost
-    mu0: np.ndarray
-    P0: np.ndarray
+    factor_min, factor_max: clip of the per-iteration factor ``predicted / (2 (predicted - actual))``
+                    (0.1, 5.0).
+    min_gap:        floor of the denominator ``predicted - actual`` (1e-4, cost units).
+    mult_min, mult_max: clip of the multiplier (1e-4, 1e4); ``mult_min`` also floors the multiplier
+                    that a rejected step leaves (:func:`soc_opt.methods.lqr_flm.acceptance.next_multiplier`).
+    """
+
+    factor_min: float = 0.1
+    factor_max: float = 5.0
+    min_gap: float = 1e-4
+    mult_min: float = 1e-4
+    mult_max: float = 1e4
+
+    _constraints = {name: [Interval(0, None, "neither")] for name in ("factor_min", "factor_max", "min_gap", "mult_min",
+                                                                       "mult_max")}
+
+    def __post_init__(self):
+        for lo, hi in (("factor_min", "factor_max"), ("mult_min", "mult_max")):
+            if getattr(self, lo) > getattr(self, hi):
+                raise config_error(lo, f"must be below {hi} = {getattr(self, hi)!r}, got {getattr(self, lo)!r}")
 
 
 def laplace_improvements(old_policy: LinearGaussianPolicy, new_policy: LinearGaussianPolicy,
@@ -42,18 +64,18 @@ def laplace_improvements(old_policy: LinearGaussianPolicy, new_policy: LinearGau
 
 
 def adapt_multiplier(mult, predicted_improvement: float, actual_improvement: float,
-                     config: KLStepConfig | None = None):
+                     config: StepSizeConfig | None = None):
     """GPS step-size rule: scale the KL-budget multiplier by how well the model predicted the improvement.
 
     The loop's budget is ``kl_budget * T * mult``; this adapts ``mult`` (docs/math.md §6).
     ``factor = predicted / (2 max(min_gap, predicted - actual))`` clipped to
-    ``[factor_min, factor_max]`` (defaults 0.1, 5.0); ``new_mult = clip(factor * mult, mult_min,
-    mult_max)``.  The factor is the minimiser of the quadratic fitted to the two improvements: a
-    perfect prediction (``actual = predicted``) gives ``factor_max``, ``actual = 0`` halves the
-    multiplier, a cost increase (or a non-positive prediction) gives ``factor_min``.  ``mult`` may
-    be a scalar or an array (every entry scaled by the same factor); returns the same kind.
+    ``[factor_min, factor_max]``; ``new_mult = clip(factor * mult, mult_min, mult_max)``
+    (:class:`StepSizeConfig`).  The factor is the minimiser of the quadratic fitted to the two
+    improvements: a perfect prediction (``actual = predicted``) gives ``factor_max``, ``actual = 0``
+    halves the multiplier, a cost increase (or a non-positive prediction) gives ``factor_min``.
+    ``mult`` may be a scalar or an array (every entry scaled by the same factor); returns the same kind.
     """
-    config = KLStepConfig() if config is None else config
+    config = StepSizeConfig() if config is None else config
     pred, act = float(predicted_improvement), float(actual_improvement)
     if not (math.isfinite(pred) and math.isfinite(act)):
         raise ValueError(f"improvements must be finite, got predicted={pred!r}, actual={act!r}")

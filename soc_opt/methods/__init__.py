@@ -1,9 +1,11 @@
 """The optimisation methods (docs/math.md §7) and the one registry the drivers read.
 
-- :mod:`.base`: the :class:`~soc_opt.methods.base.Method` protocol and the generic run loop;
-- :mod:`.config`: the run configuration (:class:`DPSOCConfig` and its sections);
-- :mod:`.state`: run state, iteration records, best policy (what checkpoints hold);
-- :mod:`.lqr_flm`, :mod:`.dpsoc_em`: the sample-based methods; iLQG is :mod:`soc_opt.methods.ilqg`;
+- :mod:`.base`: the :class:`~soc_opt.methods.base.Method` protocol, its check, the flags check and the
+  generic run loop;
+- :mod:`.config`: the run configuration (:class:`DPSOCConfig` and its shared sections);
+- :mod:`.state`: history rows and best policy (every method), the sample-based methods' run state;
+- one folder per method: :mod:`.lqr_flm` (settings, step acceptance, the iteration), :mod:`.dpsoc_em`
+  (settings, the EM phase plugged into that iteration), :mod:`.ilqg` (settings, state, iteration);
 - :mod:`.registry`: one line per method, filling :data:`soc_opt.plugins.METHODS` (name -> method).
 
 The registry is imported explicitly (``from soc_opt.methods.registry import METHODS``) so that a

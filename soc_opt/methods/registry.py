@@ -1,10 +1,11 @@
-"""The methods, one registry line each: the CLI, experiments, ``soc-opt compare`` and sweeps read them.
+"""The methods, one registry line each: the CLI, experiments, ``soc-opt compare`` and sweeps read them
+from :data:`soc_opt.plugins.METHODS` when they run.
 
-Importing this module fills :data:`soc_opt.plugins.METHODS` (the core reads that table and never
-this module; the table imports it on first use).  A new method is one module defining a
-:class:`~soc_opt.methods.base.Method` (usually a subclass of :class:`~soc_opt.methods.base.MethodBase`;
-its own settings as ``settings``, the ``[NAME]`` table of the run configuration, and the classes of
-its saved state as ``state_types``) plus one line here; tests and scripts can also call :func:`register`.
+Importing this module fills that table (the core reads the table and never this module; the table
+imports it on first use) and installs its check, :func:`~soc_opt.methods.base.check_protocol`,
+which every registration passes, here or ``soc_opt.plugins.METHODS.register(...)`` from a script.  A
+new method is one folder (or module) defining a :class:`~soc_opt.methods.base.Method` (usually a
+subclass of :class:`~soc_opt.methods.base.MethodBase`) plus one line here.
 """
 
 from __future__ import annotations
@@ -12,46 +13,41 @@ from __future__ import annotations
 from typing import Callable
 
 from ..plugins import METHODS
-from .base import Method, run_method
-from .dpsoc_em import DPSOC_EM
-from .ilqg import ILQG_METHOD
-from .lqr_flm import LQR_FLM
+from .base import check_protocol, run_method
+from .dpsoc_em.method import DPSOC_EM
+from .ilqg.method import ILQG_METHOD
+from .lqr_flm.method import LQR_FLM
 
 __all__ = ["METHODS", "get_method", "register", "check_config", "sections_of", "sample_based", "run"]
+
+METHODS.check = check_protocol
 
 # Every method by name (the order is the CLI's).
 METHODS.register(DPSOC_EM)
 METHODS.register(LQR_FLM)
 METHODS.register(ILQG_METHOD)
 
-
-def get_method(name: str) -> Method:
-    """The registered method ``name``; :class:`ConfigError` listing the known ones otherwise."""
-    return METHODS.lookup(name)
-
-
-def register(method: Method, *, replace: bool = False) -> Method:
-    """Add ``method`` to :data:`METHODS` (``replace`` to overwrite a name); returns it."""
-    if not isinstance(method, Method):
-        raise TypeError(f"{method!r} does not implement the Method protocol (soc_opt.methods.base.Method)")
-    return METHODS.register(method, replace=replace)
+#: The one lookup and the one registration, under the names scripts used before (:data:`METHODS`'s own).
+get_method = METHODS.lookup
+register = METHODS.register
 
 
 def check_config(name: str, cfg) -> None:
     """The method-specific checks of ``cfg`` for method ``name`` (``ConfigError`` naming the key)."""
-    get_method(name).check_config(cfg)
+    METHODS.lookup(name).check_config(cfg)
 
 
 def sections_of(name: str) -> tuple[str, ...]:
     """The top-level keys of the run configuration that method ``name`` reads."""
-    return get_method(name).sections
+    return METHODS.lookup(name).sections
 
 
 def sample_based() -> tuple[str, ...]:
-    """The names of the methods that learn from samples (``soc-opt compare`` and sweeps)."""
+    """The names of the registered methods that learn from samples (``soc-opt compare`` and sweeps), read
+    when called: a method registered later from a script is among them."""
     return tuple(name for name, m in METHODS.items() if m.sample_based)
 
 
 def run(task, name: str, cfg, seed: int = 0, state=None, on_iteration: Callable | None = None):
     """Run method ``name`` to the end from ``state`` (or a fresh start); :func:`~soc_opt.methods.base.run_method`."""
-    return run_method(get_method(name), task, cfg, seed, state, on_iteration)
+    return run_method(METHODS.lookup(name), task, cfg, seed, state, on_iteration)

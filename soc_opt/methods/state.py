@@ -1,17 +1,21 @@
-"""Run state of the sample-based methods (docs/math.md §7): what a checkpoint holds.
+"""Run state (docs/math.md §7): what a checkpoint holds.
 
-:class:`RunState` (policy, KL multiplier, mixture prior, RNG state, history) is what one
-iteration maps to the next, so that a run can be checkpointed after every iteration and resumed
-bit for bit; :class:`IterationRecord` is one row of ``metrics.csv``; :class:`BestPolicy` the best
-policy sampled so far (iLQG's state reports one too).  These types import nothing above the
-kernels, so every method module (and the run directory code) can use them.
+For every method: :class:`IterationRecord`, one row of ``metrics.csv`` (its ``kl``, ``nu``, ``mult``
+columns only where a method sets them: the KL-constrained ones), built by :func:`record`;
+:class:`BestPolicy`, the best policy sampled so far (iLQG's state reports one too); :func:`state_rng`
+and :func:`improved`.  For the two sample-based methods, LQR-FLM and DPSOC-EM (their folders
+:mod:`soc_opt.methods.lqr_flm`, :mod:`soc_opt.methods.dpsoc_em`): :class:`RunState` (policy, KL
+multiplier, mixture prior, RNG state, history), what one iteration maps to the next, so that a run
+can be checkpointed after every iteration and resumed bit for bit, with :class:`PreviousStep`,
+:class:`AcceptedPolicy` and :class:`EMDiagnostics`; the run directories and sweeps read it, so it stays
+in the core.  These types import nothing above the kernels.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, ClassVar, Literal, NamedTuple
+from typing import TYPE_CHECKING, ClassVar, NamedTuple
 
 import numpy as np
 
@@ -98,17 +102,20 @@ class EMDiagnostics:
 class IterationRecord:
     """Metrics of one iteration (one sampling round).
 
-    phase: "baseline" or "em".  ``cost`` holds per-sample total costs on the true states.
+    phase: "baseline" or "em" (a method may name its own).  ``cost`` holds per-sample total costs on
+           the true states.
+    kl, nu, mult: the KL step's divergence, budget and multiplier (``None``: a method without a KL step;
+           its rows have no such columns).
     em:    the EM recursion's diagnostics (``phase == "em"`` only).
     """
 
     iteration: int
-    phase: Literal["baseline", "em"]
+    phase: str
     cost: np.ndarray  # (M,) true-state total cost per sample
     cost_measured: np.ndarray  # (M,) measured-state total cost per sample (docs/math.md §0 Y)
-    kl: float
-    nu: float
-    mult: float
+    kl: float | None
+    nu: float | None
+    mult: float | None
     metrics: dict[str, float]
     timings: dict[str, float]
     extra: dict[str, float] = field(default_factory=dict)
@@ -117,15 +124,16 @@ class IterationRecord:
     nonfinite_floats: ClassVar[bool] = True  # a record: state files accept NaN/inf here
 
     def summary(self) -> dict:
+        """The row of ``metrics.csv``: iteration, phase, costs, the KL columns when set, metrics, timings,
+        the EM recursion's and the method's extra columns."""
+        step = {k: v for k, v in (("kl", self.kl), ("nu", self.nu), ("mult", self.mult)) if v is not None}
         return {
             "iteration": self.iteration,
             "phase": self.phase,
             "cost_mean": float(np.mean(self.cost)),
             "cost_std": float(np.std(self.cost)),
             "cost_measured_mean": float(np.mean(self.cost_measured)),
-            "kl": self.kl,
-            "nu": self.nu,
-            "mult": self.mult,
+            **step,
             **{f"metric_{k}": v for k, v in self.metrics.items()},
             **{f"time_{k}": v for k, v in self.timings.items()},
             **(self.em.summary() if self.em is not None else {}),
@@ -149,7 +157,7 @@ class RunState:
     last_rollouts: the rollouts of the last iteration (with acceptance: of the last accepted one's
                    batch after a rejection, the batch the sampled policy's estimator comes from).
     accepted:      the last accepted policy (step acceptance, docs/math.md §12; None without).
-    mult_ceiling:  upper bound on the multiplier after a rejection (None: ``kl.mult_max`` only).
+    mult_ceiling:  upper bound on the multiplier after a rejection (None: ``step_size.mult_max`` only).
     """
 
     iteration: int
@@ -166,7 +174,6 @@ class RunState:
     mult_ceiling: float | None = None
 
 
-
 def state_rng(state: RunState) -> np.random.Generator:
     """A generator continuing ``state``'s stream."""
     rng = np.random.default_rng()
@@ -181,17 +188,21 @@ def improved(best: BestPolicy | None, mean_cost: float, policy, iteration: int) 
     return best
 
 
-def record(iteration, phase, task, rollouts, *, kl=0.0, nu=0.0, mult=1.0, timings=None, extra=None,
+def record(iteration, phase, task, rollouts, *, kl=None, nu=None, mult=None, timings=None, extra=None,
            em=None) -> IterationRecord:
-    """The :class:`IterationRecord` of one sampling round of ``task``."""
+    """The :class:`IterationRecord` of one sampling round of ``task`` (``kl``, ``nu``, ``mult``: a KL step's,
+    left ``None`` by a method without one)."""
+    def number(v):
+        return None if v is None else float(v)
+
     return IterationRecord(
         iteration=iteration,
         phase=phase,
         cost=np.asarray(task.true_cost(rollouts).sum(axis=-1)),
         cost_measured=np.asarray(rollouts.total_cost()),
-        kl=float(kl),
-        nu=float(nu),
-        mult=float(mult),
+        kl=number(kl),
+        nu=number(nu),
+        mult=number(mult),
         metrics={k: float(v) for k, v in task.metrics(rollouts).items()},
         timings=timings or {},
         extra=extra or {},

@@ -2,7 +2,7 @@
 
 Selected by the ``[baseline.noise]`` table (:class:`NoiseConfig`).  The defaults
 (``estimator = "none"``, ``fit_correction = "none"``) are the paper's methods, bit for bit: the
-loop then calls exactly what it called before this module existed.
+loop then calls exactly the paper's kernels.
 
 ``fit_correction`` (docs/math.md §10.1), how the local model is fitted from the measured rollouts:
 

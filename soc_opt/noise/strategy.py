@@ -52,7 +52,7 @@ if TYPE_CHECKING:
     from .aware import NoiseConfig
 
 __all__ = ["NoiseStrategy", "MeasuredState", "KalmanEstimator", "Estimates", "LoopModel", "EMModel", "resolve",
-           "strategy_class", "kalman_lqg_model", "kalman_em_model"]
+           "strategy_class", "check_strategy", "kalman_lqg_model", "kalman_em_model"]
 
 
 def _identity(policy: LinearGaussianPolicy):
@@ -232,6 +232,13 @@ def kalman_em_model(noise, cfg: NoiseConfig, model, where: str = "") -> EMModel:
     """The EM recursion on the augmented model in that filter's estimate ``xhat``."""
     model, kf, mu0, P0 = noise_aware.filtered_em_model(model, noise, cfg, where)
     return EMModel(model, mu0, P0, lambda policy: FilteredPolicy(policy, kf))
+
+
+def check_strategy(cls) -> None:
+    """``TypeError`` unless ``cls`` is a subclass of :class:`NoiseStrategy` (an estimator is registered as its
+    class; :data:`soc_opt.plugins.ESTIMATORS` runs this on every registration)."""
+    if not (isinstance(cls, type) and issubclass(cls, NoiseStrategy)):
+        raise TypeError(f"an estimator is a subclass of soc_opt.noise.strategy.NoiseStrategy, got {cls!r}")
 
 
 def strategy_class(name: str) -> type[NoiseStrategy]:

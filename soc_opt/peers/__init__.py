@@ -1,4 +1,4 @@
-"""Adapters to the tools users would pick instead (issue 21; docs/results/peers/).
+"""Adapters to the tools users would pick instead (docs/results/peers/).
 
 Each submodule states one problem in soc_opt's terms and in a peer's, runs both and returns the
 differences and timings; nothing here changes soc_opt's own algorithms.

@@ -13,7 +13,7 @@ is rewarded with), and the task's own metrics (``cost``: the total cost of the t
 the project reports it; ``success_rate`` and ``min_distance`` for peg, ``min_hinge`` for door;
 docs/tasks.md).  After training the final policy is scored on ``eval_episodes`` fresh episodes
 (seeds ``10000 + seed + 1000 e``) twice: with its mean action (``final``; stable-baselines3's
-``deterministic=True``) and sampled (``final_sampled``), issue 30 item 4.
+``deterministic=True``) and sampled (``final_sampled``).
 
 Off-policy runs (SAC, CrossQ) are resumable: with ``checkpoint`` a directory, the model, the
 filled part of the replay buffer, the observation normaliser and the log so far are saved there
@@ -154,7 +154,7 @@ def _callback_class():
                 # n_steps, so at an episode end the policy is the one trained so far)
                 row = {"steps": int(self.num_timesteps), "budget": self._eval_at.pop(0),
                        "wall_s": self._header.get("wall_before_s", 0.0) + self.elapsed()}
-                # scored like the final policy: with its mean action, and sampled (issue 30 item 4);
+                # scored like the final policy: with its mean action, and sampled;
                 # the sampled score draws from the learner's generators, so it runs on a copy of
                 # their state and the run goes on with the stream it would have had without it
                 with _rng_kept(self.model):

@@ -61,7 +61,6 @@ from ..methods.registry import check_config, sample_based, sections_of
 from ..methods.state import RunState
 
 __all__ = [
-    "METHODS",
     "SweepError",
     "TrialDiverged",
     "Setting",
@@ -76,8 +75,11 @@ __all__ = [
     "write_json",
 ]
 
-#: The methods a sweep can run: the registry's sample-based ones.
-METHODS = sample_based()
+def __getattr__(name: str):
+    """``METHODS``: the methods a sweep can run, the registry's sample-based ones, read when asked."""
+    if name == "METHODS":
+        return sample_based()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 TOP_KEYS = ("name", "tasks", "methods", "seeds", "config", "paper", "eval_samples", "common", "grid", "settings")
 OVERRIDE_KEYS = ("i_switch", "baseline", "em", "task")
 RESULT = "result.json"
@@ -455,9 +457,10 @@ def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
     if not isinstance(name, str) or not name:
         raise ConfigError(f"name: expected a non-empty string, got {name!r}")
     methods = _str_list(data, "methods")
+    runnable = sample_based()  # read now: a method registered from a script is among them
     for m in methods:
-        if m not in METHODS:
-            raise ConfigError(f"methods: unknown method {m!r}; use {list(METHODS)}")
+        if m not in runnable:
+            raise ConfigError(f"methods: unknown method {m!r}; use {list(runnable)}")
     seeds = _seeds(data["seeds"])
     tasks = [_resolve_task(ref, base_dir, i) for i, ref in enumerate(_str_list(data, "tasks"))]
     labels = [lab for _, lab, _ in tasks]

@@ -1,4 +1,4 @@
-"""Side by side with the peers users would pick instead (issue 21; docs/results/peers/README.md).
+"""Side by side with the peers users would pick instead (docs/results/peers/README.md).
 
 ``soc-opt bench --only peers`` runs every part; ``--only peers.smoothers``, ``peers.lqr`` or
 ``peers.rl`` one of them.  Each part's ``run()`` returns one row per measured case and needs the

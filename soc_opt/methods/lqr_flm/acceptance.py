@@ -1,0 +1,180 @@
+"""Step acceptance (docs/math.md §12) and the multiplier it leaves: :func:`judge` and :func:`next_multiplier`.
+
+Every iteration of the sample-based methods samples the current policy ``p_i`` and asks :func:`judge`
+for a :class:`Verdict` on that batch against the last accepted policy ``p_a``.  With
+``[baseline.acceptance] enabled = true`` (the default) the verdict is the test of §12.1; with
+``enabled = false`` it is the paper as written: a judge that accepts every batch and records nothing,
+so the iteration (:mod:`soc_opt.methods.lqr_flm.iteration`) has one path.  :func:`next_multiplier`
+turns the verdict into the KL-budget multiplier of the step: the GPS rule on an accepted batch
+(:func:`soc_opt.lqg.adapt_multiplier`, its settings :class:`~soc_opt.lqg.step_size.StepSizeConfig`),
+bounded by the ceiling a rejection leaves; the shrunk multiplier of a rejected one (§12.2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal, NamedTuple
+
+import numpy as np
+
+from ... import lqg
+from ...config import Config, Interval, Options
+from ...lqg.step_size import StepSizeConfig
+
+if TYPE_CHECKING:
+    from ...models import Rollouts
+    from ..state import AcceptedPolicy, IterationRecord
+
+__all__ = ["AcceptanceConfig", "AS_WRITTEN", "Verdict", "judge", "next_multiplier", "acceptance_cost",
+           "acceptance_limit", "acceptance_threshold"]
+
+
+@dataclass(frozen=True)
+class AcceptanceConfig(Config):
+    """Step acceptance of the sample-based methods (docs/math.md §12), ``[baseline.acceptance]``.
+
+    enabled:  judge every sampled policy against the last accepted one and return the last accepted
+              policy (default).  ``false`` is the paper as written, bit for bit: every step is taken
+              and the policy of the last KL step (never sampled) is returned.
+    kappa:    standard errors of the cost difference that sampling noise may explain (2.0).
+    eps:      relative margin on the accepted cost ``|C_a|`` (0.02).  A policy is accepted iff
+              ``C_i <= C_a + kappa sqrt(se_i^2 + se_a^2) + eps |C_a|``.
+    shrink:   on a rejection the next step is taken around the last accepted policy with its
+              multiplier times ``shrink`` (0.1, the GPS rule's ``factor_min``), floored at
+              ``[baseline.step_size] mult_min``.
+    cost:     the cost the test reads: "measured" (default; the total cost of the measured states,
+              which is all a learner on a real robot observes), "estimated" (the cost of the states the
+              learner fits on: the state estimator's, e.g. the kinematic smoother's ``h(E[z | s, a])``,
+              computed from the measurements alone; the measured states when the estimator learns on
+              them; docs/math.md §12.1) or "true" (the simulator's true states, what the run records;
+              identical without sensor noise).
+    ceiling:  after a rejection the multiplier is kept below ``ceiling`` times the multiplier of the
+              rejected step until a step at that size is accepted (0.5; 1.0 turns it off), so that the
+              step-size rule does not grow straight back to the size that just failed.
+    hold_when_improved: after an accepted step whose samples improved on the last accepted policy by
+              more than ``kappa`` standard errors, the multiplier is not lowered by the GPS rule (whose
+              predicted and actual improvements come from fitted models, unreliable under sensor
+              noise); off by default.
+    actual:   the actual improvement the GPS rule reads on an accepted step: "laplace" (default, §6: the
+              new samples' fitted model's expected cost, as the paper) or "samples" (the mean cost of the
+              last accepted batch minus the new batch's, on the cost the test reads (``cost``): the
+              trust-region ratio's numerator read from the samples the acceptance test already has).
+    """
+
+    enabled: bool = True
+    kappa: float = 2.0
+    eps: float = 0.02
+    shrink: float = 0.1
+    cost: Literal["measured", "estimated", "true"] = "measured"
+    ceiling: float = 0.5
+    hold_when_improved: bool = False
+    actual: Literal["laplace", "samples"] = "laplace"
+
+    _constraints = {
+        "kappa": [Interval(0)],
+        "eps": [Interval(0)],
+        "shrink": [Interval(0, 1, "neither")],
+        "cost": [Options(("measured", "estimated", "true"))],
+        "ceiling": [Interval(0, 1, "right")],
+        "actual": [Options(("laplace", "samples"))],
+    }
+
+
+#: The paper as written; also what a run record without an acceptance table ran with.
+AS_WRITTEN = AcceptanceConfig(enabled=False)
+
+
+class Verdict(NamedTuple):
+    """What :func:`judge` says of one sampled batch.
+
+    accept:    take the step around the sampled policy (else around the last accepted one, §12.2).
+    tested:    whether a test was made (False: the paper as written, which tracks no accepted policy and
+               has no zero step).
+    cost, se:  ``C_i`` and its standard error, on the cost the test reads (NaN untested).
+    threshold: the largest ``C_i`` accepted (``inf`` before any policy is accepted, or untested).
+    """
+
+    accept: bool
+    tested: bool
+    cost: float = float("nan")
+    se: float = float("nan")
+    threshold: float = float("inf")
+
+    def columns(self, accepted_iteration: int) -> dict[str, float]:
+        """The history row's acceptance columns (none untested); ``accepted_iteration``: the iteration of
+        the accepted policy after this verdict."""
+        if not self.tested:
+            return {}
+        return {"test_cost": self.cost, "test_cost_se": self.se, "accept_threshold": self.threshold,
+                "accepted": float(self.accept), "accepted_iteration": float(accepted_iteration)}
+
+
+def acceptance_limit(cfg: AcceptanceConfig, c_a: float, se_a: float, se: float) -> float:
+    """The largest mean cost a batch with standard error ``se`` may have against a reference batch of
+    mean ``c_a`` and standard error ``se_a`` (docs/math.md §12.1): ``c_a + kappa sqrt(se^2 + se_a^2) + eps |c_a|``."""
+    return c_a + cfg.kappa * float(np.hypot(se, se_a)) + cfg.eps * abs(c_a)
+
+
+def acceptance_cost(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollouts | None = None) -> tuple[float, float]:
+    """``(C_i, se_i)``: the mean total cost of a batch and its standard error, on the cost the
+    acceptance test reads (``cfg.cost``: measured, estimated or true states; docs/math.md §12.1).
+    ``learned``: the batch as the learner sees it (:meth:`Estimates.data`), whose costs are the
+    estimated ones; needed with ``cost = "estimated"``."""
+    if cfg.cost == "estimated":
+        if learned is None:
+            raise ValueError("acceptance cost 'estimated' needs the batch's estimated states")
+        c = np.asarray(learned.total_cost(), float)
+    else:
+        c = np.asarray(rec.cost if cfg.cost == "true" else rec.cost_measured, float)
+    return float(np.mean(c)), float(np.std(c, ddof=1) / np.sqrt(c.size)) if c.size > 1 else float("inf")
+
+
+def acceptance_threshold(cfg: AcceptanceConfig, se: float, accepted: AcceptedPolicy | None) -> float:
+    """:func:`acceptance_limit` against the last accepted policy (``inf`` before any is accepted)."""
+    if accepted is None:
+        return float("inf")
+    return acceptance_limit(cfg, accepted.cost_mean, accepted.cost_se, se)
+
+
+def judge(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollouts | None,
+          accepted: AcceptedPolicy | None) -> Verdict:
+    """The verdict on the batch of ``rec`` (``learned``: the same batch as the learner sees it) against the
+    last accepted policy (docs/math.md §12.1): accepted iff ``C_i <= C_a + kappa sqrt(se_i^2 + se_a^2) +
+    eps |C_a|``; the first batch is always accepted.  Disabled: every batch is accepted, untested."""
+    if not cfg.enabled:
+        return Verdict(True, False)
+    c, se = acceptance_cost(cfg, rec, learned)
+    threshold = acceptance_threshold(cfg, se, accepted)
+    return Verdict(bool(c <= threshold), True, c, se, threshold)
+
+
+def next_multiplier(step: StepSizeConfig, cfg: AcceptanceConfig, verdict: Verdict, mult: float,
+                    ceiling: float | None, improvements: tuple[float, float] | None,
+                    accepted: AcceptedPolicy | None, adapt: bool = True) -> tuple[float, float | None]:
+    """``(mult, ceiling)`` of the step that follows ``verdict`` (docs/math.md §6, §12.2).
+
+    Accepted: with ``adapt`` and the previous step's Laplace ``improvements`` (predicted, actual), the GPS
+    rule (:func:`soc_opt.lqg.adapt_multiplier`) reads the actual improvement of ``cfg.actual``; with
+    ``cfg.hold_when_improved`` a clear improvement on ``accepted`` keeps the multiplier from shrinking; the
+    result stays below ``ceiling``, which is lifted once a step at the ceiling is accepted.  Rejected:
+    ``mult * cfg.shrink`` floored at ``step.mult_min``, and the ceiling lowered to ``cfg.ceiling * mult``.
+    """
+    if not verdict.accept:
+        new = max(mult * cfg.shrink, step.mult_min)
+        if cfg.ceiling < 1.0:
+            ceiling = min(ceiling if ceiling is not None else np.inf, cfg.ceiling * mult)
+        return new, ceiling
+    new = mult
+    if adapt and improvements is not None:
+        predicted, actual = improvements
+        seen = actual if cfg.actual == "laplace" or accepted is None else accepted.cost_mean - verdict.cost
+        new = lqg.adapt_multiplier(new, predicted, seen, step)
+        if (cfg.hold_when_improved and accepted is not None
+                and verdict.cost < accepted.cost_mean - cfg.kappa * float(np.hypot(verdict.se, accepted.cost_se))):
+            new = max(new, mult)  # the samples show a clear improvement: do not shrink
+    if ceiling is not None:
+        if mult >= ceiling * (1.0 - 1e-12):
+            ceiling = None  # a step at the ceiling was accepted: the rule may grow again
+        else:
+            new = min(new, ceiling)
+    return new, ceiling
