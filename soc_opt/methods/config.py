@@ -18,7 +18,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from .. import lqg
-from ..config import Config, Interval, Options
+from ..config import Config, ConfigError, Interval, Options
 from ..learning import fit
 from ..learning.fit import COST_MODES
 from ..lqg import KL_METHODS
@@ -27,7 +27,8 @@ from ..noise.aware import NoiseConfig
 from ..plugins import METHODS
 
 __all__ = ["PaperScale", "PAPER", "LoopKLStepConfig", "AcceptanceConfig", "LQRFLMConfig", "EMConfig", "EvalConfig", "DPSOCConfig",
-           "with_paper_scale", "with_task_init_var", "acceptance_limit"]
+           "with_paper_scale", "with_task_init_var", "acceptance_limit", "check_scale", "MAX_ITERATIONS", "MAX_SAMPLES",
+           "MAX_WORKERS", "MAX_BATCH_BYTES"]
 
 
 class PaperScale(NamedTuple):
@@ -44,6 +45,15 @@ class PaperScale(NamedTuple):
 
 
 PAPER = PaperScale()
+
+#: Upper bounds of the run configuration's counts (docs/security.md, "Values are checked"): far above any
+#: experiment of the paper (14 iterations of 20 samples) and low enough that a configuration cannot ask for
+#: a run that never ends or a batch that cannot be held; checked before anything is written.
+MAX_ITERATIONS = 10_000
+MAX_SAMPLES = 10_000
+MAX_WORKERS = 256
+#: Largest batch of rollouts (states, measurements, actions, costs; float64) a run may sample at once.
+MAX_BATCH_BYTES = 1 << 30
 
 
 @dataclass(frozen=True)
@@ -155,13 +165,13 @@ class LQRFLMConfig(Config):
 
     _implied_when_absent = {"baseline.acceptance": (AS_WRITTEN.to_dict(), {})}
     _constraints = {
-        "iterations": [Interval(1)],
-        "samples": [Interval(2)],  # dynamics fitting needs 2 rollouts
+        "iterations": [Interval(1, MAX_ITERATIONS)],
+        "samples": [Interval(2, MAX_SAMPLES)],  # dynamics fitting needs 2 rollouts
         "init_var": [Interval(0, None, "neither"), None],
         "kl_budget": [Interval(0, None, "neither")],
         "kl_mode": [Options(("total", "per_step"))],
         "kl_method": [Options(lambda: KL_METHODS)],
-        "workers": [Interval(1)],
+        "workers": [Interval(1, MAX_WORKERS)],
     }
 
 
@@ -182,9 +192,9 @@ class EMConfig(MStepRecipe):
 
     _constraints = {
         **MStepRecipe._constraints,
-        "n_em": [Interval(1)],
+        "n_em": [Interval(1, MAX_ITERATIONS)],
         "y_mode": [Options(COST_MODES)],
-        "y_samples": [None, Interval(1)],
+        "y_samples": [None, Interval(1, MAX_SAMPLES)],
     }
 
 
@@ -201,7 +211,7 @@ class EvalConfig(Config):
     seed_offset: int = 10_000
 
     _constraints = {
-        "samples": [None, Interval(1)],
+        "samples": [None, Interval(1, MAX_SAMPLES)],
         "seed_offset": [Interval(0)],  # it seeds a numpy Generator
     }
 
@@ -234,7 +244,7 @@ class DPSOCConfig(Config):
     evaluation: EvalConfig = field(default_factory=EvalConfig)
     plugin_tables: tuple = ()
 
-    _constraints = {"i_switch": [Interval(0)]}
+    _constraints = {"i_switch": [Interval(0, MAX_ITERATIONS)]}
     _plugins = METHODS
 
 
@@ -256,3 +266,17 @@ def with_task_init_var(cfg: DPSOCConfig, task) -> DPSOCConfig:
     task_cfg = getattr(task, "config", None)
     var = float(getattr(task_cfg, "init_var", 1.0))
     return cfg.replace(baseline=cfg.baseline.replace(init_var=var))
+
+
+def check_scale(cfg: DPSOCConfig, task) -> None:
+    """:class:`ConfigError` when the largest batch this configuration samples on ``task`` at once (an iteration's
+    ``samples``, the EM phase's ``y_samples`` cost sequences, the final evaluation's ``samples``) would hold more
+    than :data:`MAX_BATCH_BYTES`: true and measured states, actions, measurements and costs of every step."""
+    T, n, m = int(task.T), int(task.n), int(task.m)
+    per_sample = 8 * (T + 1) * (2 * n + m + 2)
+    sizes = {"baseline.samples": cfg.baseline.samples, "em.y_samples": cfg.em.y_samples or 0,
+             "evaluation.samples": cfg.evaluation.samples or 0}
+    key, biggest = max(sizes.items(), key=lambda kv: kv[1])
+    if biggest * per_sample > MAX_BATCH_BYTES:
+        raise ConfigError(f"{key}: {biggest} rollouts of task {task.name!r} (T = {T}, n = {n}, m = {m}) hold "
+                          f"{biggest * per_sample} bytes, more than a batch may ({MAX_BATCH_BYTES}); lower it")

@@ -30,6 +30,7 @@ from ..config import Config, ConfigError, Interval, config_error
 from ..models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
 from ..noise.estimator import FilteredPolicy, kalman_filter, measurement_noise
 from .base import MethodBase
+from .config import MAX_ITERATIONS
 from .state import BestPolicy
 
 if TYPE_CHECKING:
@@ -86,7 +87,7 @@ class ILQGConfig(Config):
     init_policy: str | None = None
 
     _constraints = {
-        "iterations": [Interval(1)],
+        "iterations": [Interval(1, MAX_ITERATIONS)],
         "mu_init": [Interval(0)],
         "mu_factor": [Interval(1, None, "neither")],
         "mu_max": [Interval(0, None, "neither")],
