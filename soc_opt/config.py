@@ -352,7 +352,7 @@ def read_toml_file(path: str | Path, what: str = "config file") -> tuple[dict, b
 MAX_TOML_BYTES = 16 << 20
 #: Most characters ``= , [ { .`` a TOML file may hold (counted anywhere, strings and comments included): a
 #: bound on the keys, values, tables and dotted-key parts the parser builds before anything is checked.
-MAX_TOML_ITEMS = 100_000
+MAX_TOML_ITEMS = 50_000
 #: Deepest nesting of lists and tables accepted in a JSON or TOML file soc_opt reads.
 MAX_DEPTH = 64
 

@@ -14,8 +14,8 @@ from soc_opt.cli import main
 from soc_opt.config import ConfigError
 from soc_opt.tasks import load_task
 from soc_opt.tasks.loading import problems_dir
-from soc_opt.tasks.mjcf import MAX_BODIES, MAX_ELEMENTS, check_model, check_xml
 
+MAX_BODIES, MAX_ELEMENTS = 1000, 20_000  # soc_opt.tasks.mjcf's bounds (docs/security.md, "Models")
 ARGS = ["--method", "lqr-flm", "--iterations", "2", "--samples", "4", "--progress", "lines"]
 ARM = """<mujoco>
   <compiler meshdir="meshes" texturedir="textures"/>
@@ -115,12 +115,16 @@ def test_an_mjcf_with_entity_declarations_is_refused(tmp_path):
     (tmp_path / "task.toml").write_text(TASK)
     with pytest.raises(ConfigError, match="entities"):
         load_task(tmp_path / "task.toml")
+    from soc_opt.tasks.mjcf import check_xml
+
     with pytest.raises(ConfigError, match="entities"):
         check_xml(lol + "<mujoco/>")
 
 
 def test_the_recorded_model_files_are_those_mujoco_reads():
     """The built-in arms: the model file and nothing else (no includes or assets), with their SHA-256."""
+    from soc_opt.tasks.mjcf import check_model
+
     for name in ("peg/arm7_peg.xml", "door/arm6_door.xml"):
         path = problems_dir() / name
         files = check_model(path)
@@ -128,6 +132,8 @@ def test_the_recorded_model_files_are_those_mujoco_reads():
 
 
 def test_an_include_that_includes_itself_is_refused_or_read_once(tmp_path):
+    from soc_opt.tasks.mjcf import check_model
+
     (tmp_path / "loop.xml").write_text('<mujoco><include file="loop.xml"/></mujoco>')
     assert set(check_model(tmp_path / "loop.xml")) == {"loop.xml"}
     assert os.path.isfile(tmp_path / "loop.xml")

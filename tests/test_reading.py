@@ -20,7 +20,6 @@ from pathlib import Path
 import pytest
 
 from soc_opt.cli import main
-from soc_opt.reading import RefusedFile, check_regular, read_regular
 
 ARGS = ["--method", "lqr-flm", "--iterations", "2", "--samples", "4", "--progress", "lines"]
 CMP = ["compare", "linear2d", "--seeds", "1", "--iterations", "2", "--samples", "4", "--i-switch", "1",
@@ -35,12 +34,13 @@ def watchdog(fifos):
     released, stop = [], threading.Event()
 
     def watch():
-        if stop.wait(WAIT):
-            return
-        for p in fifos:
-            with contextlib.suppress(OSError):
-                os.close(os.open(p, os.O_WRONLY | os.O_NONBLOCK))  # succeeds only when a reader waits
-                released.append(str(p))
+        wait = WAIT
+        while not stop.wait(wait):  # after WAIT seconds, release every new wait at once
+            wait = 0.1
+            for p in fifos:
+                with contextlib.suppress(OSError):
+                    os.close(os.open(p, os.O_WRONLY | os.O_NONBLOCK))  # succeeds only when a reader waits
+                    released.append(str(p))
 
     t = threading.Thread(target=watch, daemon=True)
     t.start()
@@ -51,12 +51,12 @@ def watchdog(fifos):
         t.join()
 
 
-#: Runs ``soc_opt.cli`` in a child (address space capped at 4 GiB, so that a regression cannot take the machine's
+#: Runs ``soc_opt.cli`` in a child (address space capped at 2 GiB, so that a regression cannot take the machine's
 #: memory) and reports its exit status and peak resident memory: a child of pytest itself would inherit pytest's
 #: peak (Linux keeps the high-water mark across exec).
 _LAUNCH = """
 import resource, subprocess, sys
-cap = lambda: resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
+cap = lambda: resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))
 p = subprocess.run([sys.executable, "-m", "soc_opt.cli", *sys.argv[1:]], preexec_fn=cap, capture_output=True,
                    text=True)
 sys.stderr.write(p.stderr)
@@ -66,14 +66,23 @@ print("RSS", p.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrs
 HOSTILE_RSS_MB = 300
 
 
-def peak_run(args: list[str]) -> tuple[int, float, str]:
-    """``(exit status, peak resident MB, standard error)`` of ``soc-opt ARGS`` in a fresh process."""
+def peak_run(args: list[str], timeout: float = 300) -> tuple[int, float, str]:
+    """``(exit status, peak resident MB, standard error)`` of ``soc-opt ARGS`` in a fresh process; a command still
+    running after ``timeout`` seconds (a regression: refusals take a few) is killed with its children and fails."""
+    import signal
     import subprocess
     import sys
 
-    p = subprocess.run([sys.executable, "-c", _LAUNCH, *map(str, args)], capture_output=True, text=True, timeout=600)
-    line = [ln for ln in p.stdout.splitlines() if ln.startswith("RSS")][-1].split()
-    return int(line[1]), int(line[2]) / 1024, p.stderr
+    p = subprocess.Popen([sys.executable, "-c", _LAUNCH, *map(str, args)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        out, err = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.communicate()
+        pytest.fail(f"soc-opt {' '.join(map(str, args))[:200]} still ran after {timeout:.0f} s")
+    line = [ln for ln in out.splitlines() if ln.startswith("RSS")][-1].split()
+    return int(line[1]), int(line[2]) / 1024, err
 
 
 def _fifo(path: Path) -> Path:
@@ -191,11 +200,13 @@ def test_a_unix_socket_is_refused_with_a_message_naming_it(finished, tmp_path, c
         os.rename(short, d / "config.json")
         assert main(["run", "linear2d", *ARGS, "--out", str(d)]) == 2
     err = _error(capsys)
-    assert "config.json" in err and "socket" in err and "Errno" not in err
+    assert "config.json" in err and "is a socket" in err and "Errno" not in err
 
 
 @pytest.mark.parametrize("kind", ["fifo", "device", "folder"])
 def test_the_reader_refuses_what_is_no_regular_file_before_opening_it(tmp_path, kind):
+    from soc_opt.reading import RefusedFile, check_regular, read_regular
+
     path = {"fifo": lambda: _fifo(tmp_path / "f"), "device": lambda: Path("/dev/zero"),
             "folder": lambda: tmp_path}[kind]()
     with watchdog([path] if kind == "fifo" else []) as released:
@@ -207,6 +218,8 @@ def test_the_reader_refuses_what_is_no_regular_file_before_opening_it(tmp_path, 
 
 
 def test_the_reader_refuses_a_link_unless_told_to_follow_and_bounds_the_size(tmp_path):
+    from soc_opt.reading import RefusedFile, read_regular
+
     (tmp_path / "data").write_bytes(b"x" * 100)
     (tmp_path / "link").symlink_to(tmp_path / "data")
     with pytest.raises(RefusedFile, match="symbolic link"):

@@ -56,7 +56,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .. import files
-from ..config import MAX_INT, ConfigError, read_toml, shorten, show
+from ..config import MAX_INT, ConfigError, read_toml, show
 from ..methods.config import MAX_SAMPLES, DPSOCConfig, check_scale
 from ..methods.registry import check_config, sample_based, sections_of
 from ..methods.state import RunState
@@ -288,9 +288,8 @@ class SweepSpec:
 
 
 def load_sweep(path: str | Path, *, gym_modules: tuple[str, ...] = ()) -> SweepSpec:
-    """Read and validate a sweep file (module docstring); :class:`SweepError` names what is wrong.
-    ``gym_modules``: the Python modules its ``gym:<module>:<EnvId>`` tasks may import (``--gym-module``;
-    none by default: a file names registered environment ids only, docs/gym.md)."""
+    """Read and validate a sweep file (module docstring); :class:`SweepError` names what is wrong.  ``gym_modules``:
+    the modules its ``gym:<module>:<EnvId>`` tasks may import (``--gym-module``; none by default, docs/gym.md)."""
     path = Path(path)
     try:
         data = read_toml(path)
@@ -345,11 +344,9 @@ def _resolve_task(ref: str, base_dir: Path, i: int, gym_modules: tuple[str, ...]
     from ..tasks.loading import BUILTIN_TASKS, problems_dir
 
     if ref.startswith(GYM_PREFIX):  # a Gymnasium environment (docs/gym.md); checked by load_task below
-        module = ref[len(GYM_PREFIX):].partition(":")[0] if ref.count(":") > 1 else None
-        if module is not None and module not in gym_modules:
-            raise ConfigError(f"tasks[{i}]: {show(ref)} would import the Python module {show(module)}, which runs its "
-                              "code; a sweep file may name only registered environment ids. To import it, name it on "
-                              f"the command line: --gym-module {shorten(module)} (docs/gym.md)")
+        from ..tasks.gym import check_gym_import
+
+        check_gym_import(ref, gym_modules)  # a module named in a file only if the command line names it
         return ref, _safe_name(ref.replace(":", "-")), None
     if ref in BUILTIN_TASKS:
         return ref, ref, problems_dir() / BUILTIN_TASKS[ref]
@@ -399,11 +396,10 @@ def _settings(data: dict) -> tuple[Setting, ...]:
     grid = data.get("grid", {})
     _check_overrides(grid, "grid")
     leaves = _grid_leaves(grid)
-    count = len(explicit) * math.prod(len(vals) for _, vals in leaves)
-    if count > MAX_SETTINGS:  # before any is built: a small file can ask for more than memory holds
-        sizes = " x ".join(str(len(vals)) for _, vals in leaves)
-        raise ConfigError(f"grid: {len(explicit)} setting(s) x {sizes} grid values = {count} settings, more than a "
-                          f"sweep may have ({MAX_SETTINGS})")
+    count = len(explicit) * math.prod(len(vals) for _, vals in leaves)  # before any is built
+    if count > MAX_SETTINGS:
+        raise ConfigError(f"grid: {len(explicit)} setting(s) x {' x '.join(str(len(v)) for _, v in leaves)} grid values "
+                          f"= {count} settings, more than a sweep may have ({MAX_SETTINGS})")
     short = [p[-1] for p, _ in leaves]
     labels = [p[-1] if short.count(p[-1]) == 1 else ".".join(p) for p, _ in leaves]
     out = []
@@ -419,8 +415,7 @@ def _settings(data: dict) -> tuple[Setting, ...]:
             out.append(Setting(_safe_name(",".join(parts)) if parts else "default", merged,
                                group=name or (f"settings{i}" if len(explicit) > 1 else ""),
                                grid=tuple(zip(labels, combo))))
-    names = collections.Counter(s.name for s in out)
-    dup = sorted(n for n, k in names.items() if k > 1)
+    dup = sorted(n for n, k in collections.Counter(s.name for s in out).items() if k > 1)
     if dup:
         raise ConfigError(f"settings: duplicate setting names {dup[:5]}{' and more' if len(dup) > 5 else ''}; give each "
                           "[[settings]] entry a distinct name")
@@ -528,10 +523,7 @@ def _expand(data: dict, base_dir: Path, default_name: str, gym_modules: tuple[st
                 raise ConfigError(f"{ctx}, algorithm keys: {e}") from e
             for m in methods:
                 cfg = cfgs[m]
-                try:  # the largest batch of the trial, before anything is written
-                    check_scale(cfg.replace(evaluation=cfg.evaluation.replace(samples=eval_samples)), task)
-                except ConfigError as e:
-                    raise ConfigError(f"{ctx}, method {m}: {e}") from e
+                check_scale(cfg.replace(evaluation=cfg.evaluation.replace(samples=eval_samples)), task)  # largest batch
                 for seed in seeds:
                     trials.append(TrialSpec(ref, label, top, m, seed, s.name, cfg,
                                             eval_samples or cfg.baseline.samples, gym_modules))

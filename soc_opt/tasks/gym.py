@@ -35,7 +35,8 @@ from .config import GYM_PREFIX, StateConfig, TaskConfig
 from .mjcf import check_model
 from .mujoco import MujocoTask, import_mujoco
 
-__all__ = ["GYM_PREFIX", "DEFAULT_T", "DEFAULT_RHO2", "GymMujocoTask", "EnvReward", "RewardCost", "make_gym_env", "load_gym_task"]
+__all__ = ["GYM_PREFIX", "DEFAULT_T", "DEFAULT_RHO2", "GymMujocoTask", "EnvReward", "RewardCost", "make_gym_env", "load_gym_task",
+           "check_gym_import"]
 
 #: Horizon of a ``gym:<EnvId>`` task without ``T``: the environment's ``max_episode_steps``, capped here.
 DEFAULT_T = 100
@@ -63,11 +64,7 @@ def make_gym_env(env_id: str, kwargs: dict | None = None, *, modules: tuple[str,
         raise ConfigError(f"{name}: gymnasium is not installed (pip install 'gymnasium[mujoco]')") from e
     if not env_id:
         raise ConfigError(f"{name!r}: no environment id after {GYM_PREFIX!r} (e.g. gym:InvertedPendulum-v5)")
-    module = env_id.partition(":")[0] if ":" in env_id else None
-    if module is not None and module not in modules:
-        raise ConfigError(f"{shorten(name)}: would import the Python module {shorten(module)!r}, which runs its code; "
-                          "a task or sweep file may name only registered environment ids. To import it, name it on "
-                          f"the command line: --gym-module {shorten(module)} (docs/gym.md)")
+    check_gym_import(name, modules)
     kwargs = dict(kwargs or {})
     if "render_mode" in kwargs:  # checked before the environment exists: a window must never open
         raise ConfigError("gym.kwargs: 'render_mode' is not allowed (soc_opt renders with render_filmstrip)")
@@ -99,6 +96,17 @@ def make_gym_env(env_id: str, kwargs: dict | None = None, *, modules: tuple[str,
             raise ConfigError(f"{name}: {_bad_kwarg(env_id, kwargs)} is rejected by the environment "
                               f"(reset and one step): {type(e).__name__}: {e}") from e
     return env
+
+
+def check_gym_import(model: str, modules: tuple[str, ...] = ()) -> None:
+    """:class:`ConfigError` when ``model = "gym:<module>:<EnvId>"`` names a module outside ``modules``: Gymnasium
+    would import it, running its code, and only the command line may ask for that (docs/gym.md)."""
+    env_id = model[len(GYM_PREFIX):] if model.startswith(GYM_PREFIX) else model
+    module = env_id.partition(":")[0] if ":" in env_id else None
+    if module is not None and module not in modules:
+        raise ConfigError(f"{shorten(model)}: would import the Python module {shorten(module)!r}, which runs its code; "
+                          "a task or sweep file may name only registered environment ids. To import it, name it on "
+                          f"the command line: --gym-module {shorten(module)} (docs/gym.md)")
 
 
 def _check_xml_file(xml_file: str) -> None:
