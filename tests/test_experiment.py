@@ -290,16 +290,18 @@ def test_compare_action_figure_names_the_actuators(monkeypatch, tmp_path):
 
 # ------------------------------------------------------------------ issue 48 item 2: the final phase of `soc-opt run`
 
+#: What a final phase may write (``soc_opt.experiments.run.FINAL_FILES``) and its mark, written last.
+FINAL_NAMES = ("cost_per_iteration.png", "ee_trajectories.png", "filmstrip.png", "policy.npz", "final_policy.npz",
+               "final_eval.npz", "final_eval_mean_action.npz", "final_eval_filtered.npz",
+               "final_eval_filtered_mean_action.npz", "final_eval_open_loop.npz", "final.json")
 FINAL_RUN = ["run", "linear2d", "--method", "lqr-flm", "--iterations", "3", "--samples", "4", "--progress", "lines"]
 
 
 def _final_files(d) -> dict:
     """The final phase's files of run directory ``d``: PNG and JSON bytes, ``.npz`` arrays (zip members carry
     their write time, so archives are compared by content)."""
-    from soc_opt.experiments.run import FINAL_FILES, FINAL_MARK
-
     out = {}
-    for name in (*FINAL_FILES, FINAL_MARK):
+    for name in FINAL_NAMES:
         p = d / name
         if not p.exists():
             continue
@@ -394,3 +396,9 @@ def test_an_interrupted_final_phase_is_finished_by_the_same_command_with_the_sam
     _assert_same(_final_files(d), reference)
     assert main([*FINAL_RUN, "--out", str(d)]) == 0
     assert "already finished (3 iterations); nothing to do" in capsys.readouterr().out
+
+
+def test_the_final_names_are_those_the_run_writes():
+    from soc_opt.experiments.run import FINAL_FILES, FINAL_MARK
+
+    assert FINAL_NAMES == (*FINAL_FILES, FINAL_MARK)

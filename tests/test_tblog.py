@@ -142,20 +142,20 @@ def test_a_folder_swapped_for_a_link_before_the_log_opens_gets_no_event_file_out
     """Issue 48 item 3: a run inside a compare-like directory whose ``seed_0`` is swapped for a link to another
     folder just before its TensorBoard log opens: the log opens the folder from the anchor without following
     the link (and writes by descriptor), so no event file lands outside; the run stops naming the link."""
-    from soc_opt.experiments.rundir import RunDirectory
+    from soc_opt.experiments.tblog import RunLog
     from soc_opt.files import UnsafePathError
 
     anchor, outside = tmp_path / "cmp", tmp_path / "outside"
     (outside / "lqr-flm").mkdir(parents=True)
     out = anchor / "seed_0" / "lqr-flm"
-    load = RunDirectory.load_checkpoint
+    open_log = RunLog.open.__func__
 
-    def swap_then_load(self, previous=False):
+    def swap_then_open(cls, path, *args, **kw):  # the right moment: just before the log opens
         (anchor / "seed_0").rename(anchor / "seed_0.moved")
         (anchor / "seed_0").symlink_to(outside, target_is_directory=True)
-        return load(self, previous)
+        return open_log(cls, path, *args, **kw)
 
-    monkeypatch.setattr(RunDirectory, "load_checkpoint", swap_then_load)
+    monkeypatch.setattr(RunLog, "open", classmethod(swap_then_open))
     with pytest.raises(UnsafePathError, match="seed_0"):
         run_experiment(task, "lqr-flm", _cfg(), 0, out, anchor=anchor)
     assert list((outside / "lqr-flm").iterdir()) == []
