@@ -39,6 +39,9 @@ class RefusedFile(ValueError):
         self.path, self.reason = str(path), reason
         super().__init__(f"{str(path)!r} {reason}")
 
+    def __reduce__(self):  # picklable (a worker process may send it back)
+        return type(self), (self.path, self.reason)
+
 
 def kind_of(mode: int) -> str:
     """What a file of mode ``mode`` is, in words (``"a FIFO (named pipe)"``, ``"a socket"``, ...)."""

@@ -227,3 +227,12 @@ def test_the_reader_refuses_a_link_unless_told_to_follow_and_bounds_the_size(tmp
     assert read_regular(tmp_path / "link", 1000, follow=True) == b"x" * 100
     with pytest.raises(RefusedFile, match="more than"):
         read_regular(tmp_path / "data", 99)
+
+
+def test_a_refusal_survives_being_sent_between_processes():
+    import pickle
+
+    from soc_opt.reading import RefusedFile
+
+    e = pickle.loads(pickle.dumps(RefusedFile("/x/config.json", "is a FIFO (named pipe), not a regular file")))
+    assert (e.path, str(e)) == ("/x/config.json", "'/x/config.json' is a FIFO (named pipe), not a regular file")
