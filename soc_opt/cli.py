@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError
+from .config import MAX_INT, MAX_MESSAGE, ConfigError, shorten
 
 __all__ = ["main", "build_parser"]
 
@@ -84,30 +84,43 @@ def _cmd_tasks(args) -> int:
 
 
 def _run_method(args, task, out: Path) -> int:
-    """One registered method in a resumable run directory; figures and a filmstrip at the end."""
+    """One registered method in a resumable run directory; its final phase (figures, filmstrip, final policy and
+    evaluations) inside the run's lock, resumed by the same command when interrupted (``run_experiment(finish=)``)."""
     from .experiments.run import finished_run, run_experiment
-    from .methods.registry import get_method
 
     cfg = _load_run_config(args, args.method)
     if not args.restart and not args.previous_checkpoint:
-        done = finished_run(task, args.method, cfg, args.seed, out, task_name=args.task)
+        done = finished_run(task, args.method, cfg, args.seed, out, task_name=args.task, final=True)
         if done is not None:  # reopening a finished run reads only: no figure, event file or lock written
             _print(f"{args.method} run in {out} already finished ({done.iteration} iterations); nothing to do "
                    "(--restart to run it again)")
             return 0
-    state = run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_progress(args),
-                           restart=args.restart, previous_checkpoint=args.previous_checkpoint)
-    _write_run_figures(task, args.method, state, out)
+
+    def finish(state, log):
+        _final_phase(task, args.method, cfg, args.seed, state, out, log)
+
+    run_experiment(task, args.method, cfg, args.seed, out, task_name=args.task, progress=_progress(args),
+                   restart=args.restart, previous_checkpoint=args.previous_checkpoint, finish=finish)
+    return 0
+
+
+def _final_phase(task, method: str, cfg, seed: int, state, out: Path, log) -> None:
+    """The files a finished run adds, from its final state alone (so that a rerun after an interruption writes
+    the same ones): figures, the filmstrip, the method's own files, the final policy and its evaluations."""
+    from .methods.registry import get_method
+
+    _write_run_figures(task, method, state, out)
     if state.last_rollouts is not None:
         from .tasks import render_filmstrip
 
         res = render_filmstrip(task, state.last_rollouts, out / "filmstrip.png")
         _print(f"filmstrip of the last iteration's first sample: {res.path} ({res.backend}"
                + (f"; {res.message}" if res.message else "") + ")")
-    _log_to_tensorboard(out, figures=sorted(out.glob("*.png")), step=max(state.iteration - 1, 0))
-    _print(get_method(args.method).finish(state, out))
-    _print(_final_evaluation(task, args.method, cfg, args.seed, state, out))
-    return 0
+    if log is not None:
+        n = log.figures(sorted(out.glob("*.png")), max(state.iteration - 1, 0))
+        _print(f"TensorBoard: {n} figures in {out} (tensorboard --logdir {out})")
+    _print(get_method(method).finish(state, out))
+    _print(_final_evaluation(task, method, cfg, seed, state, out))
 
 
 def _final_evaluation(task, method: str, cfg, seed: int, state, out: Path) -> str:
@@ -152,11 +165,11 @@ def _load_run_config(args, method: str):
 def _cmd_run(args) -> int:
     from .tasks import load_task
 
-    if args.seed < 0:
-        raise ConfigError(f"--seed must be >= 0, got {args.seed}")
+    if not 0 <= args.seed <= MAX_INT:
+        raise ConfigError(f"--seed must be in [0, {MAX_INT}], got {args.seed}")
     if args.restart and args.previous_checkpoint:
         raise ConfigError("--restart and --previous-checkpoint exclude each other: choose one")
-    task = load_task(args.task)
+    task = load_task(args.task, gym_modules=tuple(args.gym_module or ()))
     out = Path(args.out or f"runs/{Path(args.task).stem}-{args.method}-seed{args.seed}")
     return _run_method(args, task, out)
 
@@ -177,12 +190,12 @@ def _write_run_figures(task, method: str, state, out: Path) -> None:
 
 
 def _cmd_compare(args) -> int:
-    from .experiments.compare import compare
+    from .experiments.compare import MAX_SEEDS, compare
     from .tasks import load_task
 
-    if args.seed < 0 or args.seeds < 1:
-        raise ConfigError(f"--seed must be >= 0 and --seeds >= 1, got {args.seed} and {args.seeds}")
-    task = load_task(args.task)
+    if not 0 <= args.seed <= MAX_INT or not 1 <= args.seeds <= MAX_SEEDS:
+        raise ConfigError(f"--seed must be in [0, {MAX_INT}] and --seeds in [1, {MAX_SEEDS}], got {args.seed} and {args.seeds}")
+    task = load_task(args.task, gym_modules=tuple(args.gym_module or ()))
     cfg = _load_run_config(args, "dpsoc-em")
     out = Path(args.out or f"runs/compare-{Path(args.task).stem}")
     seeds = list(range(args.seed, args.seed + args.seeds))
@@ -357,7 +370,7 @@ def _cmd_bench(args) -> int:
 def _cmd_sweep(args) -> int:
     from .sweeps.spec import describe, load_sweep
 
-    spec = load_sweep(args.file)  # validates every trial before anything starts
+    spec = load_sweep(args.file, gym_modules=tuple(args.gym_module or ()))  # validates every trial before anything starts
     out = Path(args.out or f"runs/sweep-{spec.name}")
     _print(f"sweep {spec.name}: {describe(spec)}; output {out}")
     if args.dry_run:
@@ -420,6 +433,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="discard the run(s) already in --out and start from scratch")
         sp.add_argument("--progress", choices=["auto", "bar", "lines"], default="auto",
                         help="progress bar (auto: on a terminal) or plain lines")
+        gym_module(sp)
+
+    def gym_module(sp):
+        sp.add_argument("--gym-module", dest="gym_module", action="append", metavar="MODULE",
+                        help="let a task or sweep file's model = 'gym:MODULE:<EnvId>' import this Python module "
+                             "(runs its code; repeatable; docs/gym.md)")
 
     r = add("run", help="run one method on a task, writing a resumable run directory")
     common_algo(r)
@@ -488,6 +507,7 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--max-retries", dest="max_retries", type=int, default=3,
                    help="re-executions of a trial whose worker process died (resumes from its checkpoint)")
     w.add_argument("--dry-run", dest="dry_run", action="store_true", help="validate and list the trials only")
+    gym_module(w)
     w.set_defaults(func=_cmd_sweep)
 
     d = add("config-doc", help="write the configuration reference (docs/configuration.md)")
@@ -520,7 +540,7 @@ def _one_line(e: BaseException, *, hint: bool = True) -> str:
 
     ours = (ConfigError, FileNotFoundError, SimulationError, SolverError)
     text = str(e) if isinstance(e, ours) else f"{type(e).__name__}: {e}"
-    parts = [text] + list(getattr(e, "__notes__", ()))
+    parts = [shorten(text, MAX_MESSAGE)] + list(getattr(e, "__notes__", ()))
     if hint and not isinstance(e, ours):
         parts.append("rerun with --debug for the traceback")
     return " ".join("; ".join(p.strip() for p in parts if p.strip()).split())

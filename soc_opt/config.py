@@ -32,20 +32,49 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 import types
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-__all__ = ["Config", "ConfigError", "Interval", "Options", "config_error", "read_toml", "check_finite", "IMPLIED_WHEN_ABSENT",
-           "check_depth", "MAX_DEPTH", "MAX_TOML_BYTES", "PLUGIN_TABLES", "plugin_settings"]
+from .reading import RefusedFile, read_regular
+
+__all__ = ["Config", "ConfigError", "Interval", "Options", "config_error", "read_toml", "read_toml_file", "parse_toml",
+           "check_finite", "IMPLIED_WHEN_ABSENT", "check_depth", "MAX_DEPTH", "MAX_TOML_BYTES", "MAX_TOML_ITEMS", "MAX_INT",
+           "MAX_MESSAGE", "PLUGIN_TABLES", "plugin_settings", "shorten", "show"]
 
 C = TypeVar("C", bound="Config")
 
 
+#: Longest message of a :class:`ConfigError` (characters): a longer one is cut in its middle, keeping the
+#: file and key it starts with and the advice it ends with.
+MAX_MESSAGE = 2000
+#: Longest key or value shown in a message (characters), cut in its middle likewise.
+MAX_SHOWN = 100
+
+
+def shorten(text: str, limit: int = MAX_SHOWN) -> str:
+    """``text`` if it has at most ``limit`` characters, else its start and end around the count left out."""
+    if len(text) <= limit:
+        return text
+    keep = max(limit // 2 - 10, 1)
+    return f"{text[:keep]}...[{len(text) - 2 * keep} characters]...{text[-keep:]}"
+
+
+def show(value: Any) -> str:
+    """``repr(value)`` for a message, at most about :data:`MAX_SHOWN` characters (:func:`shorten`)."""
+    return shorten(repr(value))
+
+
 class ConfigError(ValueError):
-    """A configuration value or key is invalid; the message names it."""
+    """A configuration value or key is invalid; the message names it (at most :data:`MAX_MESSAGE` characters)."""
+
+    def __init__(self, *args):
+        if len(args) == 1 and isinstance(args[0], str) and len(args[0]) > MAX_MESSAGE:
+            args = (shorten(args[0], MAX_MESSAGE),)
+        super().__init__(*args)
 
 
 def config_error(key: str, message: str) -> ConfigError:
@@ -109,10 +138,31 @@ def check_constraints(cfg: "Config") -> None:
         value = getattr(cfg, f.name)
         if f.name in hints:
             _check_value(f.name, value, hints[f.name])
+        big = _big_int(value)
+        if big is not None:
+            raise config_error(f.name, f"{show(big)} is beyond {MAX_INT} (every integer setting of soc_opt is at most "
+                                       "that; the sizes and counts have smaller bounds, docs/security.md)")
         allowed = cls._constraints.get(f.name)
         if allowed is not None and not any(_satisfies(value, c) for c in allowed):
             wanted = " or ".join("None" if c is None else str(c) for c in allowed)
-            raise config_error(f.name, f"must be {wanted}, got {value!r}")
+            raise config_error(f.name, f"must be {wanted}, got {show(value)}")
+
+
+#: Largest magnitude of any integer in a configuration (a C ``int``: what MuJoCo, numpy sizes and the
+#: solvers take); counts and sizes that cost memory or time have smaller bounds in their ``_constraints``.
+MAX_INT = 2**31 - 1
+
+
+def _big_int(value: Any):
+    """The first integer of ``value`` (an integer or nested lists of them) beyond :data:`MAX_INT`, or None."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value if abs(value) > MAX_INT else None
+    if isinstance(value, (tuple, list)):
+        for v in value:
+            big = _big_int(v)
+            if big is not None:
+                return big
+    return None
 
 
 _HINTS: dict[type, dict] = {}
@@ -136,20 +186,20 @@ def _check_value(key: str, value: Any, tp: Any) -> None:
                 return
             except ConfigError:
                 continue
-        raise config_error(key, f"{value!r} does not match {tp}")
+        raise config_error(key, f"{show(value)} does not match {tp}")
     if tp is type(None):
         if value is not None:
-            raise config_error(key, f"expected None, got {value!r}")
+            raise config_error(key, f"expected None, got {show(value)}")
         return
     if origin is typing.Literal:
         if value not in typing.get_args(tp):
-            raise config_error(key, f"{value!r} is not one of {list(typing.get_args(tp))}")
+            raise config_error(key, f"{show(value)} is not one of {list(typing.get_args(tp))}")
         return
     if origin in (tuple, list):
         if type(value).__name__ == "ndarray":  # an array given in Python: its owner converts it
             return
         if not isinstance(value, (list, tuple)):
-            raise config_error(key, f"expected a list, got {type(value).__name__} {value!r}")
+            raise config_error(key, f"expected a list, got {type(value).__name__} {show(value)}")
         args = [a for a in typing.get_args(tp) if a is not Ellipsis]
         if origin is tuple and typing.get_args(tp) and typing.get_args(tp)[-1] is not Ellipsis:
             if len(args) != len(value):
@@ -172,9 +222,9 @@ def _check_value(key: str, value: Any, tp: Any) -> None:
     }
     if tp in checks:
         if not checks[tp](value):
-            raise config_error(key, f"expected {tp.__name__}, got {type(value).__name__} {value!r}")
+            raise config_error(key, f"expected {tp.__name__}, got {type(value).__name__} {show(value)}")
     elif isinstance(tp, type) and not isinstance(value, tp):
-        raise config_error(key, f"expected {tp.__name__}, got {type(value).__name__} {value!r}")
+        raise config_error(key, f"expected {tp.__name__}, got {type(value).__name__} {show(value)}")
 
 
 def _nonfinite(name: str, value: Any) -> str | None:
@@ -200,7 +250,7 @@ def check_finite(cfg: "Config") -> None:
         value = getattr(cfg, f.name)
         bad = _nonfinite(f.name, value)
         if bad is not None:
-            err = ConfigError(f"{bad}: must be a finite number, got {_first_nonfinite(value)!r}")
+            err = ConfigError(f"{bad}: must be a finite number, got {show(_first_nonfinite(value))}")
             err.key = f.name
             raise err
 
@@ -226,15 +276,15 @@ def _check_type(path: str, value: Any, tp: Any) -> Any:
                 return _check_type(path, value, arg)
             except ConfigError as e:
                 errors.append(str(e))
-        raise ConfigError(f"{path}: value {value!r} does not match {tp}")
+        raise ConfigError(f"{path}: value {show(value)} does not match {tp}")
     if origin is typing.Literal:
         allowed = typing.get_args(tp)
         if value not in allowed:
-            raise ConfigError(f"{path}: {value!r} is not one of {list(allowed)}")
+            raise ConfigError(f"{path}: {show(value)} is not one of {list(allowed)}")
         return value
     if origin in (tuple, list):
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{path}: expected a list, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected a list, got {type(value).__name__} {show(value)}")
         args = typing.get_args(tp)
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(args) != len(value):
@@ -251,49 +301,95 @@ def _check_type(path: str, value: Any, tp: Any) -> Any:
         if isinstance(value, tp):
             return value
         if not isinstance(value, dict):
-            raise ConfigError(f"{path}: expected a table, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected a table, got {type(value).__name__} {show(value)}")
         return tp.from_dict(value, _path=path)
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{path}: expected a number, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected a number, got {type(value).__name__} {show(value)}")
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{path}: expected an integer, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected an integer, got {type(value).__name__} {show(value)}")
         return value
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{path}: expected true/false, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected true/false, got {type(value).__name__} {show(value)}")
         return value
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{path}: expected a string, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected a string, got {type(value).__name__} {show(value)}")
         return value
     return value
 
 
 def read_toml(path: str | Path) -> dict:
-    """The table of a TOML file; a missing or invalid file raises :class:`ConfigError` naming it."""
+    """The table of a TOML file; a missing, unreadable, oversized or invalid file raises :class:`ConfigError`
+    naming it (:func:`read_toml_file`)."""
+    return read_toml_file(path)[0]
+
+
+def read_toml_file(path: str | Path, what: str = "config file") -> tuple[dict, bytes]:
+    """``(table, raw bytes)`` of the TOML file ``path`` (a link at its name is followed: the user named it).
+
+    Read by :func:`soc_opt.reading.read_regular` (a regular file, never blocking, at most
+    :data:`MAX_TOML_BYTES`), then :func:`parse_toml`.  Every refusal is a :class:`ConfigError` naming
+    ``what`` and the file.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file {str(path)!r} does not exist")
-    if path.stat().st_size > MAX_TOML_BYTES:
-        raise ConfigError(f"config file {str(path)!r} holds {path.stat().st_size} bytes, more than a configuration "
-                          f"may ({MAX_TOML_BYTES})")
+    name = f"{what} {str(path)!r}"
     try:
-        return check_depth(tomllib.loads(path.read_text()), f"config file {str(path)!r}")
-    except RecursionError:
-        raise ConfigError(f"config file {str(path)!r}: nested more than {MAX_DEPTH} levels deep") from None
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"config file {str(path)!r} is not UTF-8 text: {e}") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from e
+        raw = read_regular(path, MAX_TOML_BYTES, what="TOML file", follow=True)
+    except FileNotFoundError:
+        raise ConfigError(f"{name} does not exist") from None
+    except RefusedFile as e:
+        raise ConfigError(f"{what} {e}") from None
+    except OSError as e:
+        raise ConfigError(f"{name} cannot be read: {e.strerror or e}") from None
+    return parse_toml(raw, name), raw
 
 
 #: Largest TOML file read (a configuration, task or sweep file): 16 MiB.
 MAX_TOML_BYTES = 16 << 20
+#: Most characters ``= , [ { .`` a TOML file may hold (counted anywhere, strings and comments included): a
+#: bound on the keys, values, tables and dotted-key parts the parser builds before anything is checked.
+MAX_TOML_ITEMS = 50_000
 #: Deepest nesting of lists and tables accepted in a JSON or TOML file soc_opt reads.
 MAX_DEPTH = 64
+
+_KEY_PART = r"""(?:[A-Za-z0-9_-]+|"(?:[^"\\\n]|\\.)*"|'[^'\n]*')"""
+#: A dotted key (or table header) of more than MAX_DEPTH parts, starting at the first part.
+_DEEP_KEY = re.compile(rf"""(?<![A-Za-z0-9_.'"-]){_KEY_PART}(?:[ \t]*\.[ \t]*{_KEY_PART}){{{MAX_DEPTH},}}""")
+
+
+def _prescan_toml(text: str, name: str) -> None:
+    """Refuse, before parsing, TOML text whose parse would build more than the bounds allow: more than
+    :data:`MAX_TOML_ITEMS` structural characters, or a dotted key longer than :data:`MAX_DEPTH` parts
+    (the standard library's parser spends memory quadratic in a dotted key's length)."""
+    items = sum(text.count(c) for c in "=,[{.")
+    if items > MAX_TOML_ITEMS:
+        raise ConfigError(f"{name} holds {items} of the characters = , [ {{ . (keys, values, tables, dotted keys), "
+                          f"more than a TOML file soc_opt reads may ({MAX_TOML_ITEMS})")
+    if text.count(".") >= MAX_DEPTH and _DEEP_KEY.search(text):
+        raise ConfigError(f"{name}: a dotted key or table name has more than {MAX_DEPTH} parts; nested more than "
+                          f"{MAX_DEPTH} levels deep")
+
+
+def parse_toml(raw: bytes | str, name: str) -> dict:
+    """The table of TOML text ``raw`` (UTF-8 bytes or text), after the pre-scan bounds (:func:`_prescan_toml`)
+    and checked to nest at most :data:`MAX_DEPTH` deep; :class:`ConfigError` starting with ``name`` otherwise."""
+    try:
+        text = raw.decode() if isinstance(raw, (bytes, bytearray)) else raw
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{name} is not UTF-8 text: {e}") from None
+    _prescan_toml(text, name)
+    try:
+        return check_depth(tomllib.loads(text), name)
+    except RecursionError:
+        raise ConfigError(f"{name}: nested more than {MAX_DEPTH} levels deep") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{name} is not valid TOML: {e}") from None
+    except ValueError as e:  # an integer of more digits than Python converts
+        raise ConfigError(f"{name} is not a TOML file soc_opt reads: {shorten(str(e))}") from None
 
 
 def check_depth(value: Any, name: str, limit: int = MAX_DEPTH) -> Any:
@@ -345,7 +441,7 @@ def _canonical_plugin_tables(cls, given) -> tuple:
         if isinstance(value, dict):
             value = tp.from_dict(value, _path=name)
         if not isinstance(value, tp):
-            raise config_error(name, f"expected {tp.__name__}, got {type(value).__name__} {value!r}")
+            raise config_error(name, f"expected {tp.__name__}, got {type(value).__name__} {show(value)}")
         if value != tp():
             out.append((name, value))
     return tuple(sorted(out, key=lambda kv: kv[0]))
@@ -447,8 +543,9 @@ class Config(metaclass=_ConfigMeta):
         unknown = sorted(set(data) - set(fields))
         if unknown:
             where = f" in [{_path}]" if _path else ""
+            shown = ", ".join(show(k) for k in unknown[:5]) + (f" and {len(unknown) - 5} more" if len(unknown) > 5 else "")
             raise ConfigError(
-                f"unknown config key{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}{where} "
+                f"unknown config key{'s' if len(unknown) > 1 else ''} {shown}{where} "
                 f"for {cls.__name__}; allowed: {', '.join(sorted(fields))}"
             )
         kwargs = {}

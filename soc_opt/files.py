@@ -12,8 +12,9 @@ may itself be a symbolic link.  Below the anchor nothing is followed:
 - the lock is opened with ``O_NOFOLLOW`` and must be a regular file with one link;
 - removals unlink names in the opened folder (a link is removed, never its target).
 
-Reads are bounded: :func:`read_bytes` opens the file with ``O_NOFOLLOW``, requires a regular file
-and refuses one larger than its limit before reading anything; :func:`load_json` bounds the
+Reads are bounded and never block: :func:`read_bytes` (:mod:`soc_opt.reading`) opens the file with
+``O_NOFOLLOW | O_NONBLOCK``, requires a regular file and refuses one larger than its limit before
+reading anything; :func:`load_json` bounds the
 nesting depth of what it parses.  See docs/security.md.
 """
 
@@ -31,9 +32,10 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from .config import MAX_DEPTH, ConfigError, check_depth
+from .reading import RefusedFile, read_regular
 
 __all__ = ["UnsafePathError", "write_bytes", "write_text", "write_json", "save_figure", "remove", "remove_matching",
-           "make_dirs", "open_lock", "read_bytes", "load_json", "read_json_file", "MAX_JSON_BYTES", "TMP_MARK"]
+           "make_dirs", "open_dir", "open_lock", "read_bytes", "load_json", "read_json_file", "MAX_JSON_BYTES", "TMP_MARK"]
 
 #: Files written by soc_opt are renamed into place from ``.<name>.tmp-<pid>-<random>``.
 TMP_MARK = ".tmp-"
@@ -43,6 +45,7 @@ MAX_JSON_BYTES = 64 << 20
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 _DIRECTORY = getattr(os, "O_DIRECTORY", 0)
 _CLOEXEC = getattr(os, "O_CLOEXEC", 0)
+_NONBLOCK = getattr(os, "O_NONBLOCK", 0)
 
 
 class UnsafePathError(ConfigError):
@@ -61,6 +64,12 @@ def _parts(path: Path, anchor: Path) -> list[str]:
     return parts
 
 
+def _named(e: OSError, path: Path) -> OSError:
+    """``e`` naming ``path`` in full (an error from a call relative to a folder's descriptor names only the last
+    component, or a temporary name)."""
+    return type(e)(e.errno, e.strerror or str(e), str(path))
+
+
 def _refuse(path: Path, anchor: Path, what: str) -> UnsafePathError:
     return UnsafePathError(f"{str(path)!r} {what}; soc_opt writes only inside {str(anchor)!r} and follows no link "
                            "there: remove it or use another --out")
@@ -70,23 +79,26 @@ def _refuse(path: Path, anchor: Path, what: str) -> UnsafePathError:
 def _dir_fd(directory: Path, anchor: Path, create: bool) -> Iterator[int]:
     """A descriptor of ``directory``, opened from ``anchor`` one folder at a time without following links."""
     directory, anchor = Path(directory), Path(anchor)
-    if create:
-        anchor.mkdir(parents=True, exist_ok=True)
-    fd = os.open(anchor, os.O_RDONLY | _DIRECTORY | _CLOEXEC)
+    try:
+        if create:
+            anchor.mkdir(parents=True, exist_ok=True)
+        fd = os.open(anchor, os.O_RDONLY | _DIRECTORY | _CLOEXEC)
+    except OSError as e:
+        raise _named(e, anchor) from None
     try:
         here = anchor
         for part in _parts(directory, anchor):
             here = here / part
-            if create:
-                with contextlib.suppress(FileExistsError):
-                    os.mkdir(part, 0o777, dir_fd=fd)
             try:
+                if create:
+                    with contextlib.suppress(FileExistsError):
+                        os.mkdir(part, 0o777, dir_fd=fd)
                 sub = os.open(part, os.O_RDONLY | _DIRECTORY | _NOFOLLOW | _CLOEXEC, dir_fd=fd)
             except OSError as e:
                 if e.errno in (errno.ELOOP, errno.ENOTDIR):
                     kind = "is a symbolic link" if os.path.islink(here) else "is not a folder"
                     raise _refuse(here, anchor, kind) from None
-                raise
+                raise _named(e, here) from None
             os.close(fd)
             fd = sub
         yield fd
@@ -102,16 +114,21 @@ def write_bytes(path: str | Path, data: bytes, *, anchor: str | Path | None = No
     anchor = path.parent if anchor is None else Path(anchor)
     with _dir_fd(path.parent, anchor, create=True) as dfd:
         tmp = f".{path.name}{TMP_MARK}{os.getpid()}-{secrets.token_hex(4)}"
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW | _CLOEXEC, 0o666, dir_fd=dfd)
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW | _CLOEXEC, 0o666, dir_fd=dfd)
+        except OSError as e:
+            raise _named(e, path) from None
         try:
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
                 f.flush()
                 os.fsync(f.fileno())
             os.replace(tmp, path.name, src_dir_fd=dfd, dst_dir_fd=dfd)
-        except BaseException:
+        except BaseException as e:
             with contextlib.suppress(OSError):
                 os.unlink(tmp, dir_fd=dfd)
+            if isinstance(e, OSError) and not isinstance(e, UnsafePathError):
+                raise _named(e, path) from None
             raise
     return path
 
@@ -138,6 +155,14 @@ def make_dirs(directory: str | Path, *, anchor: str | Path) -> Path:
     with _dir_fd(Path(directory), Path(anchor), create=True):
         pass
     return Path(directory)
+
+
+def open_dir(directory: str | Path, *, anchor: str | Path) -> int:
+    """A descriptor of the existing folder ``directory``, opened from ``anchor`` one folder at a time without
+    following a link (:class:`UnsafePathError` naming one); the caller closes it.  Writing through it (e.g.
+    ``/proc/self/fd/N/name``) stays in that folder whatever is renamed or linked later."""
+    with _dir_fd(Path(directory), Path(anchor), create=False) as fd:
+        return os.dup(fd)
 
 
 def remove(path: str | Path, *, anchor: str | Path | None = None) -> bool:
@@ -183,11 +208,13 @@ def open_lock(path: str | Path, *, anchor: str | Path | None = None) -> int:
     anchor = path.parent if anchor is None else Path(anchor)
     with _dir_fd(path.parent, anchor, create=True) as dfd:
         try:
-            fd = os.open(path.name, os.O_RDWR | os.O_CREAT | _NOFOLLOW | _CLOEXEC, 0o644, dir_fd=dfd)
+            fd = os.open(path.name, os.O_RDWR | os.O_CREAT | _NOFOLLOW | _CLOEXEC | _NONBLOCK, 0o644, dir_fd=dfd)
         except OSError as e:
             if e.errno == errno.ELOOP:
                 raise _refuse(path, anchor, "is a symbolic link") from None
-            raise
+            if e.errno == errno.ENXIO:
+                raise _refuse(path, anchor, "is a socket, not a regular file") from None
+            raise _named(e, path) from None
     st = os.fstat(fd)
     if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1:
         os.close(fd)
@@ -197,28 +224,13 @@ def open_lock(path: str | Path, *, anchor: str | Path | None = None) -> int:
 
 
 def read_bytes(path: str | Path, limit: int, *, what: str = "file") -> bytes:
-    """The content of the regular file ``path`` (opened without following a link at its name),
-    refused with :class:`UnsafePathError` when it is not a regular file or holds more than
-    ``limit`` bytes, before anything is read."""
-    path = Path(path)
+    """The content of the regular file ``path`` (no link followed at its name), read without blocking
+    (:func:`soc_opt.reading.read_regular`): :class:`UnsafePathError` when it is not a regular file (a link,
+    a FIFO, a socket, a device) or holds more than ``limit`` bytes, before anything is read."""
     try:
-        fd = os.open(path, os.O_RDONLY | _NOFOLLOW | _CLOEXEC)
-    except OSError as e:
-        if e.errno == errno.ELOOP:
-            raise UnsafePathError(f"{str(path)!r} is a symbolic link; soc_opt reads its {what} only from a "
-                                  "regular file in the directory") from None
-        raise
-    with os.fdopen(fd, "rb") as f:
-        st = os.fstat(f.fileno())
-        if not stat.S_ISREG(st.st_mode):
-            raise UnsafePathError(f"{str(path)!r} is not a regular file")
-        if st.st_size > limit:
-            raise UnsafePathError(f"{str(path)!r} holds {st.st_size} bytes, more than a {what} may "
-                                  f"({limit} bytes); it is not one soc_opt wrote")
-        data = f.read(limit + 1)
-    if len(data) > limit:
-        raise UnsafePathError(f"{str(path)!r} grew beyond {limit} bytes while read")
-    return data
+        return read_regular(path, limit, what=what)
+    except RefusedFile as e:
+        raise UnsafePathError(str(e)) from None
 
 
 def load_json(data: bytes | str, name: str) -> Any:

@@ -8,9 +8,15 @@ trajectory ``(T+1, n)``, a batch of samples ``(M, T, ...)``.
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .reading import read_regular
+
+#: Largest policy file :meth:`LinearGaussianPolicy.load` reads: 1 GiB.
+MAX_POLICY_BYTES = 1 << 30
 
 __all__ = [
     "ShapeError",
@@ -183,7 +189,8 @@ class LinearGaussianPolicy:
         ``allow_singular`` for a deterministic policy).  A file without ``K``, ``k`` and ``cov``
         raises :class:`ShapeError` naming what is missing.
         """
-        with np.load(path, allow_pickle=False) as f:
+        data = read_regular(path, MAX_POLICY_BYTES, what="policy file", follow=True)  # never blocks, bounded
+        with np.load(io.BytesIO(data), allow_pickle=False) as f:
             missing = [key for key in ("K", "k", "cov") if key not in f.files]
             if missing:
                 raise ShapeError(f"{path}: not a policy file (no {', '.join(missing)}; it holds {f.files})")

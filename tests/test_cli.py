@@ -359,3 +359,30 @@ def test_as_written_turns_step_acceptance_off_and_does_not_apply_to_ilqg(tmp_pat
     capsys.readouterr()
     assert main(["run", "linear2d", "--method", "ilqg", "--as-written", "--out", str(tmp_path / "i")]) == 2
     assert "--as-written does not apply to --method ilqg" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("errno_", [13, 30])  # EACCES (a folder of another user), EROFS (a read-only file system)
+def test_an_unfinished_run_in_a_folder_soc_opt_cannot_write_is_one_line_naming_the_lock_file(tmp_path, capsys,
+                                                                                            monkeypatch, errno_):
+    """Issue 48 item 10: the refusal names the directory and its lock file in full, not ``'lock'``.  The
+    refusal of the write is injected at the system call (the suite may run as root, whom permissions
+    do not stop)."""
+    import os
+    import shutil
+
+    out = tmp_path / "o"
+    args = ["run", "linear2d", "--method", "lqr-flm", "--iterations", "2", "--samples", "4", "--out", str(out)]
+    assert main(args) == 0
+    shutil.copyfile(out / "checkpoint.prev.npz", out / "checkpoint.npz")  # one iteration left
+    real_open = os.open
+
+    def read_only(path, flags, *a, **kw):
+        if path == "lock" and flags & os.O_CREAT:
+            raise OSError(errno_, os.strerror(errno_), path)
+        return real_open(path, flags, *a, **kw)
+
+    monkeypatch.setattr(os, "open", read_only)
+    capsys.readouterr()
+    assert main(args) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(out / "lock") in line and "not writable" in line and os.strerror(errno_) in line, line

@@ -157,3 +157,119 @@ def test_a_bad_value_in_a_toml_file_names_the_file_the_table_path_and_the_value(
         DPSOCConfig.from_toml(path)
     msg = str(info.value)
     assert str(path) in msg and "baseline.step_size.mult_min" in msg and "0.0" in msg, msg
+
+
+# ------------------------------------------------------------------ issue 48: bounded TOML, bounded values, bounded messages
+import sys  # noqa: E402
+
+from test_reading import HOSTILE_RSS_MB, peak_run  # noqa: E402
+
+from soc_opt.config import MAX_DEPTH, read_toml  # noqa: E402
+from soc_opt.methods.config import DPSOCConfig, LQRFLMConfig  # noqa: E402
+
+MAX_INT, MAX_MESSAGE, MAX_TOML_ITEMS = 2**31 - 1, 2000, 50_000  # soc_opt.config's bounds (docs/security.md)
+
+#: Hostile TOML files (issue 48 item 6; sizes as reported there): each parsed by the standard library would
+#: take from 0.5 to 7 GB.
+TOML_BOMBS = {
+    "a 100,000-deep dotted key (200 KB)": lambda: ".".join(["a"] * 100_000) + " = 1\n",
+    "16 MiB of nested empty lists": lambda: "x = [" + "[]," * ((16 << 20) // 3 - 10) + "]\n",
+    "1.5 M keys": lambda: "".join(f"k{i}=1\n" for i in range(1_500_000)),
+    "a dotted table header 1000 parts deep": lambda: "[" + ".".join(["t"] * 1000) + "]\nx = 1\n",
+}
+
+
+@pytest.mark.parametrize("kind", [pytest.param(k, marks=pytest.mark.slow if i >= 2 else ()) for i, k in enumerate(TOML_BOMBS)])
+def test_a_toml_bomb_is_refused_naming_the_file_within_the_memory_bound(tmp_path, kind):
+    path = tmp_path / "bomb.toml"
+    path.write_text(TOML_BOMBS[kind]())
+    rc, peak, err = peak_run(["run", "linear2d", "--config", path, "--out", tmp_path / "o"])
+    assert peak < HOSTILE_RSS_MB, f"peak resident memory {peak:.0f} MB"
+    assert rc == 2 and err.startswith("soc-opt: error:") and str(path) in err, err[:500]
+    assert len(err) < 2 * MAX_MESSAGE and not (tmp_path / "o").exists()
+
+
+def test_toml_within_the_bounds_still_parses(tmp_path):
+    path = tmp_path / "ok.toml"
+    deep = ".".join(["a"] * (MAX_DEPTH - 1))
+    n = MAX_TOML_ITEMS // 5 - MAX_DEPTH  # five of the counted characters a line
+    path.write_text(f"{deep} = 1\n" + "".join(f"k{i} = [1.5, 2.5]\n" for i in range(n)))
+    data = read_toml(path)
+    assert data["k0"] == [1.5, 2.5] and len(data) == n + 1
+
+
+@pytest.mark.parametrize("text,named", [
+    ("[baseline]\niterations = 1000000000000000000000000000000", "baseline.iterations"),
+    ("[baseline]\nsamples = 9223372036854775808", "baseline.samples"),
+    ("[baseline]\nworkers = 100000", "baseline.workers"),
+    ("[em]\ny_samples = 1000000000", "em.y_samples"),
+    ("[evaluation]\nseed_offset = 1" + "0" * 40, "evaluation.seed_offset"),
+    ("[baseline]\nkl_budget = 1" + "0" * 5000, "is not a TOML file soc_opt reads"),
+    ("[baseline.fit]\nbuffer_size = 1000000000", "baseline.fit.buffer_size"),
+])
+def test_a_setting_beyond_its_bound_is_refused_naming_file_and_key_before_anything_is_written(tmp_path, capsys, text,
+                                                                                              named):
+    from soc_opt.cli import main
+    from soc_opt.experiments.run import load_run_config
+
+    path = tmp_path / "big.toml"
+    path.write_text(text + "\n")
+    with pytest.raises(ConfigError, match=named.replace(".", r"\.")):  # the configuration is refused when it is built
+        load_run_config("linear2d", path, method="lqr-flm")
+    assert main(["run", "linear2d", "--method", "lqr-flm", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("soc-opt: error:") and str(path) in err and named in err and len(err) < 600, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_batch_beyond_the_memory_bound_is_refused_before_anything_is_written(tmp_path, capsys):
+    from soc_opt.cli import main
+    from soc_opt.methods.config import check_scale  # the check run, compare and sweeps make before writing
+    from soc_opt.tasks import load_task
+
+    task = tmp_path / "long.toml"
+    task.write_text((ROOT / "problems" / "linear2d" / "linear2d.toml").read_text().replace("T = ", "T = 10000 #", 1))
+    cfg = DPSOCConfig(baseline=LQRFLMConfig(samples=10_000))
+    with pytest.raises(ConfigError, match="more than a batch may"):
+        check_scale(cfg, load_task(task))
+    assert main(["run", str(task), "--method", "lqr-flm", "--samples", "10000", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "baseline.samples: 10000 rollouts" in err and "more than a batch may" in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("kind", ["a 15 MB string value", "a 15 MB key", "40 000 unknown keys"])
+def test_a_refusal_of_huge_keys_or_values_is_one_short_line_naming_the_file_and_key(tmp_path, capsys, kind):
+    from soc_opt.cli import main
+
+    path = tmp_path / "huge.toml"
+    text = {"a 15 MB string value": '[baseline]\nkl_method = "' + "m" * (15 << 20) + '"\n',
+            "a 15 MB key": "k" * (15 << 20) + " = 1\n",
+            "40 000 unknown keys": "".join(f"unknown_{i} = 1\n" for i in range(40_000))}[kind]
+    path.write_text(text)
+    assert main(["run", "linear2d", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("soc-opt: error:") and str(path) in err and len(err) < 2 * MAX_MESSAGE, err[:300]
+    assert ("baseline.kl_method" if "value" in kind else "unknown config key") in err
+    if "40 000" in kind:
+        assert "and 39995 more" in err
+
+
+def test_every_integer_setting_is_bounded_when_built_in_python():
+    with pytest.raises(ConfigError, match=r"iterations: .* is beyond"):
+        Outer(iterations=MAX_INT + 1)
+    with pytest.raises(ConfigError, match=r"sizes: .* is beyond"):
+        Outer(sizes=(1, -MAX_INT - 1))
+    assert Outer(iterations=MAX_INT).iterations == MAX_INT
+
+
+ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+assert sys.version_info >= (3, 11)
+
+
+def test_the_bounds_these_tests_use_are_the_library_s():
+    import soc_opt.config as config
+    from soc_opt.tasks import mjcf
+
+    assert (config.MAX_INT, config.MAX_MESSAGE, config.MAX_TOML_ITEMS) == (MAX_INT, MAX_MESSAGE, MAX_TOML_ITEMS)
+    assert (mjcf.MAX_BODIES, mjcf.MAX_ELEMENTS) == (1000, 20_000)

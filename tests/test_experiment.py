@@ -286,3 +286,119 @@ def test_compare_action_figure_names_the_actuators(monkeypatch, tmp_path):
     for f in figs:
         real_close(f)
     assert labels == ["shoulder_motor", "elbow_motor"]
+
+
+# ------------------------------------------------------------------ issue 48 item 2: the final phase of `soc-opt run`
+
+#: What a final phase may write (``soc_opt.experiments.run.FINAL_FILES``) and its mark, written last.
+FINAL_NAMES = ("cost_per_iteration.png", "ee_trajectories.png", "filmstrip.png", "policy.npz", "final_policy.npz",
+               "final_eval.npz", "final_eval_mean_action.npz", "final_eval_filtered.npz",
+               "final_eval_filtered_mean_action.npz", "final_eval_open_loop.npz", "final.json")
+FINAL_RUN = ["run", "linear2d", "--method", "lqr-flm", "--iterations", "3", "--samples", "4", "--progress", "lines"]
+
+
+def _final_files(d) -> dict:
+    """The final phase's files of run directory ``d``: PNG and JSON bytes, ``.npz`` arrays (zip members carry
+    their write time, so archives are compared by content)."""
+    out = {}
+    for name in FINAL_NAMES:
+        p = d / name
+        if not p.exists():
+            continue
+        if name.endswith(".npz"):
+            with np.load(p) as z:
+                out[name] = {k: z[k] for k in z.files}
+        else:
+            out[name] = p.read_bytes()
+    return out
+
+
+def _assert_same(a: dict, b: dict) -> None:
+    assert sorted(a) == sorted(b)
+    for name, v in a.items():
+        if isinstance(v, dict):
+            assert sorted(v) == sorted(b[name]), name
+            for k in v:
+                np.testing.assert_array_equal(v[k], b[name][k], err_msg=f"{name}:{k}")
+        else:
+            assert v == b[name], name
+
+
+@pytest.fixture(scope="module")
+def unfinished_run(tmp_path_factory):
+    """``U`` of issue 48: a linear2d run with 2 of its 3 iterations done, and the final files of the same run
+    finished without interruption."""
+    import shutil
+
+    from soc_opt.cli import main
+
+    base = tmp_path_factory.mktemp("final")
+    assert main([*FINAL_RUN, "--out", str(base / "full")]) == 0
+    u = base / "unfinished"
+    shutil.copytree(base / "full", u)
+    shutil.copyfile(u / "checkpoint.prev.npz", u / "checkpoint.npz")
+    for p in list(u.iterdir()):
+        if p.name.startswith(("final", "cost_per", "ee_", "filmstrip", "events")):
+            p.unlink()
+    return u, _final_files(base / "full")
+
+
+#: The writes of the final phase, in order (linear2d, LQR-FLM), then the TensorBoard figures.
+FINAL_WRITES = ["cost_per_iteration.png", "ee_trajectories.png", "filmstrip.png", "final_policy.npz", "final_eval.npz",
+                "final_eval_mean_action.npz", "final.json"]
+
+
+#: Every point, failing alternately by a failed write and by Ctrl-C; two of them in the default suite.
+FINAL_POINTS = [pytest.param(p, "failed write" if i % 2 else "Ctrl-C",
+                             marks=() if p in ("filmstrip.png", "final_eval.npz") else pytest.mark.slow)
+                for i, p in enumerate([*FINAL_WRITES, "TensorBoard figures"])]
+
+
+@pytest.mark.parametrize("point,how", FINAL_POINTS)
+def test_an_interrupted_final_phase_is_finished_by_the_same_command_with_the_same_files(unfinished_run, tmp_path,
+                                                                                      monkeypatch, capsys, point, how):
+    import shutil
+    from pathlib import Path
+
+    from soc_opt import files
+    from soc_opt.cli import main
+    from soc_opt.experiments.tblog import RunLog
+
+    u, reference = unfinished_run
+    d = tmp_path / "run"
+    shutil.copytree(u, d)
+    error = OSError(28, "No space left on device") if how == "failed write" else KeyboardInterrupt()
+    seen = []
+    write, figures = files.write_bytes, RunLog.figures
+
+    def failing_write(path, data, **kw):
+        if point == Path(path).name and not seen:
+            seen.append(point)
+            assert main([*FINAL_RUN, "--restart", "--out", str(d)]) == 2  # the lock is still held
+            assert "in use by process" in capsys.readouterr().err
+            raise error
+        return write(path, data, **kw)
+
+    def failing_figures(self, paths, step):
+        seen.append(point)
+        raise error
+
+    monkeypatch.setattr(files, "write_bytes", failing_write)
+    if point == "TensorBoard figures":
+        monkeypatch.setattr(RunLog, "figures", failing_figures)
+    assert main([*FINAL_RUN, "--out", str(d)]) == (2 if how == "failed write" else 130)
+    assert seen == [point]
+    monkeypatch.setattr(files, "write_bytes", write)
+    monkeypatch.setattr(RunLog, "figures", figures)
+    capsys.readouterr()
+    assert main([*FINAL_RUN, "--out", str(d)]) == 0
+    assert "nothing to do" not in capsys.readouterr().out
+    _assert_same(_final_files(d), reference)
+    assert main([*FINAL_RUN, "--out", str(d)]) == 0
+    assert "already finished (3 iterations); nothing to do" in capsys.readouterr().out
+
+
+def test_the_final_names_are_those_the_run_writes():
+    from soc_opt.experiments.run import FINAL_FILES, FINAL_MARK
+
+    assert FINAL_NAMES == (*FINAL_FILES, FINAL_MARK)

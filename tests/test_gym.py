@@ -306,3 +306,63 @@ def test_the_figure_points_of_a_gym_task_are_its_state_points_also_when_they_are
         np.testing.assert_array_equal(pts[:, i], x[:, idx])
     fig = report.plot_ee({"lqr-flm": pts[None]}, task.dt, tmp_path / "ee.png", "pusher", point_names=point_names(task))
     assert fig.stat().st_size > 0
+
+
+# ------------------------------------------------------------------ issue 48: what a file may make soc_opt import or open
+
+
+@pytest.fixture
+def planted_module(tmp_path, monkeypatch):
+    """An importable module whose import leaves a marker file: ``(module name, marker path)``."""
+    import sys
+    import uuid
+
+    name = f"planted_envs_{uuid.uuid4().hex[:8]}"
+    marker = tmp_path / "imported"
+    (tmp_path / "mods").mkdir()
+    (tmp_path / "mods" / f"{name}.py").write_text(f"open({str(marker)!r}, 'w').write('code ran')\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "mods"))
+    yield name, marker
+    sys.modules.pop(name, None)
+
+
+@pytest.mark.parametrize("where", ["task file", "sweep file"])
+def test_a_gym_module_named_in_a_file_is_not_imported_without_the_command_line_asking(tmp_path, capsys, planted_module,
+                                                                                      where):
+    from soc_opt.cli import main
+
+    module, marker = planted_module
+    (tmp_path / "task.toml").write_text(f'model = "gym:{module}:Reacher-v5"\nT = 5\n')
+    if where == "task file":
+        args = ["run", str(tmp_path / "task.toml"), "--method", "lqr-flm", "--out", str(tmp_path / "o")]
+    else:
+        (tmp_path / "sweep.toml").write_text(f'tasks = ["gym:{module}:Reacher-v5"]\nmethods = ["lqr-flm"]\nseeds = 1\n')
+        args = ["sweep", str(tmp_path / "sweep.toml"), "--dry-run"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("soc-opt: error:") and module in err and "--gym-module" in err, err
+    assert not marker.exists() and module not in __import__("sys").modules
+    assert not (tmp_path / "o").exists()
+    # asked for on the command line: the module is imported and the environment it registers made
+    task = load_task(tmp_path / "task.toml", gym_modules=(module,))
+    assert marker.exists() and task.m == 2
+
+
+def test_a_gym_module_named_on_the_command_line_is_imported(tmp_path, planted_module):
+    module, marker = planted_module
+    task = load_task(f"gym:{module}:Reacher-v5", overrides={"T": 5})
+    assert marker.exists() and task.m == 2
+
+
+def test_a_fifo_as_gym_xml_file_is_refused_before_gymnasium_opens_it(tmp_path, capsys):
+    from test_reading import _fifo, watchdog
+
+    from soc_opt.cli import main
+
+    fifo = _fifo(tmp_path / "model.xml")
+    (tmp_path / "task.toml").write_text(f'model = "gym:Reacher-v5"\nT = 5\n[gym]\nkwargs = {{ xml_file = "{fifo}" }}\n')
+    with watchdog([fifo]) as released:
+        rc = main(["run", str(tmp_path / "task.toml"), "--method", "lqr-flm", "--out", str(tmp_path / "o")])
+    assert released == []
+    err = capsys.readouterr().err
+    assert rc == 2 and "model.xml" in err and "FIFO" in err and "xml_file" in err, err

@@ -507,3 +507,48 @@ def test_the_cap_sweep_varies_only_the_door_cap_on_the_tuning_seeds():
         assert t.config.baseline.acceptance.enabled and t.task_overrides["rho2"] == 0.0
         assert t.config.baseline.step_size.mult_min == base.baseline.step_size.mult_min
         assert t.config.baseline.init_var == base.baseline.init_var
+
+
+# ------------------------------------------------------------------ issue 48 items 7 and 9: grids and names are bounded
+
+
+def test_a_1_kb_sweep_file_asking_for_10_to_the_20_settings_is_refused_within_the_memory_bound(tmp_path):
+    from test_reading import HOSTILE_RSS_MB, peak_run
+
+    grid = "".join(f"baseline.fit.k{i} = [{', '.join(str(v) for v in range(10))}]\n" for i in range(20))
+    path = tmp_path / "grid.toml"
+    path.write_text('tasks = ["linear2d"]\nmethods = ["lqr-flm"]\nseeds = 1\n[grid]\n' + grid)
+    assert path.stat().st_size < 1300
+    rc, peak, err = peak_run(["sweep", path, "--dry-run"])
+    assert peak < HOSTILE_RSS_MB, f"peak resident memory {peak:.0f} MB"
+    assert rc == 2 and str(path) in err and "100000000000000000000 settings" in err, err
+
+
+@pytest.mark.parametrize("text,named", [
+    ('seeds = 100000', "seeds: expected a count in [1, 10000]"),
+    ('seeds = 100\n[grid]\ntask.rho2 = [' + ", ".join(str((i + 1) / 1000) for i in range(200)) + "]", "= 20000 trials"),
+    ('seeds = 1\neval_samples = 1000000000', "eval_samples: expected an integer in [1, 10000]"),
+])
+def test_a_sweep_asking_for_too_many_trials_or_samples_is_refused_naming_the_key(tmp_path, capsys, text, named):
+    path = tmp_path / "big.toml"
+    path.write_text(f'tasks = ["linear2d"]\nmethods = ["lqr-flm"]\n{text}\n')
+    assert main(["sweep", str(path), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and named in err, err
+
+
+@pytest.mark.parametrize("name", ["../../escape", "/abs", ".hidden", "a/b", "x" * 101])
+def test_a_sweep_name_that_would_leave_runs_is_refused_before_anything_is_written(tmp_path, capsys, monkeypatch, name):
+    monkeypatch.chdir(tmp_path)
+    path = tmp_path / "named.toml"
+    path.write_text(f'name = "{name}"\ntasks = ["linear2d"]\nmethods = ["lqr-flm"]\nseeds = 1\n')
+    assert main(["sweep", str(path), "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and "name:" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["named.toml"]
+
+
+def test_a_setting_name_of_dots_stays_one_folder_of_the_sweep():
+    spec = sweep_from_dict({**SMALL, "settings": [{"name": ".."}, {"name": "."}]})
+    assert {t.relpath.parts[2] for t in spec.trials} == {"_.", "_"}
+    assert all(".." not in t.relpath.parts for t in spec.trials)

@@ -111,3 +111,69 @@ def test_sweep_joins_a_ray_head_node_that_uses_token_authentication(tmp_path):
     task = load_task(trial.task, overrides=trial.task_overrides)
     run_experiment(task, trial.method, trial.config, trial.seed, tmp_path / "here")
     assert _metrics(tmp_path / "out" / trial.relpath) == _metrics(tmp_path / "here")
+
+
+# ------------------------------------------------------------------ issue 48 item 11: the local Ray listens on loopback
+
+def _descendants(root: int) -> set[int]:
+    parent = {}
+    for p in os.listdir("/proc"):
+        if p.isdigit():
+            try:
+                parent[int(p)] = int(Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                pass
+    out, grew = {root}, True
+    while grew:
+        new = {p for p, pp in parent.items() if pp in out} - out
+        out |= new
+        grew = bool(new)
+    return out
+
+
+def _listening(pids: set[int]) -> list[str]:
+    """``"address:port"`` of every TCP socket in LISTEN state held by one of ``pids`` (from /proc, no tools)."""
+    inodes = set()
+    for pid in pids:
+        try:
+            for fd in os.listdir(f"/proc/{pid}/fd"):
+                link = os.readlink(f"/proc/{pid}/fd/{fd}")
+                if link.startswith("socket:["):
+                    inodes.add(link[8:-1])
+        except OSError:
+            continue
+    out = []
+    for table, size in (("/proc/net/tcp", 4), ("/proc/net/tcp6", 16)):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] != "0A" or f[9] not in inodes:  # 0A: LISTEN
+                continue
+            addr, port = f[1].split(":")
+            raw = bytes.fromhex(addr)
+            raw = b"".join(raw[i:i + 4][::-1] for i in range(0, size, 4))  # /proc prints 32-bit words host-endian
+            out.append(f"{socket.inet_ntop(socket.AF_INET if size == 4 else socket.AF_INET6, raw)}:{int(port, 16)}")
+    return out
+
+
+def test_a_local_sweep_listens_on_the_loopback_address_only(tmp_path, monkeypatch):
+    """Every TCP socket the Ray processes of ``soc-opt sweep`` (without ``--address``) listen on, collected while
+    the trial runs (GCS, raylet, object manager, agents, the worker), is bound to the loopback address."""
+    ray = pytest.importorskip("ray")
+    from soc_opt.sweeps import runner
+
+    assert not ray.is_initialized()
+    (tmp_path / "s.toml").write_text(SWEEP)
+    spec = load_sweep(tmp_path / "s.toml")
+    listening, poll = set(), runner._poll_running
+
+    def poll_and_look(*args):
+        listening.update(_listening(_descendants(os.getpid())))
+        return poll(*args)
+
+    monkeypatch.setattr(runner, "_poll_running", poll_and_look)
+    with open(os.devnull, "w") as quiet:
+        res = runner.run_sweep(spec, tmp_path / "out", workers=1, num_cpus=1, report=False,
+                               board=runner.ProgressBoard(1, stream=quiet, live=False))
+    assert res["counts"]["done"] == 1
+    assert listening, "no listening socket found: the check would prove nothing"
+    assert all(a.rsplit(":", 1)[0] in ("127.0.0.1", "::ffff:127.0.0.1", "::1") for a in listening), sorted(listening)

@@ -819,3 +819,28 @@ def test_push_task_cage_can_follow_the_straight_push_at_puck_height_with_its_hea
         cage, tail = np.r_[p, -0.38], np.r_[p - 0.25 * u, -0.38]
         q = least_squares(residual, q, args=(cage, tail), bounds=(lo, hi), xtol=1e-12, ftol=1e-12).x
         assert np.abs(residual(q, cage, tail)).max() < 2e-3, lam
+
+
+def test_a_pkg_model_of_a_dotted_package_is_found_without_importing_any_package(tmp_path, monkeypatch):
+    """``pkg:a.b/<file>`` names the folder ``b`` of the package ``a``; neither ``a/__init__.py`` nor
+    ``a/b/__init__.py`` runs (issue 48 item 4)."""
+    import sys
+
+    marker = tmp_path / "imported"
+    pkg = tmp_path / "mods" / "plantedpkg48"
+    (pkg / "sub").mkdir(parents=True)
+    for init in (pkg / "__init__.py", pkg / "sub" / "__init__.py"):
+        init.write_text(f"open({str(marker)!r}, 'a').write('code ran')\n")
+    (pkg / "sub" / "arm.xml").write_text(TWO_LINK)
+    monkeypatch.syspath_prepend(str(tmp_path / "mods"))
+    try:
+        t = build_task(_two_link_config(model="pkg:plantedpkg48.sub/arm.xml"))
+        assert t.n == 10 and not marker.exists() and "plantedpkg48" not in sys.modules
+        with pytest.raises(ConfigError, match="has no folder 'nothing'"):
+            build_task(_two_link_config(model="pkg:plantedpkg48.nothing/arm.xml"))
+        with pytest.raises(ConfigError, match="is not a package name"):
+            build_task(_two_link_config(model="pkg:plantedpkg48..sub/arm.xml"))
+        assert not marker.exists()
+    finally:
+        sys.modules.pop("plantedpkg48", None)
+        sys.modules.pop("plantedpkg48.sub", None)

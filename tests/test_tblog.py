@@ -135,3 +135,42 @@ def test_without_tensorboardx_runs_work_and_say_so(task, tmp_path, monkeypatch):
     assert state.iteration == 2 and (out / "metrics.json").is_file()
     assert not list(out.glob("events.out.tfevents.*"))
     assert lines[0] == MISSING_MESSAGE and sum(line.startswith("[lqr-flm seed 0] iter") for line in lines) == 2
+
+
+@needs_tensorboardx
+def test_a_folder_swapped_for_a_link_before_the_log_opens_gets_no_event_file_outside(task, tmp_path, monkeypatch):
+    """Issue 48 item 3: a run inside a compare-like directory whose ``seed_0`` is swapped for a link to another
+    folder just before its TensorBoard log opens: the log opens the folder from the anchor without following
+    the link (and writes by descriptor), so no event file lands outside; the run stops naming the link."""
+    from soc_opt.experiments.tblog import RunLog
+    from soc_opt.files import UnsafePathError
+
+    anchor, outside = tmp_path / "cmp", tmp_path / "outside"
+    (outside / "lqr-flm").mkdir(parents=True)
+    out = anchor / "seed_0" / "lqr-flm"
+    open_log = RunLog.open.__func__
+
+    def swap_then_open(cls, path, *args, **kw):  # the right moment: just before the log opens
+        (anchor / "seed_0").rename(anchor / "seed_0.moved")
+        (anchor / "seed_0").symlink_to(outside, target_is_directory=True)
+        return open_log(cls, path, *args, **kw)
+
+    monkeypatch.setattr(RunLog, "open", classmethod(swap_then_open))
+    with pytest.raises(UnsafePathError, match="seed_0"):
+        run_experiment(task, "lqr-flm", _cfg(), 0, out, anchor=anchor)
+    assert list((outside / "lqr-flm").iterdir()) == []
+
+
+@needs_tensorboardx
+def test_the_log_writes_through_the_folder_it_opened_when_it_is_renamed_afterwards(task, tmp_path):
+    from soc_opt.experiments.tblog import RunLog
+
+    (tmp_path / "a").mkdir()
+    log = RunLog.open(tmp_path / "a")
+    (tmp_path / "a").rename(tmp_path / "b")
+    (tmp_path / "a").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    (tmp_path / "elsewhere").mkdir()
+    log.series("x", [1.0, 2.0])
+    log.close()
+    assert list((tmp_path / "elsewhere").iterdir()) == []
+    assert read_events(tmp_path / "b")[0]["x"] == [(0, 1.0), (1, 2.0)]

@@ -21,7 +21,7 @@ import numpy as np
 
 from .. import files, plugins
 from ..config import ConfigError
-from ..methods.config import DPSOCConfig, EvalConfig, acceptance_limit, with_task_init_var
+from ..methods.config import DPSOCConfig, EvalConfig, acceptance_limit, check_scale, with_task_init_var
 from ..methods.state import RunState
 from ..models import LinearGaussianPolicy, Rollouts
 from ..noise.aware import mean_action
@@ -124,6 +124,11 @@ def compare(
     bar over its iterations, or plain lines), a callable printing lines, or ``None``.
     """
     plugins.METHODS.lookup(FORKED).check_config(cfg)
+    if not 1 <= len(seeds) <= MAX_SEEDS:
+        raise ConfigError(f"compare runs 1 to {MAX_SEEDS} seeds, got {len(seeds)}")
+    check_scale(cfg, task)
+    if eval_samples is not None:
+        check_scale(cfg.replace(evaluation=cfg.evaluation.replace(samples=eval_samples)), task)
     cfg = with_task_init_var(cfg, task)  # the task's init_var unless the configuration sets one
     progress = as_progress(progress)
     out = Path(out)
@@ -135,6 +140,8 @@ def compare(
         return _compare_locked(task, cfg, seeds, out, task_name, eval_samples, progress, restart)
 
 
+#: Most seeds one comparison runs (each is two runs).
+MAX_SEEDS = 1000
 #: ``compare.json``: what marks a folder as a compare directory.
 COMPARE_FILE, COMPARE_FORMAT = "compare.json", "soc_opt compare"
 _SEED_DIR = re.compile(r"seed_\d+")

@@ -17,7 +17,8 @@ import pickle
 from pathlib import Path
 
 from ..config import ConfigError
-from .rundir import LEGACY_FILES, atomic_write_bytes
+from ..reading import RefusedFile, read_regular
+from .rundir import LEGACY_FILES, MAX_CHECKPOINT_BYTES, atomic_write_bytes
 from .statefile import encode_state
 
 __all__ = ["convert_directory", "legacy_files"]
@@ -58,7 +59,10 @@ class _RenamingUnpickler(pickle.Unpickler):
 def _unpickle_trusted(path: Path):
     """The object in an old checkpoint file (header + SHA-256 + pickle, or a bare pickle).
     Runs the pickle: call only for files the user trusts."""
-    data = path.read_bytes()
+    try:
+        data = read_regular(path, MAX_CHECKPOINT_BYTES, what="checkpoint")  # never blocks, bounded, no link followed
+    except RefusedFile as e:
+        raise ConfigError(str(e)) from None
     if data.startswith(_MAGIC):
         head, sep, payload = data[len(_MAGIC):].partition(b"\n")
         if not sep or hashlib.sha256(payload).hexdigest().encode() != head:

@@ -16,15 +16,19 @@ anything is simulated or written.
 
 from __future__ import annotations
 
+import json
+import os
+import stat
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from ..config import ConfigError, read_toml
+from .. import files
+from ..config import MAX_INT, ConfigError, read_toml, show
 from ..methods.base import apply_overrides, run_method
-from ..methods.config import DPSOCConfig, with_task_init_var
+from ..methods.config import DPSOCConfig, check_scale, with_task_init_var
 from ..methods.state import RunState
 from ..plugins import METHODS
 from ..tasks.loading import problems_dir
@@ -124,11 +128,12 @@ def _task_record(task: Task, task_name: str | None) -> dict | None:
 
 
 def _check_inputs(task: Task, method: str, cfg: DPSOCConfig, seed: int) -> None:
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= MAX_INT:
+        raise ConfigError(f"seed must be an integer in [0, {MAX_INT}], got {show(seed)}")
     meth = get_method(method)
     meth.check_config(cfg)
     meth.check_task(task, cfg)
+    check_scale(cfg, task)
 
 
 def _progress_line(method: str, seed: int, total: int, st, dt: float, elapsed: float) -> str:
@@ -156,6 +161,7 @@ def run_experiment(
     previous_checkpoint: bool = False,
     anchor: str | Path | None = None,
     owned: tuple[str, ...] = (),
+    finish: Callable[[object, RunLog | None], None] | None = None,
 ):
     """Run one method on one task and seed, writing every iteration to ``out`` (resumable).
 
@@ -172,6 +178,13 @@ def run_experiment(
     fork of the baseline.  An exception during an iteration leaves the finished iterations saved;
     the run directory's path is added to it as a note.
 
+    ``finish(state, log)``: the run's final phase (``soc-opt run``: figures, filmstrip, ``final_policy.npz``,
+    ``final_eval*.npz``), called with the final state and the directory's TensorBoard log (or ``None``) while
+    the lock is still held.  It must write its files from ``state`` alone, deterministically: a run counts as
+    finished (:func:`finished_run` with ``final=True``) only once ``finish`` has returned and ``final.json``
+    records it; a kill, Ctrl-C or failed write before that leaves the run to be finished by the same command,
+    which runs ``finish`` again from the checkpoint and so writes the same files.
+
     ``progress``: a :class:`soc_opt.experiments.progress.Progress` (a bar over the iterations, showing the
     mean cost, the KL and the task's headline metric, or plain lines), a callable printing
     one line per iteration, or ``None`` (silent).  ``bar_level``: nesting of the bar (compare).
@@ -182,7 +195,8 @@ def run_experiment(
     if out is None:
         return _run(task, method, cfg, seed, None, start_state, on_iteration, prog, bar_level, None)
     if not restart and not previous_checkpoint:
-        finished = finished_run(task, method, cfg, seed, out, task_name=task_name, anchor=anchor)
+        finished = finished_run(task, method, cfg, seed, out, task_name=task_name, anchor=anchor,
+                                final=finish is not None)
         if finished is not None:  # read only: no lock, no file written
             if prog:
                 prog.message(f"{method} run in {out} already finished ({finished.iteration} iterations)")
@@ -204,7 +218,8 @@ def run_experiment(
         else:
             state = saved
             if prog and done(state):
-                prog.message(f"{method} run in {rd.path} already finished ({state.iteration} iterations)")
+                prog.message(f"{method} run in {rd.path} already finished ({state.iteration} iterations)"
+                             + ("; writing its final files" if finish is not None else ""))
             elif prog:
                 prog.message(f"resuming {method} in {rd.path}: {state.iteration} iterations done "
                              f"(next: iteration {state.iteration})")
@@ -213,26 +228,70 @@ def run_experiment(
                 prog.message("note: this run was started in another environment (" + "; ".join(changed[:6])
                              + "): the iterations from here on may differ in the last digits from the "
                              "same run continued there (docs/reproducibility.md)")
-        tb = RunLog.open(rd.path, purge_step=state.iteration if saved is not None else None)
+        tb = RunLog.open(rd.path, purge_step=state.iteration if saved is not None else None, anchor=rd.anchor)
         if tb is None and prog:
             prog.message(MISSING_MESSAGE)
         if tb is not None and saved is None and state is not None:  # a fresh run from a fork
             for rec in state.history:  # log the iterations it shares
                 tb.iteration(rec)
         try:
-            return _run(task, method, cfg, seed, rd, state, on_iteration, prog, bar_level, tb)
-        except Exception as e:
             try:
-                done = rd.load_checkpoint()
-            except CheckpointError:
-                done = None
-            n = 0 if done is None else done.iteration
-            e.add_note(f"run directory {str(rd.path)!r} keeps {n} finished iteration{'s' if n != 1 else ''}; "
-                       "running the same command again resumes after them")
-            raise
+                state = _run(task, method, cfg, seed, rd, state, on_iteration, prog, bar_level, tb)
+            except Exception as e:
+                try:
+                    done = rd.load_checkpoint()
+                except CheckpointError:
+                    done = None
+                n = 0 if done is None else done.iteration
+                e.add_note(f"run directory {str(rd.path)!r} keeps {n} finished iteration{'s' if n != 1 else ''}; "
+                           "running the same command again resumes after them")
+                raise
+            if finish is not None:
+                _final_phase(rd, state, finish, tb)
+            return state
         finally:
             if tb is not None:
                 tb.close()
+
+
+#: Written last by a run's final phase (``soc-opt run``): its iteration count and the final files it wrote.
+FINAL_MARK = "final.json"
+#: The files a final phase may write (each method writes some of them).
+FINAL_FILES = ("cost_per_iteration.png", "ee_trajectories.png", "filmstrip.png", "policy.npz", "final_policy.npz",
+               "final_eval.npz", "final_eval_mean_action.npz", "final_eval_filtered.npz",
+               "final_eval_filtered_mean_action.npz", "final_eval_open_loop.npz")
+
+
+def _final_phase(rd: RunDirectory, state, finish, tb) -> None:
+    """``finish(state, tb)`` between removing and writing ``final.json`` (see :func:`run_experiment`)."""
+    files.remove(rd.path / FINAL_MARK, anchor=rd.anchor)
+    try:
+        finish(state, tb)
+    except Exception as e:
+        e.add_note(f"run directory {str(rd.path)!r} keeps its {state.iteration} iterations; its final files are not "
+                   "all written: running the same command again writes them")
+        raise
+    written = [n for n in FINAL_FILES if stat.S_ISREG(_lstat_mode(rd.path / n))]
+    rd.write_file(FINAL_MARK, json.dumps({"iteration": state.iteration, "files": written}, indent=1).encode())
+
+
+def _lstat_mode(path: Path) -> int:
+    try:
+        return os.lstat(path).st_mode
+    except OSError:
+        return 0
+
+
+def final_done(out: str | Path, iteration: int) -> bool:
+    """Whether the final phase of the run in ``out`` completed after ``iteration`` iterations: ``final.json``
+    records that count, and every final file it lists is a regular file of the directory."""
+    try:
+        mark = files.read_json_file(Path(out) / FINAL_MARK, limit=1 << 16)
+    except (OSError, ConfigError):
+        return False
+    if not isinstance(mark, dict) or mark.get("iteration") != iteration or not isinstance(mark.get("files"), list):
+        return False
+    return all(name in FINAL_FILES and stat.S_ISREG(_lstat_mode(Path(out) / name)) for name in mark["files"])
 
 
 def _meta(task, method: str, cfg: DPSOCConfig, seed: int, task_name) -> dict:
@@ -247,17 +306,21 @@ def _done(method: str, cfg: DPSOCConfig) -> Callable[[object], bool]:
 
 
 def finished_run(task: Task, method: str, cfg: DPSOCConfig, seed: int, out: str | Path, *,
-                 task_name: str | None = None, anchor: str | Path | None = None):
+                 task_name: str | None = None, anchor: str | Path | None = None, final: bool = False):
     """The final state of the finished run of this method, task, seed and configuration in ``out``,
-    or None (no such directory, not finished, or a damaged last checkpoint).  Reads only: no lock,
+    or None (no such directory, not finished, or a damaged last checkpoint; with ``final``: also when its
+    final phase has not completed, :func:`final_done`).  Reads only: no lock,
     nothing written (works on a read-only file system); a different run in ``out`` raises
     :class:`RunDirectoryError` as :func:`run_experiment` would."""
     if not Path(out).is_dir():
         return None
     cfg = with_task_init_var(cfg, task)  # compared as run_experiment records it
-    state = RunDirectory(out, anchor=anchor).finished(_meta(task, method, cfg, seed, task_name),
-                                                      _task_record(task, task_name), _contract, _done(method, cfg))
-    return None if state is None else check_state(state, task, method, cfg, str(Path(out) / CHECKPOINT))
+    rd = RunDirectory(out, anchor=anchor)
+    state = rd.finished(_meta(task, method, cfg, seed, task_name), _task_record(task, task_name), _contract,
+                        _done(method, cfg))
+    if state is None or final and not final_done(out, state.iteration):
+        return None
+    return check_state(state, task, method, cfg, str(Path(out) / CHECKPOINT))
 
 
 def _initial_state(task: Task, method: str, cfg: DPSOCConfig, seed: int):

@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import io
 import json
 import os
@@ -95,7 +96,8 @@ RUN_FILES = ("config.json", "task.json", "metrics.csv", "metrics.json", "costs.n
              CHECKPOINT, PREVIOUS_CHECKPOINT, *LEGACY_FILES[:2], "policy.npz", "final_eval.npz",
              "final_policy.npz", "final_eval_mean_action.npz", "final_eval_open_loop.npz", "final_eval_filtered.npz",
              "final_eval_filtered_mean_action.npz", "cost_per_iteration.png",
-             "ee_trajectories.png", "filmstrip.png")
+             "ee_trajectories.png", "filmstrip.png", "final.json")
+
 
 
 class RunDirectoryError(ConfigError):
@@ -276,7 +278,14 @@ def lock_directory(path: str | Path, anchor: str | Path | None = None, what: str
         with _pid_lock(lp):
             yield lp
         return
-    fd = files.open_lock(lp, anchor=anchor)
+    try:
+        fd = files.open_lock(lp, anchor=anchor)
+    except OSError as e:
+        if e.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
+            raise
+        raise RunDirectoryError(f"{what} {str(path)!r} is not writable ({e.strerror}: cannot open its lock file "
+                                f"{str(lp)!r}); soc_opt writes there to resume or finish a run: make it writable or "
+                                "use another --out") from None
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

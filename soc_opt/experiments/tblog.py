@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import uuid
 from pathlib import Path
 from typing import Iterable
@@ -26,6 +27,7 @@ import numpy as np
 
 from .. import files
 from ..config import ConfigError
+from ..reading import read_regular
 
 #: Largest figure logged to TensorBoard: 64 MiB.
 MAX_FIGURE_BYTES = 64 << 20
@@ -51,20 +53,36 @@ def available() -> bool:
 class RunLog:
     """The TensorBoard events of one directory; :meth:`open` returns ``None`` without tensorboardX."""
 
-    def __init__(self, writer):
+    def __init__(self, writer, dir_fd: int | None = None):
         self.writer = writer
+        self.dir_fd = dir_fd
 
     @classmethod
-    def open(cls, path: str | Path, purge_step: int | None = None) -> "RunLog | None":
+    def open(cls, path: str | Path, purge_step: int | None = None, *, anchor: str | Path | None = None) -> "RunLog | None":
         """A log writing into ``path``; ``purge_step``: on resume, hide events at or after this
-        step left by an interrupted earlier session (they are written again)."""
+        step left by an interrupted earlier session (they are written again).
+
+        The folder is opened once, from ``anchor`` (default: ``path`` itself) without following a link below
+        it (:func:`soc_opt.files.open_dir`), and tensorboardX writes through that descriptor
+        (``/proc/self/fd/N``): a folder swapped for a link afterwards changes nothing.  Where the system has no
+        ``/proc/self/fd`` the log is off (``None``)."""
         SummaryWriter = _writer_class()
         if SummaryWriter is None:
+            return None
+        fd = files.open_dir(path, anchor=path if anchor is None else anchor)
+        logdir = f"/proc/self/fd/{fd}"
+        if not os.path.isdir(logdir):  # pragma: no cover - no /proc (not Linux): no descriptor path to write by
+            os.close(fd)
             return None
         # event file names hold the time in seconds: a unique suffix keeps two sessions opened
         # within the same second (a run, then its figures) from overwriting each other
         suffix = f".{uuid.uuid4().hex[:8]}"
-        return cls(SummaryWriter(logdir=str(path), purge_step=purge_step, flush_secs=30, filename_suffix=suffix))
+        try:
+            writer = SummaryWriter(logdir=logdir, purge_step=purge_step, flush_secs=30, filename_suffix=suffix)
+        except BaseException:
+            os.close(fd)
+            raise
+        return cls(writer, fd)
 
     def iteration(self, record) -> None:
         """The numeric fields of ``record.summary()`` as scalars ``<phase>/<field>``."""
@@ -85,17 +103,18 @@ class RunLog:
         self.writer.flush()
 
     def figures(self, paths: Iterable[str | Path], step: int) -> int:
-        """PNG figures as images tagged with their file stem; returns how many were written.  A link, a
-        file larger than :data:`MAX_FIGURE_BYTES` or one that is no PNG is skipped."""
+        """PNG figures of the log's folder (only their names are used) as images tagged with their file stem;
+        returns how many were written.  Read through the folder's descriptor: a link, anything but a regular
+        file, a file larger than :data:`MAX_FIGURE_BYTES` or one that is no PNG is skipped."""
         from matplotlib.image import imread
 
         count = 0
         for p in paths:
             p = Path(p)
-            if p.is_symlink() or not p.is_file():  # only the directory's own files (docs/security.md)
-                continue
-            try:
-                img = imread(io.BytesIO(files.read_bytes(p, MAX_FIGURE_BYTES, what="figure")), format="png")
+            try:  # only the directory's own files (docs/security.md)
+                data = read_regular(p.name, MAX_FIGURE_BYTES, what="figure", dir_fd=self.dir_fd) if self.dir_fd is not None \
+                    else files.read_bytes(p, MAX_FIGURE_BYTES, what="figure")
+                img = imread(io.BytesIO(data), format="png")
             except (OSError, ValueError, ConfigError):
                 continue
             if img.dtype != np.uint8:
@@ -108,4 +127,9 @@ class RunLog:
         return count
 
     def close(self) -> None:
-        self.writer.close()
+        try:
+            self.writer.close()
+        finally:
+            if self.dir_fd is not None:
+                os.close(self.dir_fd)
+                self.dir_fd = None

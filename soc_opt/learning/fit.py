@@ -172,9 +172,9 @@ class FitConfig(Config):
 
     _constraints = {
         "prior": [Options(("mixture", "none"))],
-        "n_components": [Interval(1)],
-        "max_iter": [Interval(1)],
-        "buffer_size": [Interval(0)],
+        "n_components": [Interval(1, 1000)],
+        "max_iter": [Interval(1, 100_000)],
+        "buffer_size": [Interval(0, 100_000)],  # tuples of 2n+m+1 floats kept between iterations
         **{name: [Interval(0, None, "neither")]
            for name in ("weight_concentration", "k0", "n0", "reg", "mixture_reg", "min_eig", "tol")},
         "min_weight": [Interval(0.0, 1.0, "left")],

@@ -15,14 +15,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..config import Config, Interval
+from ..config import Config, ConfigError, Interval
 from ..plugins import METHODS
 from .dpsoc_em.config import EMConfig
+from .limits import MAX_BATCH_BYTES, MAX_ITERATIONS, MAX_SAMPLES, MAX_WORKERS
 from .lqr_flm.acceptance import AS_WRITTEN, AcceptanceConfig, acceptance_limit
 from .lqr_flm.config import PAPER, LoopKLStepConfig, LQRFLMConfig, PaperScale, StepSizeConfig, with_paper_scale
 
 __all__ = ["PaperScale", "PAPER", "LoopKLStepConfig", "StepSizeConfig", "AcceptanceConfig", "AS_WRITTEN", "LQRFLMConfig",
-           "EMConfig", "EvalConfig", "DPSOCConfig", "with_paper_scale", "with_task_init_var", "acceptance_limit"]
+           "EMConfig", "EvalConfig", "DPSOCConfig", "with_paper_scale", "with_task_init_var", "acceptance_limit", "check_scale",
+           "MAX_ITERATIONS", "MAX_SAMPLES", "MAX_WORKERS", "MAX_BATCH_BYTES"]
 
 
 @dataclass(frozen=True)
@@ -38,7 +40,7 @@ class EvalConfig(Config):
     seed_offset: int = 10_000
 
     _constraints = {
-        "samples": [None, Interval(1)],
+        "samples": [None, Interval(1, MAX_SAMPLES)],
         "seed_offset": [Interval(0)],  # it seeds a numpy Generator
     }
 
@@ -71,7 +73,7 @@ class DPSOCConfig(Config):
     evaluation: EvalConfig = field(default_factory=EvalConfig)
     plugin_tables: tuple = ()
 
-    _constraints = {"i_switch": [Interval(0)]}
+    _constraints = {"i_switch": [Interval(0, MAX_ITERATIONS)]}
     _plugins = METHODS
 
 
@@ -86,3 +88,17 @@ def with_task_init_var(cfg: DPSOCConfig, task) -> DPSOCConfig:
     task_cfg = getattr(task, "config", None)
     var = float(getattr(task_cfg, "init_var", 1.0))
     return cfg.replace(baseline=cfg.baseline.replace(init_var=var))
+
+
+def check_scale(cfg: DPSOCConfig, task) -> None:
+    """:class:`ConfigError` when the largest batch this configuration samples on ``task`` at once (an iteration's
+    ``samples``, the EM phase's ``y_samples`` cost sequences, the final evaluation's ``samples``) would hold more
+    than :data:`MAX_BATCH_BYTES`: true and measured states, actions, measurements and costs of every step."""
+    T, n, m = int(task.T), int(task.n), int(task.m)
+    per_sample = 8 * (T + 1) * (2 * n + m + 2)
+    sizes = {"baseline.samples": cfg.baseline.samples, "em.y_samples": cfg.em.y_samples or 0,
+             "evaluation.samples": cfg.evaluation.samples or 0}
+    key, biggest = max(sizes.items(), key=lambda kv: kv[1])
+    if biggest * per_sample > MAX_BATCH_BYTES:
+        raise ConfigError(f"{key}: {biggest} rollouts of task {task.name!r} (T = {T}, n = {n}, m = {m}) hold "
+                          f"{biggest * per_sample} bytes, more than a batch may ({MAX_BATCH_BYTES}); lower it")

@@ -5,7 +5,8 @@ Each trial of a :class:`~soc_opt.sweeps.spec.SweepSpec` is one Ray task calling
 Why Ray core tasks and not Ray Tune: docs/choices.md ("Sweeps").
 
 - Local by default: a private Ray instance on this machine's cores (no dashboard, quiet logs),
-  shut down at the end; ``address`` joins an existing cluster instead (soc_opt installed on every
+  listening on the loopback address only (:func:`_init_on_loopback`), shut down at the end;
+  ``address`` joins an existing cluster instead (soc_opt installed on every
   node, ``OUT`` on a shared file system), with Ray's token authentication when a token is
   available and ``RAY_AUTH_MODE`` is unset, as ``ray start --head`` decides (:func:`_use_ray_token`).
   ``workers`` caps the trials in flight.
@@ -154,8 +155,31 @@ def _start_ray(address: str | None, num_cpus: int | None) -> bool:
                 "`ray start --head` while a token exists (~/.ray/auth_token, RAY_AUTH_TOKEN or RAY_AUTH_TOKEN_PATH) "
                 "requires the same token here; see docs/sweeps.md (Ray clusters)") from e
     else:
-        ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, **quiet)
+        _init_on_loopback(ray, num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, **quiet)
     return True
+
+
+def _init_on_loopback(ray, **init) -> None:
+    """``ray.init(**init)`` starting a local Ray whose servers listen on 127.0.0.1 only (docs/security.md, "Ray").
+
+    Ray's servers (GCS, raylet, object manager, workers, agents) listen on every interface unless the node's
+    address is the loopback address; ``ray.init`` replaces a given ``_node_ip_address`` of 127.0.0.1 by the
+    machine's routable address, taking the node's address from ``ray_constants.ENABLE_RAY_CLUSTER`` (off:
+    loopback, Ray's own choice on macOS and Windows).  That switch is off while the node starts; a node that
+    still comes up elsewhere is shut down and refused, naming ``--address`` as the way to a cluster.
+    """
+    constants = ray._private.ray_constants
+    before = constants.ENABLE_RAY_CLUSTER
+    constants.ENABLE_RAY_CLUSTER = False
+    try:
+        ray.init(**init)
+    finally:
+        constants.ENABLE_RAY_CLUSTER = before
+    gcs = str(ray.get_runtime_context().gcs_address)
+    if not gcs.startswith("127.0.0.1:"):
+        ray.shutdown()
+        raise SweepError(f"the local Ray started at {gcs}, not on the loopback address 127.0.0.1, so other machines "
+                         "could reach it; start a Ray node yourself and join it with --address (docs/sweeps.md)")
 
 
 class _Status:

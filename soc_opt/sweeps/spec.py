@@ -39,6 +39,7 @@ same key).  Every trial's task and configuration is built, and so validated, by
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import itertools
 import json
@@ -55,8 +56,8 @@ from typing import Any, Callable
 import numpy as np
 
 from .. import files
-from ..config import ConfigError, read_toml
-from ..methods.config import DPSOCConfig
+from ..config import MAX_INT, ConfigError, read_toml, show
+from ..methods.config import MAX_SAMPLES, DPSOCConfig, check_scale
 from ..methods.registry import check_config, sample_based, sections_of
 from ..methods.state import RunState
 
@@ -82,6 +83,12 @@ def __getattr__(name: str):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 TOP_KEYS = ("name", "tasks", "methods", "seeds", "config", "paper", "eval_samples", "common", "grid", "settings")
 OVERRIDE_KEYS = ("i_switch", "baseline", "em", "task")
+#: Most settings (``[[settings]]`` entries times grid points) and trials of one sweep, checked before any is
+#: built; a sweep's name and each trial folder's name are at most MAX_NAME characters (docs/security.md).
+MAX_SETTINGS = 1000
+MAX_TRIALS = 10_000
+MAX_NAME = 100
+_SWEEP_NAME = re.compile(r"[A-Za-z0-9_+=,-][A-Za-z0-9._+=,-]{0,%d}" % (MAX_NAME - 1))
 RESULT = "result.json"
 PROGRESS = "progress.json"
 ERROR = "error.txt"
@@ -195,8 +202,12 @@ def _fmt_value(v) -> str:
 
 
 def _safe_name(text: str) -> str:
-    """A directory-safe version of a setting name."""
-    return re.sub(r"[^A-Za-z0-9._=,+-]", "_", text) or "_"
+    """A directory-safe version of a setting name: one path component, not starting with a dot, at most
+    :data:`MAX_NAME` characters (else :class:`ConfigError`)."""
+    name = re.sub(r"^\.", "_", re.sub(r"[^A-Za-z0-9._=,+-]", "_", text)) or "_"
+    if len(name) > MAX_NAME:
+        raise ConfigError(f"the name {show(text)} is longer than a trial folder's name may be ({MAX_NAME} characters)")
+    return name
 
 
 # --------------------------------------------------------------------------- specs
@@ -239,6 +250,7 @@ class TrialSpec:
     setting: str
     config: DPSOCConfig
     eval_samples: int
+    gym_modules: tuple[str, ...] = ()  # modules a gym:<module>:<EnvId> may import (--gym-module; not recorded)
 
     @property
     def id(self) -> str:
@@ -277,22 +289,23 @@ class SweepSpec:
 # --------------------------------------------------------------------------- parsing
 
 
-def load_sweep(path: str | Path) -> SweepSpec:
-    """Read and validate a sweep file (module docstring); :class:`SweepError` names what is wrong."""
+def load_sweep(path: str | Path, *, gym_modules: tuple[str, ...] = ()) -> SweepSpec:
+    """Read and validate a sweep file (module docstring); :class:`SweepError` names what is wrong.  ``gym_modules``:
+    the modules its ``gym:<module>:<EnvId>`` tasks may import (``--gym-module``; none by default, docs/gym.md)."""
     path = Path(path)
     try:
         data = read_toml(path)
     except ConfigError as e:
         raise SweepError(str(e)) from e
-    return sweep_from_dict(data, base_dir=path.parent, source=str(path), default_name=path.stem)
+    return sweep_from_dict(data, base_dir=path.parent, source=str(path), default_name=path.stem, gym_modules=gym_modules)
 
 
 def sweep_from_dict(data: dict, *, base_dir: str | Path = ".", source: str | None = None,
-                    default_name: str = "sweep") -> SweepSpec:
+                    default_name: str = "sweep", gym_modules: tuple[str, ...] = ()) -> SweepSpec:
     """Validate a sweep table and expand it into its trials (nothing is run)."""
     where = f"sweep file {source!r}" if source else "sweep"
     try:
-        spec = _expand(data, Path(base_dir), default_name)
+        spec = _expand(data, Path(base_dir), default_name, tuple(gym_modules))
     except ConfigError as e:
         raise SweepError(f"{where}: {e}") from e
     return dataclasses.replace(spec, source=source)
@@ -316,23 +329,26 @@ def _str_list(data: dict, key: str) -> list[str]:
 
 def _seeds(v) -> tuple[int, ...]:
     if isinstance(v, int) and not isinstance(v, bool):
-        if v < 1:
-            raise ConfigError(f"seeds: expected a positive count, got {v}")
+        if not 1 <= v <= MAX_TRIALS:
+            raise ConfigError(f"seeds: expected a count in [1, {MAX_TRIALS}], got {show(v)}")
         return tuple(range(v))
     if (not isinstance(v, list) or not v
-            or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in v)):
-        raise ConfigError(f"seeds: expected a count or a non-empty list of non-negative integers, got {v!r}")
+            or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_INT for s in v)):
+        raise ConfigError(f"seeds: expected a count or a non-empty list of integers in [0, {MAX_INT}], got {show(v)}")
     if len(set(v)) != len(v):
         raise ConfigError(f"seeds: duplicate entries in {v!r}")
     return tuple(v)
 
 
-def _resolve_task(ref: str, base_dir: Path, i: int) -> tuple[str, str, Path | None]:
+def _resolve_task(ref: str, base_dir: Path, i: int, gym_modules: tuple[str, ...] = ()) -> tuple[str, str, Path | None]:
     """``(task reference passed to workers, label, task TOML path or None for gym:<EnvId>)``."""
     from ..tasks.config import GYM_PREFIX
     from ..tasks.loading import BUILTIN_TASKS, problems_dir
 
     if ref.startswith(GYM_PREFIX):  # a Gymnasium environment (docs/gym.md); checked by load_task below
+        from ..tasks.gym import check_gym_import
+
+        check_gym_import(ref, gym_modules)  # a module named in a file only if the command line names it
         return ref, _safe_name(ref.replace(":", "-")), None
     if ref in BUILTIN_TASKS:
         return ref, ref, problems_dir() / BUILTIN_TASKS[ref]
@@ -382,6 +398,10 @@ def _settings(data: dict) -> tuple[Setting, ...]:
     grid = data.get("grid", {})
     _check_overrides(grid, "grid")
     leaves = _grid_leaves(grid)
+    count = len(explicit) * math.prod(len(vals) for _, vals in leaves)  # before any is built
+    if count > MAX_SETTINGS:
+        raise ConfigError(f"grid: {len(explicit)} setting(s) x {' x '.join(str(len(v)) for _, v in leaves)} grid values "
+                          f"= {count} settings, more than a sweep may have ({MAX_SETTINGS})")
     short = [p[-1] for p, _ in leaves]
     labels = [p[-1] if short.count(p[-1]) == 1 else ".".join(p) for p, _ in leaves]
     out = []
@@ -397,10 +417,10 @@ def _settings(data: dict) -> tuple[Setting, ...]:
             out.append(Setting(_safe_name(",".join(parts)) if parts else "default", merged,
                                group=name or (f"settings{i}" if len(explicit) > 1 else ""),
                                grid=tuple(zip(labels, combo))))
-    names = [s.name for s in out]
-    dup = sorted({n for n in names if names.count(n) > 1})
+    dup = sorted(n for n, k in collections.Counter(s.name for s in out).items() if k > 1)
     if dup:
-        raise ConfigError(f"settings: duplicate setting names {dup}; give each [[settings]] entry a distinct name")
+        raise ConfigError(f"settings: duplicate setting names {dup[:5]}{' and more' if len(dup) > 5 else ''}; give each "
+                          "[[settings]] entry a distinct name")
     return tuple(out)
 
 
@@ -444,7 +464,7 @@ def _config(task_ref, cfg_file, paper, common, setting, method, task_init_var: f
     return cfg
 
 
-def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
+def _expand(data: dict, base_dir: Path, default_name: str, gym_modules: tuple[str, ...] = ()) -> SweepSpec:
     from ..tasks import load_task
 
     if not isinstance(data, dict):
@@ -453,16 +473,17 @@ def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
     for key in ("tasks", "methods", "seeds"):
         if key not in data:
             raise ConfigError(f"missing key {key!r}")
-    name = data.get("name", default_name)
-    if not isinstance(name, str) or not name:
-        raise ConfigError(f"name: expected a non-empty string, got {name!r}")
+    name = data["name"] if "name" in data else _safe_name(default_name[:MAX_NAME])
+    if not isinstance(name, str) or not _SWEEP_NAME.fullmatch(name):
+        raise ConfigError(f"name: expected a name of letters, digits and . _ - + = , (at most {MAX_NAME} characters, "
+                          f"not starting with a dot; it names the default output folder runs/sweep-NAME), got {show(name)}")
     methods = _str_list(data, "methods")
     runnable = sample_based()  # read now: a method registered from a script is among them
     for m in methods:
         if m not in runnable:
             raise ConfigError(f"methods: unknown method {m!r}; use {list(runnable)}")
     seeds = _seeds(data["seeds"])
-    tasks = [_resolve_task(ref, base_dir, i) for i, ref in enumerate(_str_list(data, "tasks"))]
+    tasks = [_resolve_task(ref, base_dir, i, gym_modules) for i, ref in enumerate(_str_list(data, "tasks"))]
     labels = [lab for _, lab, _ in tasks]
     if len(set(labels)) != len(labels):
         raise ConfigError(f"tasks: two tasks share a name {labels}; rename a task file")
@@ -476,11 +497,15 @@ def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
         raise ConfigError(f"paper: expected true/false, got {paper!r}")
     eval_samples = data.get("eval_samples")
     if eval_samples is not None and (isinstance(eval_samples, bool) or not isinstance(eval_samples, int)
-                                     or eval_samples < 1):
-        raise ConfigError(f"eval_samples: expected a positive integer, got {eval_samples!r}")
+                                     or not 1 <= eval_samples <= MAX_SAMPLES):
+        raise ConfigError(f"eval_samples: expected an integer in [1, {MAX_SAMPLES}], got {show(eval_samples)}")
     common = dict(_check_overrides(data.get("common", {}), "common"))
     common_task = common.pop("task", {})
     settings = _settings(data)
+    n_trials = len(tasks) * len(settings) * len(methods) * len(seeds)
+    if n_trials > MAX_TRIALS:
+        raise ConfigError(f"{len(tasks)} task(s) x {len(settings)} setting(s) x {len(methods)} method(s) x {len(seeds)} "
+                          f"seed(s) = {n_trials} trials, more than a sweep may have ({MAX_TRIALS})")
     trials = []
     for ref, label, task_file in tasks:
         file_table = read_toml(task_file) if task_file is not None else {}
@@ -491,7 +516,7 @@ def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
                    for k, v in task_over.items()}
             ctx = f"task {label!r}, setting {s.name!r}"
             try:
-                task = load_task(ref, overrides=top)  # validates the task keys (and its model) now
+                task = load_task(ref, overrides=top, gym_modules=gym_modules)  # validates the task keys (and model)
             except ConfigError as e:
                 raise ConfigError(f"{ctx}, task keys: {e}") from e
             try:
@@ -501,9 +526,10 @@ def _expand(data: dict, base_dir: Path, default_name: str) -> SweepSpec:
                 raise ConfigError(f"{ctx}, algorithm keys: {e}") from e
             for m in methods:
                 cfg = cfgs[m]
+                check_scale(cfg.replace(evaluation=cfg.evaluation.replace(samples=eval_samples)), task)  # largest batch
                 for seed in seeds:
                     trials.append(TrialSpec(ref, label, top, m, seed, s.name, cfg,
-                                            eval_samples or cfg.baseline.samples))
+                                            eval_samples or cfg.baseline.samples, gym_modules))
     return SweepSpec(name, None, tuple(labels), tuple(methods), seeds, settings, tuple(trials))
 
 
@@ -592,7 +618,7 @@ def run_trial(spec: TrialSpec, trial_dir: str | Path,
             on_iteration(spec.id, st, d)
 
     try:
-        task = load_task(spec.task, overrides=spec.task_overrides)
+        task = load_task(spec.task, overrides=spec.task_overrides, gym_modules=spec.gym_modules)
         state = run_experiment(task, spec.method, spec.config, spec.seed, d, task_name=spec.task_label,
                                on_iteration=cb, anchor=anchor, owned=TRIAL_FILES)
         res = {"trial": spec.id, "status": "done", **_result(spec, task, state, d, anchor),

@@ -26,6 +26,8 @@ __all__ = [
     "ProcessNoiseConfig",
     "GYM_PREFIX",
     "PKG_PREFIX",
+    "MAX_HORIZON",
+    "MAX_SUBSTEPS",
     "TaskConfig",
 ]
 
@@ -34,6 +36,10 @@ GYM_PREFIX = "gym:"
 #: Prefix of a ``model`` naming an MJCF file shipped inside an installed Python package
 #: (``pkg:<package>/<path inside the package>``, e.g. ``pkg:gymnasium/envs/mujoco/assets/reacher.xml``).
 PKG_PREFIX = "pkg:"
+#: Longest horizon ``T`` and most simulator steps per time step a task may ask for (docs/security.md): the
+#: paper's tasks use 100 steps; these keep a task file from asking for a run that never ends.
+MAX_HORIZON = 10_000
+MAX_SUBSTEPS = 10_000
 
 Ramp = Literal["constant", "linear", "quadratic", "final_only"]
 FloatOrList = float | tuple[float, ...]
@@ -272,8 +278,8 @@ class TaskConfig(Config):
 
     def __post_init__(self):
         checks = [
-            ("T", self.T >= 1, "must be >= 1"),
-            ("substeps", self.substeps >= 1, "must be >= 1"),
+            ("T", 1 <= self.T <= MAX_HORIZON, f"must be in [1, {MAX_HORIZON}]"),
+            ("substeps", 1 <= self.substeps <= MAX_SUBSTEPS, f"must be in [1, {MAX_SUBSTEPS}]"),
             ("timestep", self.timestep is None or self.timestep > 0, "must be positive"),
             ("rho2", self.rho2 >= 0, "must be >= 0"),
             ("init_var", self.init_var > 0, "must be positive"),

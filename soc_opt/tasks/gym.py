@@ -24,17 +24,20 @@ task's, with the environment's ``frame_skip`` as ``substeps``.
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
 
-from ..config import ConfigError
+from ..config import ConfigError, shorten, show
 from ..costs import CostSum, Derivatives
 from ..models import LinearGaussianDynamics, Rollouts, ShapeError, check_array
 from .base import SimulationError
 from .config import GYM_PREFIX, StateConfig, TaskConfig
+from .mjcf import check_model
 from .mujoco import MujocoTask, import_mujoco
 
-__all__ = ["GYM_PREFIX", "DEFAULT_T", "DEFAULT_RHO2", "GymMujocoTask", "EnvReward", "RewardCost", "make_gym_env", "load_gym_task"]
+__all__ = ["GYM_PREFIX", "DEFAULT_T", "DEFAULT_RHO2", "GymMujocoTask", "EnvReward", "RewardCost", "make_gym_env", "load_gym_task",
+           "check_gym_import"]
 
 #: Horizon of a ``gym:<EnvId>`` task without ``T``: the environment's ``max_episode_steps``, capped here.
 DEFAULT_T = 100
@@ -43,8 +46,14 @@ DEFAULT_T = 100
 DEFAULT_RHO2 = 1e-3
 
 
-def make_gym_env(env_id: str, kwargs: dict | None = None):
+def make_gym_env(env_id: str, kwargs: dict | None = None, *, modules: tuple[str, ...] = ()):
     """``gymnasium.make(env_id, **kwargs)``, checked to be a MuJoCo environment.
+
+    ``env_id`` of the form ``<module>:<EnvId>`` makes Gymnasium import ``<module>`` first, which runs its
+    code: allowed only when ``<module>`` is in ``modules`` (what the caller asked for itself: a task named on
+    the command line, or ``--gym-module``; an id from a task or sweep file must be registered, docs/gym.md).
+    A ``gym.kwargs.xml_file`` is resolved as Gymnasium does and checked, with every file it references,
+    before Gymnasium opens it (:func:`soc_opt.tasks.mjcf.check_model`).
 
     Raises :class:`ConfigError` naming ``env_id`` if Gymnasium (or its MuJoCo extra) is not
     installed, the id is unknown, or the environment has no MuJoCo ``model``/``data``.
@@ -56,9 +65,12 @@ def make_gym_env(env_id: str, kwargs: dict | None = None):
         raise ConfigError(f"{name}: gymnasium is not installed (pip install 'gymnasium[mujoco]')") from e
     if not env_id:
         raise ConfigError(f"{name!r}: no environment id after {GYM_PREFIX!r} (e.g. gym:InvertedPendulum-v5)")
+    check_gym_import(name, modules)
     kwargs = dict(kwargs or {})
     if "render_mode" in kwargs:  # checked before the environment exists: a window must never open
         raise ConfigError("gym.kwargs: 'render_mode' is not allowed (soc_opt renders with render_filmstrip)")
+    if isinstance(kwargs.get("xml_file"), str):  # Gymnasium opens it (and MuJoCo its includes) unchecked
+        _check_xml_file(kwargs["xml_file"])
     try:
         env = gymnasium.make(env_id, **kwargs)
     except gymnasium.error.DependencyNotInstalled as e:
@@ -66,7 +78,8 @@ def make_gym_env(env_id: str, kwargs: dict | None = None):
     except gymnasium.error.Error as e:
         raise ConfigError(f"{name}: unknown Gymnasium environment id {env_id!r} ({e})") from e
     except (TypeError, ValueError, ModuleNotFoundError) as e:
-        raise ConfigError(f"{name}: gymnasium.make with gym.kwargs = {kwargs!r} failed: {type(e).__name__}: {e}") from e
+        raise ConfigError(f"{name}: gymnasium.make with gym.kwargs = {show(kwargs)} failed: {type(e).__name__}: "
+                          f"{shorten(str(e))}") from e
     mj = import_mujoco()
     u = env.unwrapped
     if not (isinstance(getattr(u, "model", None), mj.MjModel) and isinstance(getattr(u, "data", None), mj.MjData)
@@ -84,6 +97,34 @@ def make_gym_env(env_id: str, kwargs: dict | None = None):
             raise ConfigError(f"{name}: {_bad_kwarg(env_id, kwargs)} is rejected by the environment "
                               f"(reset and one step): {type(e).__name__}: {e}") from e
     return env
+
+
+def check_gym_import(model: str, modules: tuple[str, ...] = ()) -> None:
+    """:class:`ConfigError` when ``model = "gym:<module>:<EnvId>"`` names a module outside ``modules``: Gymnasium
+    would import it, running its code, and only the command line may ask for that (docs/gym.md)."""
+    env_id = model[len(GYM_PREFIX):] if model.startswith(GYM_PREFIX) else model
+    module = env_id.partition(":")[0] if ":" in env_id else None
+    if module is not None and module not in modules:
+        raise ConfigError(f"{shorten(model)}: would import the Python module {shorten(module)!r}, which runs its code; "
+                          "a task or sweep file may name only registered environment ids. To import it, name it on "
+                          f"the command line: --gym-module {shorten(module)} (docs/gym.md)")
+
+
+def _check_xml_file(xml_file: str) -> None:
+    """The model file ``gym.kwargs.xml_file`` names, found as Gymnasium finds it (a path starting with ``/``,
+    ``.`` or ``~``, else a file of its MuJoCo assets), checked with what it references."""
+    from gymnasium.envs.mujoco import mujoco_env
+
+    if xml_file.startswith(("/", ".", "~")):
+        path = os.path.expanduser(xml_file)
+    else:
+        path = os.path.join(os.path.dirname(mujoco_env.__file__), "assets", xml_file)
+    if not os.path.lexists(path):
+        raise ConfigError(f"gym.kwargs.xml_file: {str(path)!r} does not exist")
+    try:
+        check_model(path)
+    except ConfigError as e:
+        raise ConfigError(f"gym.kwargs.xml_file: {e}") from None
 
 
 def _probe(env) -> None:
@@ -354,8 +395,9 @@ class GymMujocoTask(MujocoTask):
         return out
 
 
-def load_gym_task(data: dict, *, condition: int = 0) -> GymMujocoTask:
-    """A :class:`GymMujocoTask` from a task table with ``model = "gym:<EnvId>"``.
+def load_gym_task(data: dict, *, condition: int = 0, modules: tuple[str, ...] = ()) -> GymMujocoTask:
+    """A :class:`GymMujocoTask` from a task table with ``model = "gym:<EnvId>"`` (``modules``: the Python
+    modules a ``gym:<module>:<EnvId>`` may import, :func:`make_gym_env`).
 
     Missing ``name`` defaults to the model string, missing ``T`` to the environment's
     ``max_episode_steps`` capped at :data:`DEFAULT_T`, missing ``rho2`` to :data:`DEFAULT_RHO2`.
@@ -367,7 +409,7 @@ def load_gym_task(data: dict, *, condition: int = 0) -> GymMujocoTask:
     kwargs = gym_table.get("kwargs", {}) if isinstance(gym_table, dict) else {}
     if not isinstance(kwargs, dict):
         raise ConfigError(f"{model}: gym.kwargs must be a table")
-    env = make_gym_env(env_id, kwargs)
+    env = make_gym_env(env_id, kwargs, modules=modules)
     try:
         data.setdefault("name", model)
         data.setdefault("rho2", DEFAULT_RHO2)

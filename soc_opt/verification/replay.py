@@ -25,6 +25,9 @@ from fractions import Fraction
 
 from flint import arb, ctx, fmpq, fmpq_mat
 
+from ..config import MAX_DEPTH, ConfigError, check_depth, shorten
+from ..reading import RefusedFile, read_regular
+
 __all__ = ["PREC", "num", "mat", "col", "dense_smoother", "moments", "gradient", "lbar_rational", "lbar",
            "exact_q", "logp", "maximiser", "null_vector", "replay", "replay_file"]
 
@@ -535,16 +538,26 @@ def replay(cert: dict) -> tuple[bool, list[str]]:
     return bool(fails and corrected), lines
 
 
+#: Largest certificate file read: 64 MiB (the committed ones are a few kB).
+MAX_CERTIFICATE_BYTES = 64 << 20
+
+
 def replay_file(path) -> tuple[bool, list[str]]:
     """:func:`replay` on a JSON file (numbers read exactly as the decimals they spell); a clear error
     names a missing or malformed file."""
-    try:
-        with open(path) as f:
-            cert = json.load(f, parse_float=Fraction)
+    try:  # a regular file, read without blocking, at most MAX_CERTIFICATE_BYTES
+        cert = check_depth(json.loads(read_regular(path, MAX_CERTIFICATE_BYTES, what="certificate", follow=True),
+                                      parse_float=Fraction), f"certificate file {path}")
     except FileNotFoundError:
         raise FileNotFoundError(f"certificate file {path} does not exist") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"certificate file {path} is not valid JSON ({e})") from None
+    except RefusedFile as e:
+        raise ConfigError(f"certificate file {e}") from None
+    except ConfigError:
+        raise
+    except RecursionError:
+        raise ConfigError(f"certificate file {path}: nested more than {MAX_DEPTH} levels deep") from None
+    except (UnicodeDecodeError, ValueError) as e:
+        raise ValueError(f"certificate file {path} is not valid JSON ({shorten(str(e))})") from None
     if not isinstance(cert, dict) or "data" not in cert:
         raise ValueError(f"certificate file {path} has no 'data' key (not a soc_opt certificate)")
     return replay(cert)

@@ -9,6 +9,7 @@ from typing import Literal
 from ...config import Interval, Options
 from ...learning.fit import COST_MODES
 from ...mstep.recipe import MStepRecipe
+from ..limits import MAX_ITERATIONS, MAX_SAMPLES
 
 __all__ = ["EMConfig"]
 
@@ -30,7 +31,7 @@ class EMConfig(MStepRecipe):
 
     _constraints = {
         **MStepRecipe._constraints,
-        "n_em": [Interval(1)],
+        "n_em": [Interval(1, MAX_ITERATIONS)],
         "y_mode": [Options(COST_MODES)],
-        "y_samples": [None, Interval(1)],
+        "y_samples": [None, Interval(1, MAX_SAMPLES)],
     }

@@ -24,7 +24,7 @@ import numpy as np
 
 from ... import lqg
 from ...config import ConfigError
-from ...models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts
+from ...models import LinearGaussianDynamics, LinearGaussianPolicy, Rollouts, symmetrize
 from ...noise.estimator import FilteredPolicy, kalman_filter, measurement_noise
 from .config import ILQGConfig
 from .state import ILQGRecord, ILQGState
@@ -164,14 +164,18 @@ def filtered_policy(task: Task, state: ILQGState, cfg: ILQGConfig = ILQGConfig()
     ``task.linearize`` the iterations plan with, step ``fd_eps``), process noise ``W = filter_q^2 I``
     for the linearisation's error, measurement noise ``R = (rho^2 + 1e-6) I`` (the task's), prior
     ``N(x_0, filter_p0 I)`` at the task's start.  The policy ``a_k = K_k xhat_k + k_k`` (covariance
-    ``policy_var I``) is the iterate's, read on the estimate instead of the raw measurement.
+    ``policy_var I``) is the iterate's, read on the estimate instead of the raw measurement.  With a start
+    range (``[process_noise] start``) the prior covariance adds the task's ``start_cov``.
     """
     lin = linearize(task, state.x, state.u, cfg.fd_eps)
     T, n = lin.T, lin.n
     W = np.broadcast_to((cfg.filter_q ** 2) * np.eye(n), (T, n, n)).copy()
     R = measurement_noise(float(getattr(task, "rho2", 0.0)) + 1e-6, n)
-    kf = kalman_filter(LinearGaussianDynamics(lin.A, lin.B, lin.c, W), R, np.asarray(state.x[0], float),
-                       cfg.filter_p0 * np.eye(n))
+    P0 = cfg.filter_p0 * np.eye(n)
+    pn = getattr(task, "process_noise", None)
+    if pn is not None and pn.start_on:  # a start range (docs/math.md §8.1): the prior covers it
+        P0 = symmetrize(P0 + task.start_cov)
+    kf = kalman_filter(LinearGaussianDynamics(lin.A, lin.B, lin.c, W), R, np.asarray(state.x[0], float), P0)
     return FilteredPolicy(state.policy, kf)
 
 

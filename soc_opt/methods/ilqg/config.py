@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ...config import Config, Interval, config_error
+from ..limits import MAX_ITERATIONS
 
 __all__ = ["ILQGConfig"]
 
@@ -34,7 +35,8 @@ class ILQGConfig(Config):
                  process noise, ``W`` stands for the linearisation's error).  Door at rho^2 = 0.1, mean action:
                  1e-3 min hinge -1.010 (cost 4.6), 1e-2 -0.874 (98.5).
     filter_p0:   prior variance of the start state in that filter (``P0 = filter_p0 I`` around the task's
-                 ``x_0``, 1e-6): iLQG plans from the task's known start.  With the measurement's own variance
+                 ``x_0``, 1e-6, plus the task's ``start_cov`` with ``[process_noise] start``): iLQG plans from
+                 the task's nominal start.  With the measurement's own variance
                  (``rho^2 + 1e-6``) the door's mean action reaches only -0.16.
     init_policy: path of a policy ``.npz`` (e.g. a learned run's ``final_policy.npz``) whose mean action,
                  run once without noise from the task's start, gives the initial actions (default: zero
@@ -56,7 +58,7 @@ class ILQGConfig(Config):
     init_policy: str | None = None
 
     _constraints = {
-        "iterations": [Interval(1)],
+        "iterations": [Interval(1, MAX_ITERATIONS)],
         "mu_init": [Interval(0)],
         "mu_factor": [Interval(1, None, "neither")],
         "mu_max": [Interval(0, None, "neither")],

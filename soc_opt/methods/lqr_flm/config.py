@@ -14,6 +14,7 @@ from ...learning import fit
 from ...lqg import KL_METHODS
 from ...lqg.step_size import StepSizeConfig
 from ...noise.aware import NoiseConfig
+from ..limits import MAX_ITERATIONS, MAX_SAMPLES, MAX_WORKERS
 from .acceptance import AS_WRITTEN, AcceptanceConfig
 
 __all__ = ["PaperScale", "PAPER", "LoopKLStepConfig", "AcceptanceConfig", "StepSizeConfig", "LQRFLMConfig",
@@ -97,13 +98,13 @@ class LQRFLMConfig(Config):
 
     _implied_when_absent = {"baseline.acceptance": (AS_WRITTEN.to_dict(), {})}
     _constraints = {
-        "iterations": [Interval(1)],
-        "samples": [Interval(2)],  # dynamics fitting needs 2 rollouts
+        "iterations": [Interval(1, MAX_ITERATIONS)],
+        "samples": [Interval(2, MAX_SAMPLES)],  # dynamics fitting needs 2 rollouts
         "init_var": [Interval(0, None, "neither"), None],
         "kl_budget": [Interval(0, None, "neither")],
         "kl_mode": [Options(("total", "per_step"))],
         "kl_method": [Options(lambda: KL_METHODS)],
-        "workers": [Interval(1)],
+        "workers": [Interval(1, MAX_WORKERS)],
     }
 
     @classmethod
