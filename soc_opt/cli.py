@@ -481,7 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--write-certificates", dest="write_certificates", metavar="DIR",
                    help="run the counterexample searches and write their certificates to DIR")
     v.add_argument("--only", help="comma-separated claim keys (uniqueness, uniqueness_sigma, ltv, dpsoc, "
-                                  "em_lemma, cost_decrease, free_energy, hessian_impl, ecm, smoother)")
+                                  "em_lemma, cost_decrease, free_energy, hessian_impl, ecm, smoother, kl_step)")
     v.add_argument("--rows", action="store_true", help="the older per-row table (claims 1-4, rows 1a..4e)")
     v.set_defaults(func=_cmd_verify)
 

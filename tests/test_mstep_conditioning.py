@@ -156,3 +156,22 @@ def test_ill_conditioned_P_is_solved_exactly_and_not_called_non_positive_definit
 def test_sing_tol_must_be_below_eig_tol():
     with pytest.raises(ValueError, match="sing_tol: must be below eig_tol"):
         MStepConfig(eig_tol=1e-12, sing_tol=1e-11)
+
+
+def test_more_actions_than_outputs_is_singular():
+    """``m > n+1``: the stacked ``[B; By]`` has at most ``n+1`` independent columns, so ``H_k`` is singular
+    whatever its entries (the whitened ``B`` has only ``n+1`` singular values to measure)."""
+    model, mom = random_mstep_instance(1, 3, 2, np.random.default_rng(5))
+    with pytest.raises(NonUniqueMaximizerError, match="numerical rank 2 < m=3"):
+        maximize_moments(model, mom, constraints=COV, min_norm=False)
+
+
+def test_time_invariant_ill_conditioned_step_is_solved_exactly_up_to_its_size_limit():
+    """With ``T = 1`` the time-invariant maximiser is the per-step one: exact below ``EXACT_TI_MAX`` unknowns."""
+    model, mom = near_parallel()
+    Fstar = rounded(exact_maximiser(model, mom))
+    res = maximize_moments_result(model, mom, constraints=COV, variant="time_invariant", min_norm=False)
+    assert res.exact_steps == (0,)
+    assert np.max(np.abs(F_of(res.policy)[0] - Fstar) / np.abs(Fstar)) <= 4 * np.finfo(float).eps
+    with pytest.raises(IllConditionedMaximizerError, match="eig_tol = 1e-10.*no exact solve"):
+        maximize_moments(model, mom, constraints=COV, variant="time_invariant", method="cvxpy", min_norm=False)

@@ -18,7 +18,8 @@ steps by Cholesky, ill-conditioned ones in exact rational arithmetic (:mod:`soc_
 singular ones by the minimum-norm maximiser with a :class:`~soc_opt.mstep.errors.MinNormWarning`
 (``min_norm=True``) or raises :class:`~soc_opt.mstep.errors.NonUniqueMaximizerError`
 (``min_norm=False``).  The CVXPY route and the time-invariant closed form refuse ill-conditioned
-steps with :class:`~soc_opt.mstep.errors.IllConditionedMaximizerError`.  Every message names the
+steps with :class:`~soc_opt.mstep.errors.IllConditionedMaximizerError` (the time-invariant closed form solves
+them exactly up to ``EXACT_TI_MAX = 64`` unknowns ``m (n+1)``).  Every message names the
 step, the threshold and the condition number.
 """
 
@@ -33,6 +34,7 @@ from .. import linalg as la
 from ..models import AugmentedModel, symmetrize
 from .config import MStepConfig
 from .errors import IllConditionedMaximizerError, MinNormWarning, NonUniqueMaximizerError
+from .exact import EXACT_TI_MAX
 
 __all__ = ["Conditioning", "conditioning", "check_time_varying", "check_time_invariant", "MIN_NORM_HINT",
            "CVXPY_HINT"]
@@ -63,9 +65,10 @@ def conditioning(model: AugmentedModel, S: np.ndarray) -> Conditioning:
     """The :class:`Conditioning` of every step from the model and ``Stilde`` (T, n+1, n+1)."""
     n = model.n
     C = la.tri_solve(la.chol(model.So, "augmented So"), model.Bs)  # Lo^-1 B, (T, n+1, m)
-    sv = np.linalg.svd(C, compute_uv=False)
+    sv = np.linalg.svd(C, compute_uv=False)  # min(n+1, m) values: with m > n+1, H_k has m - (n+1) zero eigenvalues
+    sv = np.concatenate([sv, np.zeros((model.T, model.m - sv.shape[1]))], axis=1)
     h_max = sv[:, 0] ** 2
-    h_min = sv[:, -1] ** 2 if sv.shape[1] else np.zeros(model.T)
+    h_min = sv[:, -1] ** 2
     P = symmetrize(S[:, :n, :n] - S[:, :n, n:] @ S[:, n:, :n] / S[:, n:, n:])
     s_scale = np.maximum(np.abs(np.linalg.eigvalsh(S)).max(-1), _TINY)
     p_min = np.linalg.eigvalsh(P)[:, 0] if n else np.full(model.T, np.inf)
@@ -135,15 +138,18 @@ def check_time_varying(model: AugmentedModel, S: np.ndarray, cfg: MStepConfig, *
 
 
 def check_time_invariant(model: AugmentedModel, S: np.ndarray, Q: np.ndarray, cfg: MStepConfig, *, min_norm: bool,
-                         hint: str = MIN_NORM_HINT) -> bool:
-    """Whether the time-invariant normal matrix ``Q = sum_k Stilde_k kron H_k`` is singular (then the
-    minimum-norm maximiser is used, with a :class:`MinNormWarning`); raises
-    :class:`NonUniqueMaximizerError` for a singular ``Q`` without ``min_norm`` and
-    :class:`IllConditionedMaximizerError` for an ill-conditioned one (no exact route for the variant)."""
+                         hint: str = MIN_NORM_HINT, exact: bool = False) -> str:
+    """How to solve the time-invariant normal equations ``Q vec F = r`` (``Q = sum_k Stilde_k kron H_k``):
+    ``"cholesky"`` (``Q``'s relative smallest eigenvalue above ``eig_tol``); below it, ``Q`` counts as singular
+    only when it is at most ``sing_tol`` and every step is singular on its own (a step that is not makes the
+    sum positive definite); otherwise ``"exact"`` (ill-conditioned, ``exact`` allowed: the closed form with at most
+    ``EXACT_TI_MAX`` unknowns) or ``"min_norm"`` (singular, ``min_norm``, with a :class:`MinNormWarning`).
+    Raises :class:`NonUniqueMaximizerError` for a singular ``Q`` without ``min_norm`` and
+    :class:`IllConditionedMaximizerError` for an ill-conditioned one without ``exact``."""
     ev = np.linalg.eigvalsh(Q)
     rel = float(ev[0] / max(abs(ev[-1]), _TINY))
     if rel > cfg.eig_tol:
-        return False
+        return "cholesky"
     c = conditioning(model, S)
     steps = np.flatnonzero((c.h_rel <= cfg.eig_tol) | (c.p_rel <= cfg.eig_tol))
     detail = ""
@@ -151,14 +157,18 @@ def check_time_invariant(model: AugmentedModel, S: np.ndarray, Q: np.ndarray, cf
         k = int(steps[-1])
         detail = f" Per step: {describe(model, c, k, cfg)}{_others(steps, k)}."
     what = (f"sum_k (Stilde_k kron H_k) has relative smallest eigenvalue {rel:.3e} (condition number {_cond(rel)})")
-    if rel > cfg.sing_tol:
+    # one step whose own H_k and P_k are not singular makes the sum positive definite (its term alone is)
+    if rel > cfg.sing_tol or not c.singular(cfg).all():
+        if exact:
+            return "exact"
         raise IllConditionedMaximizerError(
             f"time-invariant M-step is ill-conditioned: {what} <= eig_tol = {cfg.eig_tol:g}, above sing_tol = "
-            f"{cfg.sing_tol:g}; the maximiser is unique but the variant has no exact route.{detail}")
+            f"{cfg.sing_tol:g}; the maximiser is unique but this route has no exact solve (the closed form has one up "
+            f"to {EXACT_TI_MAX} unknowns m(n+1), here {Q.shape[0]}).{detail}")
     if not min_norm:
         raise NonUniqueMaximizerError(
             f"time-invariant M-step maximiser is not unique: {what} <= sing_tol = {cfg.sing_tol:g}.{detail}{hint}")
     warnings.warn(MinNormWarning(f"time-invariant M-step maximiser is not unique: {what} <= sing_tol = "
                                  f"{cfg.sing_tol:g}; returning the minimum-norm maximiser (min_norm=True).{detail}"),
                   stacklevel=5)
-    return True
+    return "min_norm"

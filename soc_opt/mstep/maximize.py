@@ -30,7 +30,7 @@ from .config import MSTEP_METHODS, MSTEP_OBJECTIVES, MSTEP_SOLVERS, MSTEP_VARIAN
 from .constraints import MStepConstraints, pd_guaranteed, require_pd_covariance, sigma_closed
 from .cvx import cvxpy_ti, cvxpy_tv
 from .errors import ClosedFormUnavailableError
-from .exact import unique_maximiser
+from .exact import EXACT_TI_MAX, unique_maximiser, unique_maximiser_ti
 from .exact_em import run_exact_em
 from .objectives import (
     atil,
@@ -69,7 +69,7 @@ class MStepResult:
             :class:`~soc_opt.mstep.errors.MinNormWarning` names them too); the time-invariant variant
             lists every step.
         exact_steps: closed form: the ill-conditioned steps whose unique maximiser was computed in exact
-            rational arithmetic (docs/math.md §5, "Conditioning").
+            rational arithmetic (docs/math.md §5, "Conditioning"); the time-invariant variant lists every step.
     """
 
     policy: LinearGaussianPolicy
@@ -242,8 +242,9 @@ def _maximize(model: AugmentedModel, mom: Moments, constraints, method, solver, 
             extra = dict(min_norm_steps=tuple(int(k) for k in np.flatnonzero(sing)),
                          exact_steps=tuple(int(k) for k in np.flatnonzero(ill)))
         else:
-            F, Sigma, degenerate = _closed_form_ti(model, st, rc, cfg, min_norm)
-            extra = dict(min_norm_steps=tuple(range(T)) if degenerate else ())
+            F, Sigma, route = _closed_form_ti(model, mom, st, rc, cfg, min_norm)
+            extra = dict(min_norm_steps=tuple(range(T)) if route == "min_norm" else (),
+                         exact_steps=tuple(range(T)) if route == "exact" else ())
     else:
         hint = CVXPY_HINT if min_norm else MIN_NORM_HINT + " (closed form only)"
         if variant == "time_varying":
@@ -288,14 +289,15 @@ def _closed_form_tv(model, mom, st, rc, cfg, min_norm):
     return F, Sigma, sing, ill
 
 
-def _closed_form_ti(model, st, rc, cfg, min_norm):
+def _closed_form_ti(model, mom, st, rc, cfg, min_norm):
     m, n1 = model.m, model.n + 1
     Q, r = ti_normal_equations(st)
-    degenerate = check_time_invariant(model, st.S, Q, cfg, min_norm=min_norm)
-    if degenerate:
-        vF = np.linalg.pinv(Q, rcond=cfg.sing_tol, hermitian=True) @ r
+    route = check_time_invariant(model, st.S, Q, cfg, min_norm=min_norm, exact=m * n1 <= EXACT_TI_MAX)
+    if route == "exact":
+        F = unique_maximiser_ti(model.Bs, model.So, atil(model), mom.Szs, mom.Sss)
+    elif route == "min_norm":
+        F = la.unvec(np.linalg.pinv(Q, rcond=cfg.sing_tol, hermitian=True) @ r, m, n1)
     else:
-        vF = la.cho_solve(la.chol(Q, "sum_k Stilde_k kron H_k"), r[:, None])[:, 0]
-    F = la.unvec(vF, m, n1)
+        F = la.unvec(la.cho_solve(la.chol(Q, "sum_k Stilde_k kron H_k"), r[:, None])[:, 0], m, n1)
     Sigma = sigma_closed(st.H.sum(0)[None], rc.time_invariant(), cfg, ["time-invariant M-step"])[0]
-    return F, Sigma, degenerate
+    return F, Sigma, route
