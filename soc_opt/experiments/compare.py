@@ -381,7 +381,12 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean
         "Both methods share their first i_switch iterations exactly (same seed, same RNG stream); "
         "final policies are evaluated on fresh rollouts with the same evaluation seed for both methods.",
         "A claim 'held' when the 95% paired bootstrap interval of DPSOC-EM minus LQR-FLM over seeds lies below 0 "
-        "and the one-sided signed-rank test agrees at 5% (p shown; it cannot reach 5% below 5 seeds).",
+        "and the one-sided signed-rank test agrees at 5% (p shown); 'reversed' when the interval lies wholly above "
+        "0; 'untestable with N seeds' below 5 seeds, where the signed-rank test cannot reach 5% (docs/math.md §12.3).",
+        f"A final policy is 'worse' than its run's last sampled batch when its fresh rollouts' mean cost is more than "
+        f"{WORSE_MARGIN:.0%} above the batch's and a one-sided rank test confirms it at {WORSE_ALPHA / 2:.1%}: "
+        "Mann-Whitney U (the bulk) or Rosenbaum's exceedance test (fresh rollouts above the batch's largest) "
+        "(docs/math.md §12.3).",
         "The final policy is the method's returned policy (with step acceptance: its last accepted policy); it is "
         "evaluated sampled (with its exploration covariance) and with its mean action K s + k on the same evaluation seed.",
     ]
