@@ -551,10 +551,10 @@ def _cmd_convert_checkpoint(args) -> int:
 
 def _one_line(e: BaseException, *, hint: bool = True) -> str:
     """The error as one line: its message (type name too when it is not one of ours) and notes."""
-    from .errors import SolverError
+    from .errors import FlatCostError, SolverError
     from .tasks import SimulationError
 
-    ours = (ConfigError, FileNotFoundError, SimulationError, SolverError)
+    ours = (ConfigError, FileNotFoundError, SimulationError, SolverError, FlatCostError)
     text = str(e) if isinstance(e, ours) else f"{type(e).__name__}: {e}"
     parts = [text] + list(getattr(e, "__notes__", ()))
     if hint and not isinstance(e, ours):

@@ -288,3 +288,20 @@ def test_compare_action_figure_names_the_actuators(monkeypatch, tmp_path):
     for f in figs:
         real_close(f)
     assert labels == ["shoulder_motor", "elbow_motor"]
+
+
+@pytest.mark.parametrize("error, resumes", [(OSError("disk full"), True), (ZeroDivisionError("float division by zero"),
+                                                                             False)])
+def test_a_failed_run_offers_a_resume_only_for_an_error_a_resume_can_fix(task, tmp_path, error, resumes):
+    """A full disk can pass on a rerun; a division by zero in the computation repeats (a resumed run is
+    bit-identical): only the first gets "running the same command again resumes"."""
+    def fail_after_one(st):
+        if st.iteration == 1:
+            raise error
+
+    with pytest.raises(type(error)) as e:
+        run_experiment(task, "lqr-flm", _cfg(), seed=3, out=tmp_path / "run", on_iteration=fail_after_one)
+    note = " ".join(getattr(e.value, "__notes__", []))
+    assert "keeps 1 finished iteration" in note
+    assert ("running the same command again resumes" in note) == resumes
+    assert ("would repeat it" in note) == (not resumes)

@@ -217,6 +217,19 @@ def test_dual_function_is_the_lagrangian_at_any_multiplier_and_bounds_the_optima
         assert g < c_star - 1e-6 * (1 + abs(c_star))  # strictly, away from the solution (strong duality there)
 
 
+@pytest.mark.parametrize("nu", [0.7, "per_step"])
+def test_a_cost_flat_in_the_action_gives_the_reference_with_a_slack_budget(nu):
+    """A zero cost expansion: every multiplier gives the reference itself (KL = 0 exactly), so the budget
+    is slack at eta_min (the scalar dual used to divide by the zero KL)."""
+    rng = np.random.default_rng(11)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
+    flat = QuadraticCost(np.zeros_like(cost.C), np.zeros_like(cost.c), cost.n, c0=cost.c0)
+    budget = np.full(6, 0.1) if nu == "per_step" else nu
+    res = kl_step(dyn, flat, ref, budget, mu0, P0)
+    assert max_policy_diff(res.policy, ref) <= 1e-12 and np.all(res.kl <= 1e-12)
+    assert np.all(res.eta == KLStepConfig().eta_min) and ("slack" in res.status or nu == "per_step")
+
+
 def test_scalar_budget_is_met_with_one_multiplier():
     rng = np.random.default_rng(7)
     dyn, cost, ref, mu0, P0 = make_problem(rng, 4, 2, 10)

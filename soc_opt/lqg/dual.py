@@ -96,7 +96,15 @@ def solve_scalar(prob: KLProblem, nu: float, config: KLStepConfig, eta0) -> tupl
                 x = 0.5 * (lo + hi)
             continue
         ksum = float(r.kl.sum())
-        f = math.log(max(ksum, 1e-300)) - math.log(nu)
+        if ksum == 0.0:
+            # KL = 0 exactly: the policy is the reference, the cost does not move it at this multiplier (a
+            # cost flat in the action).  KL decreases in eta, so the budget is slack down to eta_min or met
+            # below this point: try eta_min (no slope to follow from a zero KL)
+            if x <= xmin:
+                return r, call.n, it, "slack (eta = eta_min): KL = 0, the policy is the reference"
+            hi, x = min(hi, x), xmin
+            continue
+        f = math.log(ksum) - math.log(nu)
         if abs(f) <= ftol:
             return r, call.n, it, "converged"
         if f > 0:
