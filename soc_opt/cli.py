@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import traceback
@@ -214,6 +215,7 @@ def _write_run_figures(task, method: str, state, out: Path) -> None:
 
 def _cmd_compare(args) -> int:
     from .experiments.compare import compare
+    from .experiments.report import em_switch_text
     from .tasks import load_task
 
     if args.seed < 0 or args.seeds < 1:
@@ -223,7 +225,7 @@ def _cmd_compare(args) -> int:
     out = Path(args.out or f"runs/compare-{Path(args.task).stem}")
     seeds = list(range(args.seed, args.seed + args.seeds))
     _print(f"comparing LQR-FLM and DPSOC-EM on {args.task}: seeds {seeds}, {cfg.baseline.iterations} iterations, "
-           f"{cfg.baseline.samples} samples, EM switch after iteration {cfg.i_switch}; output {out}")
+           f"{cfg.baseline.samples} samples, EM phase at {em_switch_text(cfg.i_switch)}; output {out}")
     t0 = time.perf_counter()
     summary = compare(task, cfg, seeds, out, task_name=Path(args.task).stem, progress=_progress(args),
                       restart=args.restart)
@@ -335,16 +337,27 @@ def _cmd_solvers(args) -> int:
     T = args.T or (2 if args.quick else 3)
     if instances < 1 or T < 1 or kl_T < 1:
         raise ConfigError(f"--instances, --T and --kl-T must be >= 1, got {instances}, {T} and {kl_T}")
+    from .bench.guard import Guard
+
     t0, c0 = time.perf_counter(), time.process_time()
-    with solvers_report.quiet_stdout():
+
+    def line(text: str) -> None:  # progress, on standard error (standard output holds the tables or the JSON)
+        print(f"[{time.perf_counter() - t0:6.1f} s] {text}", file=sys.stderr, flush=True)
+
+    repeats = args.repeats or (1 if args.quick else 3)
+    line(f"every solver call runs in a guarded worker: M-step calls stop at {qp_bench.call_limit_s(repeats):g} s "
+         f"({repeats} solves of at most {qp_bench.TIME_LIMIT_S:g} s each plus {qp_bench.CALL_GRACE_S:g} s), KL-step calls "
+         f"at {bench_lqg.KL_TIME_LIMIT_S:g} s, any call after more than {Guard().nan_limit} NaN reports; Ctrl-C stops")
+    with solvers_report.quiet_stdout(), Guard() as guard:
         if args.legacy:
             progress = (lambda rs: solvers_report.write_rows(rs, args.out)) if args.out else None
             rows = bench_solvers.run(sizes=sizes, T=T, instances=instances, seed=args.seed, on_progress=progress)
             warm = [w for n, m in sizes[-2:] for w in bench_solvers.warm_vs_cold(n, m, seed=args.seed)]
         else:
             problems = qp_bench.make_problems(sizes, instances, args.seed)
-            rows = qp_bench.run(problems=problems, repeats=args.repeats or (1 if args.quick else 3))
-        l_rows = [] if args.no_kl else bench_lqg.run(sizes=kl_sizes, repeats=1 if args.quick else 5, sqp=args.sqp)
+            rows = qp_bench.run(problems=problems, repeats=repeats, call=guard.call, progress=line)
+        l_rows = [] if args.no_kl else bench_lqg.run(sizes=kl_sizes, repeats=1 if args.quick else 5, sqp=args.sqp,
+                                                     call=guard.call, progress=line)
     meta = {"sizes": sizes, "kl_sizes": kl_sizes, "instances": instances, "seed": args.seed,
             "wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
     return _report_solvers(args, rows, l_rows, meta, warm if args.legacy else None, None if args.legacy else problems)
@@ -563,14 +576,20 @@ def _one_line(e: BaseException, *, hint: bool = True) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv_is_process = argv is None  # the console script, not a caller in Python
     argv = sys.argv[1:] if argv is None else list(argv)
     debug = "--debug" in argv
     args = build_parser().parse_args([a for a in argv if a != "--debug"])
     try:
         return args.func(args)
     except KeyboardInterrupt:
-        print("\nsoc-opt: interrupted; rerun the same command to resume from the last finished iteration",
-              file=sys.stderr)
+        resumes = args.command in ("run", "compare", "sweep")
+        print("\nsoc-opt: interrupted" + ("; rerun the same command to resume from the last finished iteration"
+                                         if resumes else ""), file=sys.stderr)
+        if args.command == "solvers" and argv_is_process:  # nothing to save: skip the interpreter's ~1 s teardown
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(130)
         return 130
     except Exception as e:
         if debug:

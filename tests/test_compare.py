@@ -70,3 +70,23 @@ def test_the_flag_keeps_its_level_when_both_samples_come_from_one_heavy_tailed_d
     flagged = sum(worse_than_batch(100 * rng.lognormal(0, 1.2, 20), 100 * rng.lognormal(0, 1.2, 20))["worse"]
                   for _ in range(200))
     assert flagged <= 0.05 * 200
+
+
+def test_report_says_which_estimator_ran_its_noise_settings_and_where_em_runs(tmp_path):
+    """A kalman-estimator comparison's report.md names the estimator (beyond the paper) and the options changed
+    from their defaults; the EM switch is stated in the console's numbering (iterations from 0)."""
+    from soc_opt.experiments.compare import compare
+    from soc_opt.methods.config import DPSOCConfig, EMConfig, LQRFLMConfig
+    from soc_opt.noise.aware import NoiseConfig
+    from soc_opt.tasks import load_task
+
+    task = load_task("linear2d", overrides={"T": 15, "rho2": 0.01})
+    noise = NoiseConfig(estimator="kalman", filter_w_floor=0.2)
+    cfg = DPSOCConfig(i_switch=2, baseline=LQRFLMConfig(iterations=3, samples=6, kl_budget=1.0, noise=noise),
+                      em=EMConfig(n_em=1))
+    compare(task, cfg, [0], tmp_path / "cmp")
+    md = (tmp_path / "cmp" / "report.md").read_text()
+    line = next(x for x in md.splitlines() if x.startswith("- **state estimator**"))
+    assert "kalman" in line and "beyond the paper" in line and "filter_w_floor = 0.2" in line
+    assert "- **EM phase at**: iteration 2 (after iterations 0-1)" in md
+    assert "EM switch after iteration" not in md

@@ -70,3 +70,29 @@ def test_sweep_report_prints_reversed_for_an_interval_above_zero(tmp_path):
     md = write_report(spec, tmp_path, status).read_text()
     line = next(x for x in md.splitlines() if "| final expected cost |" in x)
     assert "**no: reversed**" in line and "not shown" not in line
+
+
+def test_metric_figure_has_its_unit_its_band_and_the_em_switch(monkeypatch, tmp_path):
+    from soc_opt.experiments import report
+
+    seen = {}
+
+    def keep(fig, ax, path, title, dpi=120):
+        seen.update(ax=ax, title=title)
+        return path
+
+    monkeypatch.setattr(report, "_save", keep)
+    vals = {"lqr-flm": np.ones((3, 6)), "dpsoc-em": np.zeros((3, 6))}
+    report.plot_metric(vals, tmp_path / "m.png", "peg: minimum distance", "min distance over the rollout [m]", i_switch=4)
+    ax = seen["ax"]
+    assert ax.get_ylabel().endswith("[m]") and "mean over seeds ± std over seeds" in seen["title"]
+    switch = [ln for ln in ax.get_lines() if "EM phase at iteration 4 (after iterations 0-3)" in ln.get_label()]
+    assert len(switch) == 1 and list(switch[0].get_xdata()) == [3.5, 3.5]
+
+
+def test_em_switch_text_counts_iterations_from_zero():
+    from soc_opt.experiments.report import em_switch_text
+
+    assert em_switch_text(4) == "iteration 4 (after iterations 0-3)"
+    assert em_switch_text(1) == "iteration 1 (after iteration 0)"
+    assert em_switch_text(0) == "iteration 0 (before any baseline iteration)"

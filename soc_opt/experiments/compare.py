@@ -233,6 +233,25 @@ def _compare_seed(task, cfg, seed, out, task_name, eval_samples, workers, progre
         files.write_bytes(sdir / meth / "final_eval_mean_action.npz", npz_bytes(**ro_mean.to_dict()), anchor=out)
 
 
+#: what each state estimator does (docs/math.md §10, §11); the paper's method is "none"
+ESTIMATOR_TEXT = {
+    "none": "none: the paper's method (the policy acts on the measured state, the learner fits on it)",
+    "kalman": "kalman (docs/math.md §10.2, beyond the paper): the policy acts on a Kalman filter of the fitted model",
+    "kinematic": "kinematic (docs/math.md §11, beyond the paper): the learner fits on a structured smoother that knows "
+                 "the robot's kinematics, the policy acts on its online filter",
+}
+
+
+def noise_text(noise) -> str:
+    """The run's ``[baseline.noise]`` settings for the report: the estimator, and every option that differs
+    from its default (docs/configuration.md)."""
+    text = ESTIMATOR_TEXT.get(noise.estimator, f"{noise.estimator} (a registered plug-in estimator)")
+    ours, default = noise.to_dict(), type(noise)().to_dict()
+    changed = {k: v for k, v in ours.items() if k != "estimator" and default.get(k) != v}
+    return text + ("; [baseline.noise] " + ", ".join(f"{k} = {v}" for k, v in changed.items()) if changed
+                   else "; other [baseline.noise] options at their defaults")
+
+
 def _acceptance_text(acc) -> str:
     if not acc.enabled:
         return "off (the paper as written: every step taken, the last KL step's policy returned)"
@@ -330,10 +349,13 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean
     for key in first_metrics:
         vals = {m: np.array([[row[key] for row in seed_rows] for seed_rows in metric_hist[m]]) for m in METHODS}
         if key == "min_hinge":
-            figs["Minimum hinge angle per iteration (lower is better)"] = report.plot_metric(
-                vals, out / "min_hinge.png", f"{name}: minimum hinge angle", "min hinge angle [rad]")
+            figs["Minimum hinge angle per iteration (lower is better; mean ± std over seeds)"] = report.plot_metric(
+                vals, out / "min_hinge.png", f"{name}: minimum hinge angle of the sampled batch",
+                "min hinge angle over the rollout [rad]", i_switch=cfg.i_switch)
         elif key in ("min_distance",):
-            figs[f"{key} per iteration"] = report.plot_metric(vals, out / f"{key}.png", f"{name}: {key}", key)
+            figs["Minimum distance to the target per iteration (lower is better; mean ± std over seeds)"] = \
+                report.plot_metric(vals, out / f"{key}.png", f"{name}: minimum distance to the target of the sampled batch",
+                                   "min distance over the rollout [m]", i_switch=cfg.i_switch)
     # the final policies' task metrics (and true cost), sampled and with the mean action, computed once
     final_metrics = {(m, kind): [{**task.metrics(ro), "cost": float(np.mean(task.true_cost(ro).sum(-1)))} for ro in ros]
                      for m in METHODS for kind, ros in (("sampled", eval_ro[m]), ("mean", eval_mean[m]))}
@@ -366,12 +388,13 @@ def _write_report(task, cfg, seeds, out, per_seed, histories, eval_ro, eval_mean
         "seeds": ", ".join(map(str, seeds)),
         "iterations": cfg.baseline.iterations,
         "samples per iteration": cfg.baseline.samples,
-        "EM switch after iteration": cfg.i_switch,
+        "EM phase at": report.em_switch_text(cfg.i_switch),
         "EM recursions": cfg.em.n_em,
         "Y mode": cfg.em.y_mode,
         "M-step": f"{cfg.em.method}, {cfg.em.variant}, objective {cfg.em.objective}, "
                   + ("entropy floor" if cfg.em.entropy_floor else f"covariance floor {cfg.em.cov_floor_scale} x current"),
         "sensor noise rho^2": getattr(task, "rho2", "n/a"),
+        "state estimator": noise_text(cfg.baseline.noise),
         "step acceptance": _acceptance_text(cfg.baseline.acceptance),
         "final policies worse than their last sampled iteration": ", ".join(
             f"{m} {sum(r['worse'] for r in fvl[m])}/{len(seeds)}" for m in METHODS),

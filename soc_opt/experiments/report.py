@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402
 from .. import files  # noqa: E402
 
 __all__ = ["plot_costs", "plot_ee", "plot_actions", "plot_metric", "claims_table", "write_markdown", "format_table",
-           "mean_std", "over_seeds", "paired_test", "verdict_text", "min_signed_rank_p"]
+           "mean_std", "over_seeds", "paired_test", "verdict_text", "min_signed_rank_p", "em_switch_text"]
 
 COLORS = {"lqr-flm": "tab:blue", "dpsoc-em": "tab:red"}
 LABELS = {"lqr-flm": "LQR-FLM (baseline)", "dpsoc-em": "DPSOC-EM"}
@@ -55,6 +55,14 @@ def _save(fig, ax, path: Path, title: str, dpi: int = 120) -> Path:
     return path
 
 
+def em_switch_text(i_switch: int) -> str:
+    """Where the EM phase runs, in the console's numbering (iterations from 0): ``"iteration 4 (after
+    iterations 0-3)"``."""
+    after = ("before any baseline iteration" if i_switch == 0 else "after iteration 0" if i_switch == 1
+             else f"after iterations 0-{i_switch - 1}")
+    return f"iteration {i_switch} ({after})"
+
+
 def plot_costs(costs: dict, path: Path, title: str, i_switch: int | None = None) -> Path:
     """``costs[method]`` is a list over iterations of 1-D arrays of per-sample costs."""
     fig, ax = plt.subplots(figsize=(10, 4.5))
@@ -66,7 +74,7 @@ def plot_costs(costs: dict, path: Path, title: str, i_switch: int | None = None)
         _boxes(ax, data, pos, width, COLORS.get(meth, "gray"))
         ax.plot(pos, [np.mean(d) for d in data], "o-", color=COLORS.get(meth, "gray"), ms=3, label=LABELS.get(meth, meth))
     if i_switch is not None:
-        ax.axvline(i_switch - 0.5, color="k", ls=":", lw=1, label=f"EM switch (after {i_switch} iterations)")
+        ax.axvline(i_switch - 0.5, color="k", ls=":", lw=1, label=f"EM phase at {em_switch_text(i_switch)}")
     n_it = max(len(d) for d in costs.values())
     ax.set_xticks(np.arange(n_it))
     ax.set_xlabel("iteration")
@@ -147,19 +155,26 @@ def plot_actions(actions: dict, path: Path, title: str, names: list[str] | None 
     return path
 
 
-def plot_metric(values: dict, path: Path, title: str, ylabel: str) -> Path:
-    """``values[method]``: ``(seeds, iterations)`` metric; mean ± std over seeds per iteration."""
+def plot_metric(values: dict, path: Path, title: str, ylabel: str, i_switch: int | None = None) -> Path:
+    """``values[method]``: ``(seeds, iterations)`` metric of the sampled batches; the line is the mean over
+    seeds and the band mean ± std over seeds (population std; none with one seed); ``ylabel`` should carry
+    the unit; ``i_switch``: a dotted line where the EM phase runs, as in :func:`plot_costs`."""
     fig, ax = plt.subplots(figsize=(8, 4))
+    n_seeds = 0
     for meth, v in values.items():
         v = np.asarray(v, float)
+        n_seeds = max(n_seeds, v.shape[0])
         it = np.arange(v.shape[1])
         ls = LINESTYLES.get(meth, "-")
         ax.plot(it, v.mean(0), ls + "o", ms=3, color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
         ax.fill_between(it, v.mean(0) - v.std(0), v.mean(0) + v.std(0), color=COLORS.get(meth, "gray"), alpha=0.2)
-    ax.set_xlabel("iteration")
+    if i_switch is not None:
+        ax.axvline(i_switch - 0.5, color="k", ls=":", lw=1, label=f"EM phase at {em_switch_text(i_switch)}")
+    ax.set_xlabel("iteration (from 0)")
     ax.set_ylabel(ylabel)
     ax.legend()
-    return _save(fig, ax, path, title)
+    band = "mean over seeds ± std over seeds (shaded)" if n_seeds > 1 else "one seed"
+    return _save(fig, ax, path, f"{title}\n{band}")
 
 
 def min_signed_rank_p(n: int) -> float:
