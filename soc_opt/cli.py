@@ -3,18 +3,20 @@
 Subcommands::
 
     soc-opt [--debug] run TASK [--method dpsoc-em|lqr-flm|ilqg] [--config FILE] [--seed N] [--out DIR] [--paper]
-                                [--iterations N] [--i-switch N] [--restart | --previous-checkpoint]
-    soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper] [--restart]
+                                [--iterations N] [--i-switch N] [--set KEY=VALUE ...] [--restart | --previous-checkpoint]
+    soc-opt compare TASK [--seeds N] [--config FILE] [--out DIR] [--paper] [--set KEY=VALUE ...] [--restart]
     soc-opt verify [--json] [--seed N] [--instances N] [--full] [--replay FILE..] [--write-certificates DIR] [--rows]
     soc-opt solvers [--json] [--quick] [--sizes NxM[xT],..] [--instances N] [--repeats N] [--kl-T N] [--sqp] [--legacy] [--T N]
                     [--out DIR] [--no-kl]
     soc-opt bench [--json] [--only NAMES] [--quick]
     soc-opt tasks
-    soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--dry-run]
+    soc-opt sweep SWEEP.toml [--out DIR] [--address ADDR] [--workers N] [--set KEY=VALUE ...] [--dry-run]
     soc-opt config-doc [--out FILE]
     soc-opt convert-checkpoint --trust DIR
 
-``TASK`` is a built-in name (``linear2d``, ``peg``, ``door``) or the path of a task TOML file.
+``TASK`` is a built-in name (``linear2d``, ``peg``, ``door``), the path of a task TOML file, or ``gym:<EnvId>``
+(docs/gym.md); ``soc-opt tasks`` lists every shipped task.  ``--set KEY=VALUE`` overrides one setting
+(:mod:`soc_opt.experiments.overrides`).
 Configurations are validated before any simulation starts and before anything is written to
 ``--out``; they are built by :func:`soc_opt.experiments.run.load_run_config` (the same loader is
 public for scripts).  Every method writes a resumable run directory (:mod:`soc_opt.experiments.rundir`).
@@ -75,12 +77,39 @@ def _log_to_tensorboard(out: Path, *, figures=(), step: int = 0, scalars: dict |
         _print(f"TensorBoard: {n} figures in {out} (tensorboard --logdir {out})")
 
 
+def shipped_tasks() -> list[tuple[str, str]]:
+    """``(name to pass as TASK, where it is)`` of every task soc_opt ships: the built-in names, then every task
+    TOML under ``problems/`` (not the algorithm files of ``problems/experiments`` nor the sweep files)."""
+    import os
+
+    from .tasks.loading import BUILTIN_TASKS, problems_dir
+
+    root = problems_dir()
+    builtin = {(root / rel).resolve() for rel in BUILTIN_TASKS.values()}
+    out = [(name, str(Path("problems") / rel)) for name, rel in BUILTIN_TASKS.items()]
+    for path in sorted(root.glob("*/*.toml")):
+        if path.parent.name in ("experiments", "sweeps") or path.resolve() in builtin:
+            continue
+        shown = os.path.relpath(path) if Path.cwd() in path.resolve().parents else str(path)
+        out.append((shown, str(Path("problems") / path.relative_to(root))))
+    return out
+
+
 def _cmd_tasks(args) -> int:
     from .tasks import load_task
 
-    for name in ("linear2d", "peg", "door"):
-        t = load_task(name)
-        _print(f"{name:10s} n={t.n:3d} m={t.m:2d} T={t.T:4d} dt={t.dt:g} rho2={t.rho2:g}")
+    tasks = shipped_tasks()
+    w = max(len("TASK"), *(len(name) for name, _ in tasks))
+    _print(f"{'TASK':{w}s} {'n':>3s} {'m':>3s} {'T':>4s} {'dt':>6s} {'rho2':>6s}  shipped as")
+    for name, where in tasks:
+        try:
+            t = load_task(name)
+        except Exception as e:  # noqa: BLE001 -- one broken file does not hide the others
+            _print(f"{name:{w}s} cannot be loaded: {_one_line(e, hint=False)}")
+            continue
+        _print(f"{name:{w}s} {t.n:3d} {t.m:3d} {t.T:4d} {t.dt:6g} {t.rho2:6g}  {where}")
+    _print("\nAlso: any task TOML file (docs/tasks.md), and gym:<EnvId> for a Gymnasium MuJoCo environment "
+           "(e.g. gym:Reacher-v5, gym:Swimmer-v5; docs/gym.md).")
     return 0
 
 
@@ -169,13 +198,15 @@ def _final_evaluation(task, method: str, cfg, seed: int, state, out: Path) -> st
 def _load_run_config(args, method: str):
     """The run configuration of ``run``/``compare``; a bad ``i_switch`` gets a hint naming its
     source and ``--i-switch``."""
+    from .experiments.overrides import apply_config_sets, split_sets
     from .experiments.run import EXPERIMENTS, load_run_config
 
     try:
-        return load_run_config(args.task, args.config, paper=args.paper, method=method,
-                               overrides={"iterations": args.iterations, "samples": args.samples,
-                                          "workers": args.workers, "i_switch": args.i_switch,
-                                          "as_written": True if args.as_written else None})
+        cfg = load_run_config(args.task, args.config, paper=args.paper, method=method,
+                              overrides={"iterations": args.iterations, "samples": args.samples,
+                                         "workers": args.workers, "i_switch": args.i_switch,
+                                         "as_written": True if args.as_written else None})
+        return apply_config_sets(cfg, split_sets(args.set or [])[1], method)
     except ConfigError as e:
         if str(e).startswith("i_switch"):
             default = EXPERIMENTS / f"{Path(args.task).stem}.toml"
@@ -187,15 +218,28 @@ def _load_run_config(args, method: str):
 
 
 def _cmd_run(args) -> int:
-    from .tasks import load_task
 
     if args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
     if args.restart and args.previous_checkpoint:
         raise ConfigError("--restart and --previous-checkpoint exclude each other: choose one")
-    task = load_task(args.task)
+    task = _load_task(args)
     out = Path(args.out or f"runs/{Path(args.task).stem}-{args.method}-seed{args.seed}")
     return _run_method(args, task, out)
+
+
+def _load_task(args):
+    """The task of ``run``/``compare`` with its ``--set task.KEY=VALUE`` overrides (docs/interface.md)."""
+    from .experiments.overrides import split_sets
+    from .tasks import load_task
+
+    task_sets = split_sets(args.set or [])[0]
+    try:
+        return load_task(args.task, overrides=task_sets or None)
+    except ConfigError as e:
+        if task_sets:
+            e.add_note("from --set " + ", ".join(f"task.{k}" for k in task_sets))
+        raise
 
 
 def _write_run_figures(task, method: str, state, out: Path) -> None:
@@ -216,11 +260,10 @@ def _write_run_figures(task, method: str, state, out: Path) -> None:
 def _cmd_compare(args) -> int:
     from .experiments.compare import compare
     from .experiments.report import em_switch_text
-    from .tasks import load_task
 
     if args.seed < 0 or args.seeds < 1:
         raise ConfigError(f"--seed must be >= 0 and --seeds >= 1, got {args.seed} and {args.seeds}")
-    task = load_task(args.task)
+    task = _load_task(args)
     cfg = _load_run_config(args, "dpsoc-em")
     out = Path(args.out or f"runs/compare-{Path(args.task).stem}")
     seeds = list(range(args.seed, args.seed + args.seeds))
@@ -406,7 +449,7 @@ def _cmd_bench(args) -> int:
 def _cmd_sweep(args) -> int:
     from .sweeps.spec import describe, load_sweep
 
-    spec = load_sweep(args.file)  # validates every trial before anything starts
+    spec = _sweep_with_sets(args.file, args.set) if args.set else load_sweep(args.file)  # every trial validated
     out = Path(args.out or f"runs/sweep-{spec.name}")
     _print(f"sweep {spec.name}: {describe(spec)}; output {out}")
     if args.dry_run:
@@ -418,6 +461,32 @@ def _cmd_sweep(args) -> int:
     c = res["counts"]
     _print(f"{c['done']} done, {c['failed']} failed; report: {res['report']}  (trial states: {out / 'status.json'})")
     return 1 if c["failed"] else 0
+
+def _sweep_with_sets(path: str, items: list[str]):
+    """The sweep file with ``--set`` items merged into its ``[common]`` table (after the file's own), then
+    validated as :func:`soc_opt.sweeps.spec.load_sweep` validates a file."""
+    from .config import read_toml
+    from .experiments.overrides import nested, split_sets
+    from .sweeps.spec import SweepError, sweep_from_dict
+
+    task_sets, sets = split_sets(items)
+    p = Path(path)
+    try:
+        data = read_toml(p)
+    except ConfigError as e:
+        raise SweepError(str(e)) from e
+    common = dict(data.get("common", {}))
+    extra = nested(sets)
+    if task_sets:
+        extra["task"] = task_sets
+    for k, v in extra.items():
+        common[k] = {**common[k], **v} if isinstance(v, dict) and isinstance(common.get(k), dict) else v
+    try:
+        return sweep_from_dict({**data, "common": common}, base_dir=p.parent, source=str(p), default_name=p.stem)
+    except SweepError as e:
+        e.add_note("with --set " + ", ".join(items))
+        raise
+
 
 def _cmd_config_doc(args) -> int:
     from .config_doc import render
@@ -443,16 +512,27 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 def build_parser() -> argparse.ArgumentParser:
     from .methods.registry import METHODS
 
-    p = argparse.ArgumentParser(prog="soc-opt", description="EM-based stochastic optimal control (DPSOC-EM).",
-                                formatter_class=_HelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="soc-opt", description="EM-based stochastic optimal control (DPSOC-EM).", formatter_class=_HelpFormatter,
+        epilog="TASK is a built-in name (linear2d, peg, door), a task TOML file, or gym:<EnvId> for a Gymnasium "
+               "MuJoCo environment (docs/gym.md); 'soc-opt tasks' lists every shipped task.  Output goes under "
+               "runs/ unless --out says otherwise: runs/TASK-METHOD-seedSEED (run), runs/compare-TASK (compare), "
+               "runs/sweep-NAME (sweep); a rerun with the same --out resumes.  --set KEY=VALUE overrides one "
+               "setting (task.rho2=0.1, baseline.iterations=5).  Docs: docs/interface.md.")
     p.add_argument("--debug", action="store_true", help="show the traceback of an error (exit status still 2)")
     sub = p.add_subparsers(dest="command", required=True)
 
     def add(name: str, **kw) -> argparse.ArgumentParser:
         return sub.add_parser(name, formatter_class=_HelpFormatter, **kw)
 
-    def common_algo(sp):
-        sp.add_argument("task", help="built-in task (linear2d, peg, door) or a task TOML file")
+    def common_algo(sp, default_out: str):
+        sp.add_argument("task", help="a built-in task (linear2d, peg, door; 'soc-opt tasks' lists every shipped "
+                                     "task), a task TOML file, or gym:<EnvId> for a Gymnasium MuJoCo environment "
+                                     "(e.g. gym:Reacher-v5; docs/gym.md)")
+        sp.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="override one setting, repeatable: task.KEY for the task (task.rho2=0.1), any other "
+                             "dotted key for the run configuration (baseline.iterations=5, em.n_em=2); the value is "
+                             "TOML and is checked like the TOML files' (applied after --config and the flags)")
         sp.add_argument("--config", help="algorithm configuration TOML (see docs/configuration.md)")
         sp.add_argument("--paper", action="store_true",
                         help="the paper's scale: its iterations, samples and EM switch (soc_opt.methods.config.PAPER)")
@@ -464,14 +544,14 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--as-written", dest="as_written", action="store_true",
                         help="the paper's methods as written: no step acceptance, the last KL step's policy returned "
                              "(docs/math.md §12; [baseline.acceptance] enabled = false)")
-        sp.add_argument("--out", help="run directory (resumes if it holds a checkpoint)")
+        sp.add_argument("--out", help=f"output folder (default {default_out}); a rerun with the same --out resumes")
         sp.add_argument("--restart", action="store_true",
                         help="discard the run(s) already in --out and start from scratch")
         sp.add_argument("--progress", choices=["auto", "bar", "lines"], default="auto",
                         help="progress bar (auto: on a terminal) or plain lines")
 
     r = add("run", help="run one method on a task, writing a resumable run directory")
-    common_algo(r)
+    common_algo(r, "runs/TASK-METHOD-seedSEED")
     r.add_argument("--method", choices=list(METHODS), default="dpsoc-em", help="the method to run")
     r.add_argument("--seed", type=int, default=0, help="random seed of the run")
     r.add_argument("--previous-checkpoint", dest="previous_checkpoint", action="store_true",
@@ -479,7 +559,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_run)
 
     c = add("compare", help="LQR-FLM vs DPSOC-EM on the same seeds, with a Markdown report")
-    common_algo(c)
+    common_algo(c, "runs/compare-TASK")
     c.add_argument("--seeds", type=int, default=3, help="number of seeds")
     c.add_argument("--seed", type=int, default=0, help="first seed")
     c.set_defaults(func=_cmd_compare)
@@ -525,7 +605,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="tiny sizes: checks every code path in seconds")
     b.set_defaults(func=_cmd_bench)
 
-    t = add("tasks", help="list the built-in tasks")
+    t = add("tasks", help="list every task shipped with soc_opt (and how to name gym: tasks)")
     t.set_defaults(func=_cmd_tasks)
 
     w = add("sweep", help="a grid of trials (tasks x settings x methods x seeds) on Ray (docs/sweeps.md)")
@@ -537,6 +617,9 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--max-retries", dest="max_retries", type=int, default=3,
                    help="re-executions of a trial whose worker process died (resumes from its checkpoint)")
     w.add_argument("--dry-run", dest="dry_run", action="store_true", help="validate and list the trials only")
+    w.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override one setting of every trial, repeatable: merged into the sweep file's [common] "
+                        "(task.T=20, baseline.iterations=5), so a [grid] or [[settings]] key still wins")
     w.set_defaults(func=_cmd_sweep)
 
     d = add("config-doc", help="write the configuration reference (docs/configuration.md)")
