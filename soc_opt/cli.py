@@ -77,26 +77,9 @@ def _log_to_tensorboard(out: Path, *, figures=(), step: int = 0, scalars: dict |
         _print(f"TensorBoard: {n} figures in {out} (tensorboard --logdir {out})")
 
 
-def shipped_tasks() -> list[tuple[str, str]]:
-    """``(name to pass as TASK, where it is)`` of every task soc_opt ships: the built-in names, then every task
-    TOML under ``problems/`` (not the algorithm files of ``problems/experiments`` nor the sweep files)."""
-    import os
-
-    from .tasks.loading import BUILTIN_TASKS, problems_dir
-
-    root = problems_dir()
-    builtin = {(root / rel).resolve() for rel in BUILTIN_TASKS.values()}
-    out = [(name, str(Path("problems") / rel)) for name, rel in BUILTIN_TASKS.items()]
-    for path in sorted(root.glob("*/*.toml")):
-        if path.parent.name in ("experiments", "sweeps") or path.resolve() in builtin:
-            continue
-        shown = os.path.relpath(path) if Path.cwd() in path.resolve().parents else str(path)
-        out.append((shown, str(Path("problems") / path.relative_to(root))))
-    return out
-
-
 def _cmd_tasks(args) -> int:
     from .tasks import load_task
+    from .tasks.catalog import shipped_tasks
 
     tasks = shipped_tasks()
     w = max(len("TASK"), *(len(name) for name, _ in tasks))
@@ -447,9 +430,10 @@ def _cmd_bench(args) -> int:
 
 
 def _cmd_sweep(args) -> int:
+    from .sweeps.sets import load_sweep_with_sets
     from .sweeps.spec import describe, load_sweep
 
-    spec = _sweep_with_sets(args.file, args.set) if args.set else load_sweep(args.file)  # every trial validated
+    spec = load_sweep_with_sets(args.file, args.set) if args.set else load_sweep(args.file)  # every trial validated
     out = Path(args.out or f"runs/sweep-{spec.name}")
     _print(f"sweep {spec.name}: {describe(spec)}; output {out}")
     if args.dry_run:
@@ -461,32 +445,6 @@ def _cmd_sweep(args) -> int:
     c = res["counts"]
     _print(f"{c['done']} done, {c['failed']} failed; report: {res['report']}  (trial states: {out / 'status.json'})")
     return 1 if c["failed"] else 0
-
-def _sweep_with_sets(path: str, items: list[str]):
-    """The sweep file with ``--set`` items merged into its ``[common]`` table (after the file's own), then
-    validated as :func:`soc_opt.sweeps.spec.load_sweep` validates a file."""
-    from .config import read_toml
-    from .experiments.overrides import nested, split_sets
-    from .sweeps.spec import SweepError, sweep_from_dict
-
-    task_sets, sets = split_sets(items)
-    p = Path(path)
-    try:
-        data = read_toml(p)
-    except ConfigError as e:
-        raise SweepError(str(e)) from e
-    common = dict(data.get("common", {}))
-    extra = nested(sets)
-    if task_sets:
-        extra["task"] = task_sets
-    for k, v in extra.items():
-        common[k] = {**common[k], **v} if isinstance(v, dict) and isinstance(common.get(k), dict) else v
-    try:
-        return sweep_from_dict({**data, "common": common}, base_dir=p.parent, source=str(p), default_name=p.stem)
-    except SweepError as e:
-        e.add_note("with --set " + ", ".join(items))
-        raise
-
 
 def _cmd_config_doc(args) -> int:
     from .config_doc import render

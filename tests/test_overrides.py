@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from soc_opt.cli import build_parser, main, shipped_tasks
+from soc_opt.cli import build_parser, main
 from soc_opt.config import ConfigError
 from soc_opt.experiments.overrides import apply_config_sets, parse_set, split_sets
 from soc_opt.methods.config import DPSOCConfig
@@ -61,14 +61,16 @@ def test_a_bad_set_value_is_one_error_line_and_nothing_is_written(tmp_path, caps
 
 def test_sweep_set_items_reach_every_trial_after_the_file_s_common_table():
     """Merged into [common] (the file sets iterations = 3 and T = 20 there); a grid key still wins."""
-    from soc_opt.cli import _sweep_with_sets
+    from soc_opt.sweeps.sets import load_sweep_with_sets
 
-    spec = _sweep_with_sets(str(ROOT / "problems/sweeps/linear2d_small.toml"), ["baseline.iterations=2", "task.T=12"])
+    spec = load_sweep_with_sets(str(ROOT / "problems/sweeps/linear2d_small.toml"), ["baseline.iterations=2", "task.T=12"])
     assert all(t.config.baseline.iterations == 2 and t.task_overrides["T"] == 12 for t in spec.trials)
     assert {t.task_overrides["rho2"] for t in spec.trials} == {0.1, 0.01}
 
 
 def test_tasks_lists_every_shipped_task_file():
+    from soc_opt.tasks.catalog import shipped_tasks
+
     listed = {where for _, where in shipped_tasks()}
     on_disk = {str(p.relative_to(ROOT)) for p in ROOT.glob("problems/*/*.toml")
                if p.parent.name not in ("experiments", "sweeps")}

@@ -15,7 +15,7 @@ from typing import Iterable
 
 from ..config import ConfigError
 
-__all__ = ["parse_set", "split_sets", "nested", "apply_config_sets"]
+__all__ = ["parse_set", "split_sets", "nested", "merge", "apply_config_sets"]
 
 
 def parse_set(item: str) -> tuple[str, object]:
@@ -71,13 +71,11 @@ def _put(table: dict, path: list[str], value, key: str) -> None:
     table[path[-1]] = value
 
 
-def _merge(base: dict, extra: dict, where: str) -> dict:
+def merge(base: dict, extra: dict) -> dict:
+    """``base`` with ``extra`` laid over it, tables merged key by key (``base`` is not changed)."""
     out = dict(base)
     for k, v in extra.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v, f"{where}{k}.")
-        else:
-            out[k] = v
+        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
 
 
@@ -88,7 +86,7 @@ def apply_config_sets(cfg, sets: dict, method: str):
         return cfg
     from ..plugins import METHODS
 
-    data = _merge(cfg.to_dict(), nested(sets), "")
+    data = merge(cfg.to_dict(), nested(sets))
     items = ", ".join(f"{k}={v!r}" for k, v in sets.items())
     try:
         new = type(cfg).from_dict(data)
