@@ -8,6 +8,7 @@ Every wait below has a timeout guard; nothing asserts how long anything took.
 from __future__ import annotations
 
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -48,6 +49,13 @@ def test_a_call_that_keeps_reporting_nan_is_stopped_without_waiting_for_its_limi
         assert g.call(_print_nan_then_sleep, 3, 0, limit_s=30) is None  # a few NaN reports are tolerated
 
 
+def _line(stream, timeout: float = 120.0) -> bytes:
+    """The next line of ``stream``, or a failure after ``timeout`` seconds (a guard, not a measurement)."""
+    ready, _, _ = select.select([stream], [], [], timeout)
+    assert ready, f"no output within {timeout} s"
+    return stream.readline()
+
+
 _SCRIPT = """
 import sys, time
 from soc_opt.bench.guard import Guard
@@ -61,7 +69,7 @@ def test_ctrl_c_stops_a_guarded_call_blocked_in_the_worker():
     proc = subprocess.Popen([sys.executable, "-c", _SCRIPT], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             start_new_session=True)
     try:
-        assert proc.stdout.readline().strip() == b"calling"
+        assert _line(proc.stdout).strip() == b"calling"
         time.sleep(0.5)  # the worker is asleep in its call
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)  # the guard: a hang fails here instead of hanging the suite
@@ -79,8 +87,8 @@ def test_soc_opt_solvers_stops_on_ctrl_c_with_exit_status_130():
     proc = subprocess.Popen([sys.executable, "-m", "soc_opt.cli", "solvers", "--sizes", "2x1", "--instances", "1"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     try:
-        assert b"guarded worker" in proc.stderr.readline()
-        assert b"M-step [1/" in proc.stderr.readline()
+        assert b"guarded worker" in _line(proc.stderr)
+        assert b"M-step [1/" in _line(proc.stderr)
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)
     finally:
