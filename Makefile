@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 TASK ?= linear2d
 OUT ?= runs/compare-$(TASK)
 
-.PHONY: install run test test-slow lint bench verify clean
+.PHONY: install run test test-slow lint bench verify api-docs clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -32,6 +32,10 @@ verify: install
 
 bench: install
 	$(BIN)/soc-opt bench
+
+# the API reference from the docstrings (pdoc, offline) into build/api, every link between its pages checked
+api-docs: install
+	$(BIN)/python -m soc_opt.api_doc --out build/api
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

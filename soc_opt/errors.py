@@ -9,7 +9,7 @@ Shape and positive-definiteness errors live in :mod:`soc_opt.models`.
 
 from __future__ import annotations
 
-__all__ = ["SolverError"]
+__all__ = ["SolverError", "FlatCostError", "WorkerDiedError", "resumable"]
 
 
 class SolverError(RuntimeError):
@@ -24,3 +24,20 @@ class SolverError(RuntimeError):
         super().__init__(message)
         self.status = status
         self.step = step
+
+
+class FlatCostError(ValueError):
+    """The task's cost expansion around a batch is zero at every step (no gradient, no curvature in the
+    state or the action): a sample-based method has nothing to follow (docs/math.md §7).  A property of the
+    task's cost, so a rerun repeats it."""
+
+
+class WorkerDiedError(RuntimeError):
+    """A worker process ended without a result (killed, out of memory): a rerun may get past it."""
+
+
+def resumable(exc: BaseException) -> bool:
+    """Whether running the same command again can get past ``exc``: failures of the machine (files and
+    disks, memory, a worker process that died), not of the computation, which a resumed run repeats from
+    the same checkpoint bit for bit (docs/reproducibility.md)."""
+    return isinstance(exc, (OSError, MemoryError, WorkerDiedError, EOFError))

@@ -14,6 +14,8 @@ import os
 import sys
 from typing import Any, Callable, Sequence
 
+from .errors import WorkerDiedError
+
 __all__ = ["can_fork", "spare_cpu", "fork_map"]
 
 
@@ -71,7 +73,8 @@ def fork_map(fn: Callable[[Any], Any], items: Sequence, parallel: bool = True) -
     every item after the first runs in a forked child while this process runs the first.
 
     Errors: the exception of the first item (in order) that raised is raised here, as raised there; a
-    child that ends without a result raises :class:`RuntimeError` with its exit code.
+    child that ends without a result raises :class:`~soc_opt.errors.WorkerDiedError` (a ``RuntimeError``) with
+    its exit code.
     """
     items = list(items)
     if not parallel or len(items) < 2 or not can_fork() or not spare_cpu():
@@ -98,7 +101,8 @@ def fork_map(fn: Callable[[Any], Any], items: Sequence, parallel: bool = True) -
                 status, value = recv.recv()
             except EOFError:
                 proc.join()
-                status, value = "error", RuntimeError(f"a forked worker ended without a result (exit code {proc.exitcode})")
+                status, value = "error", WorkerDiedError(
+                    f"a forked worker ended without a result (exit code {proc.exitcode})")
             results.append(value if status == "ok" else None)
             if status != "ok":
                 errors.append(value)

@@ -170,6 +170,18 @@ def test_gym_task_runs_two_lqr_flm_iterations():
     assert state.policy.T == 20 and np.isfinite(state.policy.K).all()
 
 
+def test_an_indicator_reward_fails_with_a_named_cause_not_a_division_by_zero():
+    """InvertedPendulum-v5's reward is 1 while the pole is within 0.2 rad, else 0: its finite-difference
+    expansion is exactly zero at every step, and the KL step has nothing to follow (issue 49: it divided
+    by the zero KL)."""
+    from soc_opt.errors import FlatCostError
+
+    task = load_task("gym:InvertedPendulum-v5", overrides={"T": 20})
+    cfg = DPSOCConfig(i_switch=0, baseline=LQRFLMConfig(iterations=2, samples=5))
+    with pytest.raises(FlatCostError, match=r"gym:InvertedPendulum-v5 .* iteration 0 is zero at every step"):
+        registry.run(task, "lqr-flm", cfg, seed=0)
+
+
 def test_ilqg_lowers_the_cost_of_a_gym_task(arm_id):
     task = load_task(f"gym:{arm_id}", overrides={"T": 10})
     policy, costs = ilqg(task, cfg=ILQGConfig(iterations=3))

@@ -44,3 +44,4 @@ def test_the_snippet_runs(heading, code, tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120,
                          env={"PYTHONPATH": str(ROOT), "PATH": "", "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"})
     assert out.returncode == 0, f"{heading}\n{out.stdout}\n{out.stderr}"
+    assert out.stdout.strip(), f"{heading}: the snippet prints nothing; it should print what it checks"

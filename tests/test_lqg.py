@@ -193,6 +193,44 @@ def test_zero_budget_gives_reference():
     assert np.all(np.isinf(res.eta)) and np.all(res.kl == 0.0)
 
 
+@pytest.mark.parametrize("seed", [3, 4])
+def test_dual_function_is_the_lagrangian_at_any_multiplier_and_bounds_the_optimal_cost(seed):
+    """``lqg.dual.dual_function`` (and the ``dual_objective`` it reports) equals the Lagrangian of its own
+    minimiser, computed here from ``expected_cost`` and ``kl_divergence`` (docs/math.md §6), at multipliers
+    away from the solution, and by weak duality stays below the optimal cost; a sign flip of the multiplier
+    term in ``dual_objective`` breaks both."""
+    from soc_opt.lqg.dual import dual_function
+    from soc_opt.lqg.problem import KLProblem
+
+    rng = np.random.default_rng(seed)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
+    nu = rng.uniform(0.05, 0.5, 6)
+    res = kl_step(dyn, cost, ref, nu, mu0, P0)
+    c_star = expected_cost(dyn, cost, res.policy, mu0, P0).sum()
+    prob = KLProblem(dyn, cost, ref, mu0, P0)
+    for factor in (0.3, 0.7, 1.5, 4.0):
+        eta = res.eta * factor
+        g, ev = dual_function(prob, eta, nu)
+        p = LinearGaussianPolicy(ev.bw.K, ev.bw.k, ev.bw.S)
+        lagrangian = expected_cost(dyn, cost, p, mu0, P0).sum() + eta @ (kl_divergence(dyn, p, ref, mu0, P0) - nu)
+        assert abs(g - lagrangian) <= 1e-9 * (1 + abs(lagrangian))
+        assert g <= c_star + 1e-9 * (1 + abs(c_star))  # weak duality: below the cost of a feasible policy
+        assert g < c_star - 1e-6 * (1 + abs(c_star))  # strictly, away from the solution (strong duality there)
+
+
+@pytest.mark.parametrize("nu", [0.7, "per_step"])
+def test_a_cost_flat_in_the_action_gives_the_reference_with_a_slack_budget(nu):
+    """A zero cost expansion: every multiplier gives the reference itself (KL = 0 exactly), so the budget
+    is slack at eta_min (the scalar dual used to divide by the zero KL)."""
+    rng = np.random.default_rng(11)
+    dyn, cost, ref, mu0, P0 = make_problem(rng, 3, 2, 6)
+    flat = QuadraticCost(np.zeros_like(cost.C), np.zeros_like(cost.c), cost.n, c0=cost.c0)
+    budget = np.full(6, 0.1) if nu == "per_step" else nu
+    res = kl_step(dyn, flat, ref, budget, mu0, P0)
+    assert max_policy_diff(res.policy, ref) <= 1e-12 and np.all(res.kl <= 1e-12)
+    assert np.all(res.eta == KLStepConfig().eta_min) and ("slack" in res.status or nu == "per_step")
+
+
 def test_scalar_budget_is_met_with_one_multiplier():
     rng = np.random.default_rng(7)
     dyn, cost, ref, mu0, P0 = make_problem(rng, 4, 2, 10)

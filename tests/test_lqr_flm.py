@@ -198,7 +198,7 @@ def test_paired_test_judges_by_the_interval_not_the_mean():
     r = paired_test(base, base - np.array([1.0, 1.2, 0.9, 1.1, 1.05]))
     assert r["verdict"] == "lower" and r["ci_high"] < 0 and r["p_signed_rank"] < 0.05
     r = paired_test(base, base + 1.0)
-    assert r["verdict"] == "higher"
+    assert r["verdict"] == "reversed" and r["p_reverse"] < 0.05
     assert paired_test([1.0], [0.5])["verdict"] == "one seed"
 
 
@@ -256,7 +256,7 @@ def test_a_retry_below_the_dual_s_resolution_samples_the_accepted_policy_again(t
 
 def test_paired_test_shows_nothing_with_too_few_seeds_for_the_signed_rank_test():
     """3 seeds all lower: the percentile bootstrap interval excludes 0, but the signed-rank test
-    cannot reach 5% (p = 1/8): not shown."""
+    cannot reach 5% (p = 1/8): untestable with 3 seeds, not a claim held."""
     r = paired_test([10.0, 11.0, 12.0], [9.0, 9.5, 10.0])
     assert r["ci_high"] < 0 and r["p_signed_rank"] == pytest.approx(0.125)
-    assert r["verdict"] == "not shown"
+    assert r["verdict"] == "untestable with 3 seeds" and r["interval"] == "below 0"

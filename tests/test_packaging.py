@@ -51,3 +51,13 @@ def test_problems_are_found_in_the_checkout_by_the_one_lookup():
 
     assert problems_dir() == ROOT / "problems"
     assert EXPERIMENTS == ROOT / "problems" / "experiments" and (EXPERIMENTS / "peg.toml").is_file()
+
+
+def test_the_package_ships_its_license_and_its_typing_marker():
+    """A LICENSE file (MIT, as ``project.license``), named in ``license-files``; ``py.typed`` (PEP 561) in the
+    package data, so type checkers read soc_opt's annotations."""
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert data["project"]["license-files"] == ["LICENSE"] and (ROOT / "LICENSE").read_text().startswith("MIT License")
+    assert (ROOT / "soc_opt" / "py.typed").is_file()
+    assert "py.typed" in data["tool"]["setuptools"]["package-data"]["soc_opt"]
+    assert (ROOT / "CHANGELOG.md").read_text().startswith("# Changelog")

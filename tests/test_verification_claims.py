@@ -17,7 +17,10 @@ import pytest
 
 from soc_opt import estep, mstep
 from soc_opt.cli import main
-from soc_opt.models import LinearGaussianPolicy
+from soc_opt.lqg import dual as lqg_dual
+from soc_opt.lqg import step as lqg_step
+from soc_opt.lqg.problem import KLProblem
+from soc_opt.models import LinearGaussianPolicy, QuadraticCost
 from soc_opt.verification import certificates, registry
 from soc_opt.verification import free_energy as fe
 from soc_opt.verification.replay import replay
@@ -161,6 +164,50 @@ def _smoother_cov_times_1_1(monkeypatch):
     monkeypatch.setattr(estep, "smooth", broken)
 
 
+def _kl_covariance_term_wrong_sign(monkeypatch):
+    """Mutant: the dual's KL_k with its covariance term subtracted (``1/2 (quad - cov)`` instead of
+    ``1/2 (quad + cov)``, ``cov = sum_i log1p(mu_i/eta) - mu_i/(mu_i + eta)``): the solver meets the budgets on
+    a wrong KL."""
+    orig = lqg_dual.evaluate_eta
+
+    def broken(prob, bw):
+        ev = orig(prob, bw)
+        pos = np.isfinite(bw.eta) & (bw.eta > 0)
+        mu, e = ev.mu_eig[pos], bw.eta[pos][:, None]
+        cov = np.zeros(bw.eta.shape)
+        cov[pos] = (np.log1p(mu / e) - mu / (mu + e)).sum(axis=1)
+        return ev._replace(kl=ev.kl - cov)
+
+    monkeypatch.setattr(lqg_dual, "evaluate_eta", broken)
+
+
+def _kl_backward_off_by_one(monkeypatch):
+    """Mutant: the backward pass reads step t+1's cost at step t (an off-by-one in its time index)."""
+    orig = lqg_dual.backward_pass
+
+    def broken(prob, eta, **kw):
+        C = prob.cost
+        shifted = QuadraticCost(np.concatenate([C.C[1:], C.C[-1:]]), np.concatenate([C.c[1:], C.c[-1:]]), C.n)
+        return orig(KLProblem(prob.dynamics, shifted, prob.reference, prob.mu0, prob.P0), eta, **kw)
+
+    monkeypatch.setattr(lqg_dual, "backward_pass", broken)
+
+
+def _dual_objective_sign_flip(monkeypatch):
+    """Mutant: ``dual_objective`` returns ``cost - eta (KL - nu)`` (its multiplier term with the wrong sign)."""
+
+    def broken(ev, eta, nu):
+        use = np.isfinite(eta) & (eta > 0)
+        return float(ev.cost.sum() - eta[use] @ (ev.kl[use] - nu[use]))
+
+    monkeypatch.setattr(lqg_dual, "dual_objective", broken)
+    monkeypatch.setattr(lqg_step, "dual_objective", broken)
+
+
+KL_MUTANTS = {"kl_covariance_sign": _kl_covariance_term_wrong_sign, "backward_off_by_one": _kl_backward_off_by_one,
+              "dual_objective_sign": _dual_objective_sign_flip}
+
+
 MUTANTS = {
     "uniqueness": _drop_offset,
     "uniqueness_sigma": _sigma_wrong_sign,
@@ -172,6 +219,7 @@ MUTANTS = {
     "hessian_impl": _drop_offset,
     "ecm": _maximize_perturbed_gains,
     "smoother": _smoother_cov_times_1_1,
+    "kl_step": _kl_backward_off_by_one,
 }
 
 
@@ -187,6 +235,17 @@ def test_mutant_makes_the_claim_row_fail(key, monkeypatch):
     (bad,) = registry.run_claims(0, instances=6, only=(key,))
     assert not bad.as_expected, (key, bad.verdict)
     assert bad.verdict == registry.FAILS
+
+
+@pytest.mark.parametrize("mutant", list(KL_MUTANTS))
+def test_verify_catches_each_kl_step_mutant(mutant, monkeypatch, capsys):
+    """``soc-opt verify`` exits 1 with the KL step's dual KL, backward pass or dual objective broken."""
+    assert main(["verify", "--only", "kl_step", "--instances", "6"]) == 0
+    capsys.readouterr()
+    KL_MUTANTS[mutant](monkeypatch)
+    assert main(["verify", "--only", "kl_step", "--instances", "6", "--json"]) == 1
+    row = json.loads(capsys.readouterr().out)["claims"][0]
+    assert row["key"] == "kl_step" and row["expected"] == "holds" and row["verdict"] == "fails"
 
 
 def test_verify_exits_nonzero_when_a_claim_expected_to_hold_breaks(monkeypatch, capsys):

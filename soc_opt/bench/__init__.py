@@ -22,8 +22,9 @@ PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration", "noisefit", "g
 DEFAULT_PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration")
 #: Modules of this package that are not ``bench`` parts: the solver benchmark of ``soc-opt solvers``
 #: (``qp_bench``, its report and qpbenchmark export ``qp_bench_report``; the earlier ``solvers`` and
-#: ``solvers_report``, ``--legacy``) and the fatrop build-time study (``fatrop_scale``).
-SUPPORT = ("qp_bench", "qp_bench_report", "solvers", "solvers_report", "fatrop_scale")
+#: ``solvers_report``, ``--legacy``), the fatrop build-time study (``fatrop_scale``) and the guarded worker
+#: that runs every solver call of ``soc-opt solvers`` with its limits (``guard``).
+SUPPORT = ("qp_bench", "qp_bench_report", "solvers", "solvers_report", "fatrop_scale", "guard")
 
 
 def parse_parts(only: str | None) -> tuple[str, ...]:

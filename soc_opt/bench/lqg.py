@@ -63,7 +63,11 @@ from ..lqg.problem import KLProblem, KLStepResult, check_nu
 from ..lqg.structured_nlp import StructuredNLP
 from ..testing import make_kl_instance as make_instance
 
-__all__ = ["QUICK", "run", "make_instance", "kl_budget_of", "FATROP_MAX_VARS"]
+__all__ = ["QUICK", "run", "make_instance", "kl_budget_of", "FATROP_MAX_VARS", "KL_TIME_LIMIT_S"]
+
+#: wall-time limit of one guarded solver call of the KL-step comparison (s): IPOPT at n=26, m=7, T=100 takes
+#: 6-10 s with its NLP build, the closed form's timing loop well under 1 s
+KL_TIME_LIMIT_S = 120.0
 
 FATROP_MAX_VARS = 5000
 """Default ``fatrop_max_vars`` of :func:`run` (NLP variables in the closed-form count): fatrop's
@@ -84,6 +88,10 @@ def _violation(res, nu) -> float:
     if np.isscalar(nu):
         return float((res.kl.sum() - nu) / nu)
     return float(np.max((res.kl - nu) / nu))
+
+
+def _direct(fn, *args, limit_s, **kwargs):
+    return fn(*args, **kwargs)
 
 
 def _time_closed_form(prob, nu, repeats: int, config):
@@ -168,13 +176,29 @@ def _solve_and_compare(prob, nu, cf, method: str, config):
     return res, wall, dict(_compare_to(cf, res, nu, config), cpu_s=cpu)
 
 
-def _sqp_columns(prob, nu, cf, config, run: bool) -> dict:
+def _guarded(call, what: str, fn, *args):
+    """``call(fn, *args)`` with the KL step's time limit; ``(result, None)`` or ``(None, "stopped: ...")``
+    when the guard stopped it (time limit, NaN, a dead worker) or the solver raised."""
+    from .guard import GuardError
+
+    try:
+        return call(fn, *args, limit_s=KL_TIME_LIMIT_S), None
+    except GuardError as e:
+        return None, f"stopped: {e}"
+    except Exception as e:  # noqa: BLE001 -- a solver failure is a row, not a crashed benchmark
+        return None, f"failed: {type(e).__name__}: {e}"[:300]
+
+
+def _sqp_columns(prob, nu, cf, config, run: bool, call=None) -> dict:
     keys = ("sqp_status", "sqp_iter", "sqp_s", "sqp_cpu_s", "sqp_build_s", "sqp_solve_s", "sqp_max_policy_diff",
             "sqp_max_rel_eta_diff", "sqp_worst_violation")
     row = {k: None for k in keys}
     if not run:
         return row
-    r, t, d = _solve_and_compare(prob, nu, cf, "sqpmethod", config)
+    got, why = _guarded(call or _direct, "sqpmethod", _solve_and_compare, prob, nu, cf, "sqpmethod", config)
+    if got is None:
+        return dict(row, sqp_status=why)
+    r, t, d = got
     row.update({"sqp_status": r.status, "sqp_iter": r.n_iter, "sqp_s": t, "sqp_cpu_s": d["cpu_s"],
                 "sqp_build_s": r.solver_stats["build_s"], "sqp_solve_s": r.solver_stats["solve_s"],
                 "sqp_max_policy_diff": d["max_policy_diff"], "sqp_max_rel_eta_diff": d["max_rel_eta_diff"],
@@ -182,12 +206,15 @@ def _sqp_columns(prob, nu, cf, config, run: bool) -> dict:
     return row
 
 
-def _fatrop_columns(prob, nu, cf, config, run: bool) -> dict:
+def _fatrop_columns(prob, nu, cf, config, run: bool, call=None) -> dict:
     row = {k: None for k in ("fatrop_status", "fatrop_iter", "fatrop_s", "fatrop_cpu_s", "fatrop_build_s", "fatrop_solve_s",
                              "fatrop_max_policy_diff", "fatrop_max_rel_eta_diff", "fatrop_worst_violation")}
     if not run:
         return row
-    fr, t_fr, d = _solve_and_compare(prob, nu, cf, "fatrop", config)
+    got, why = _guarded(call or _direct, "fatrop", _solve_and_compare, prob, nu, cf, "fatrop", config)
+    if got is None:
+        return dict(row, fatrop_status=why)
+    fr, t_fr, d = got
     row.update({"fatrop_status": fr.status, "fatrop_iter": fr.n_iter, "fatrop_s": t_fr, "fatrop_cpu_s": d["cpu_s"],
                 "fatrop_build_s": fr.solver_stats["build_s"], "fatrop_solve_s": fr.solver_stats["solve_s"],
                 "fatrop_max_policy_diff": d["max_policy_diff"], "fatrop_max_rel_eta_diff": d["max_rel_eta_diff"],
@@ -196,11 +223,14 @@ def _fatrop_columns(prob, nu, cf, config, run: bool) -> dict:
 
 
 def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None, run_fatrop: bool = True,
-         run_sqp: bool = False) -> dict:
+         run_sqp: bool = False, call=None) -> dict:
     rng = np.random.default_rng([seed, n, m, T])
     prob = make_instance(n, m, T, rng)
     nu = kl_budget_of(kind, T, rng)
-    cf, times, cpu = _time_closed_form(prob, nu, repeats, config)
+    got, why = _guarded(call or _direct, "closed form", _time_closed_form, prob, nu, repeats, config)
+    if got is None:  # nothing to compare the NLP solvers with
+        return {"n": n, "m": m, "T": T, "budget": kind, "note": f"closed form {why}"}
+    cf, times, cpu = got
     row = {
         "n": n, "m": m, "T": T, "budget": kind,
         "cf_ms_median": 1e3 * float(np.median(times)), "cf_ms_min": 1e3 * float(times.min()),
@@ -211,11 +241,14 @@ def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None, run_f
         "speedup_solve": None, "objective_gap": None, "max_policy_diff": None,
         "max_rel_eta_diff": None, "worst_violation": _violation(cf, nu), "note": note,
     }
-    row.update(_fatrop_columns(prob, nu, cf, config, run_fatrop))
-    row.update(_sqp_columns(prob, nu, cf, config, run_sqp))
+    row.update(_fatrop_columns(prob, nu, cf, config, run_fatrop, call))
+    row.update(_sqp_columns(prob, nu, cf, config, run_sqp, call))
     if not run_ipopt:
         return row
-    ip, t_ip, d = _solve_and_compare(prob, nu, cf, "casadi", config)
+    got, why = _guarded(call or _direct, "IPOPT", _solve_and_compare, prob, nu, cf, "casadi", config)
+    if got is None:
+        return dict(row, ipopt_status=why)
+    ip, t_ip, d = got
     row.update({
         "ipopt_size": (n, m, T), "ipopt_formulation": ip.solver_stats["formulation"], "ipopt_status": ip.status,
         "ipopt_iter": ip.n_iter, "ipopt_s": t_ip, "ipopt_cpu_s": d["cpu_s"], "ipopt_build_s": ip.solver_stats["build_s"],
@@ -232,13 +265,18 @@ def _row(n, m, T, kind, seed, repeats, config, run_ipopt: bool, note=None, run_f
 
 def run(sizes=((4, 2, 20), (26, 7, 100)), seed: int = 0, *, repeats: int = 7, ipopt_max_vars: int | None = None,
         fatrop_max_vars: int | None = FATROP_MAX_VARS, budgets=("total", "per_step"),
-        config: KLStepConfig | None = None, sqp: bool = False) -> list[dict]:
+        config: KLStepConfig | None = None, sqp: bool = False, call=None, progress=None) -> list[dict]:
     """Closed form vs CasADi/IPOPT and fatrop on random instances; one row per (size, budget)
     (module docstring).
 
     IPOPT runs at every size (formulation from ``config.casadi_nlp``, default "auto"), unless the
     NLP has more than ``ipopt_max_vars`` variables, and fatrop unless more than ``fatrop_max_vars``
     (default :data:`FATROP_MAX_VARS`; ``None``: no limit): then the row says so in ``note``.
+
+    ``call``: how each solver call is made, ``call(fn, *args, limit_s=KL_TIME_LIMIT_S)`` (default: in this
+    process; ``soc-opt solvers`` passes :meth:`soc_opt.bench.guard.Guard.call`): a call it stops, or a solver
+    that raises, fills that solver's status column with the reason.  ``progress``: a callable given one
+    line per row.
     """
     config = KLStepConfig() if config is None else config
     rows = []
@@ -252,8 +290,15 @@ def run(sizes=((4, 2, 20), (26, 7, 100)), seed: int = 0, *, repeats: int = 7, ip
         if not run_fatrop and fatrop_max_vars == FATROP_MAX_VARS:
             notes[-1] += f" ({_FATROP_SKIP_REASON})"
         for kind in budgets:
-            rows.append(_row(n, m, T, kind, seed, repeats, config, run_ipopt, note="; ".join(notes) or None,
-                             run_fatrop=run_fatrop, run_sqp=sqp))
+            t0 = time.perf_counter()
+            row = _row(n, m, T, kind, seed, repeats, config, run_ipopt, note="; ".join(notes) or None,
+                       run_fatrop=run_fatrop, run_sqp=sqp, call=call)
+            rows.append(row)
+            if progress is not None:
+                stat = ", ".join(f"{k.split('_')[0]} {row[k]}" for k in ("ipopt_status", "fatrop_status", "sqp_status")
+                                 if row.get(k) is not None)
+                progress(f"KL step n={n} m={m} T={T} {kind}: {time.perf_counter() - t0:.1f} s"
+                         + (f" ({stat})" if stat else "") + (f"; {row['note']}" if row.get("note") else ""))
     return rows
 
 

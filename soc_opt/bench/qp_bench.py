@@ -65,6 +65,8 @@ QP_SOLVERS = ("clarabel", "piqp", "proxqp", "daqp", "osqp", "highs", "scs", "qua
 CONIC_SOLVERS = ("CLARABEL", "SCS")
 COV_FLOOR = 0.1
 TIME_LIMIT_S = 10.0
+#: added to ``repeats * TIME_LIMIT_S`` for the guard's limit on one (problem, method, level) call
+CALL_GRACE_S = 30.0
 SHIFT_MS = 1.0
 
 
@@ -470,27 +472,61 @@ def evaluate(prob: Problem, ref: Reference | None, out: Outcome, level: Level, c
                 names_infeasibility=None)
 
 
+def timed_method(meth: str, prob: Problem, level: Level, repeats: int):
+    """``(Outcome, median CPU s, median wall s)`` of ``repeats`` calls of method ``meth`` (picklable: what
+    :class:`soc_opt.bench.guard.Guard` runs in its worker)."""
+    return _timed(_runner(meth), prob, level, repeats)
+
+
+def call_limit_s(repeats: int) -> float:
+    """The wall-time limit of one guarded :func:`timed_method` call: ``repeats`` solves at
+    :data:`TIME_LIMIT_S` each plus :data:`CALL_GRACE_S` (imports, statistics, the first CVXPY compile)."""
+    return repeats * TIME_LIMIT_S + CALL_GRACE_S
+
+
+def _direct(fn, *args, limit_s, **kwargs):
+    return fn(*args, **kwargs)
+
+
 def run(sizes=SIZES, instances: int = 4, seed: int = 0, families=FAMILIES, levels=tuple(LEVELS), methods=None,
-        repeats: int = 3, problems: list[Problem] | None = None, on_progress=None) -> list[dict]:
-    """One row per (problem, accuracy level, method); see the module docstring."""
+        repeats: int = 3, problems: list[Problem] | None = None, on_progress=None, call=None,
+        progress=None) -> list[dict]:
+    """One row per (problem, accuracy level, method); see the module docstring.
+
+    ``call``: how each :func:`timed_method` call is made, ``call(fn, *args, limit_s=...)`` (default: in this
+    process; ``soc-opt solvers`` passes :meth:`soc_opt.bench.guard.Guard.call`, which enforces the limit
+    :func:`call_limit_s` and stops on NaN; a stopped call is a failed row).  ``progress``: a callable given one
+    line per problem.
+    """
+    from .guard import GuardError
+
     problems = make_problems(sizes, instances, seed, families) if problems is None else problems
+    call = _direct if call is None else call
     qp = qp_methods()
     rows: list[dict] = []
-    for prob in problems:
+    for i, prob in enumerate(problems):
+        t0 = time.perf_counter()
         ref = reference(prob)
+        stopped = []
         for meth in methods_for(prob.family, qp):
             if methods is not None and meth not in methods:
                 continue
-            fn = _runner(meth)
             for lv in levels:
                 level = LEVELS[lv]
-                out, cpu, wall = _timed(fn, prob, level, repeats)
+                try:
+                    out, cpu, wall = call(timed_method, meth, prob, level, repeats, limit_s=call_limit_s(repeats))
+                except GuardError as e:
+                    out, cpu, wall = Outcome(None, None, None, False, f"GuardError: {e}"), math.inf, math.inf
+                    stopped.append(f"{meth}/{lv}: {e.status}")
                 rows.append(dict(problem=prob.name, family=prob.family, n=prob.n, m=prob.m, d=prob.m * (prob.n + 1),
                                  cond=prob.cond, method=meth, level=lv, status=out.status[:160], cpu_s=cpu,
                                  wall_s=wall, variables="f" if meth.startswith("qp/") else "f,Sigma",
                                  **evaluate(prob, ref, out, level, cpu)))
         if on_progress is not None:
             on_progress(rows)
+        if progress is not None:
+            progress(f"M-step [{i + 1}/{len(problems)}] {prob.name}: {time.perf_counter() - t0:.1f} s"
+                     + (f"; stopped: {', '.join(stopped)}" if stopped else ""))
     return rows
 
 

@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402
 from .. import files  # noqa: E402
 
 __all__ = ["plot_costs", "plot_ee", "plot_actions", "plot_metric", "claims_table", "write_markdown", "format_table",
-           "mean_std", "over_seeds"]
+           "mean_std", "over_seeds", "paired_test", "verdict_text", "min_signed_rank_p", "em_switch_text"]
 
 COLORS = {"lqr-flm": "tab:blue", "dpsoc-em": "tab:red"}
 LABELS = {"lqr-flm": "LQR-FLM (baseline)", "dpsoc-em": "DPSOC-EM"}
@@ -55,6 +55,14 @@ def _save(fig, ax, path: Path, title: str, dpi: int = 120) -> Path:
     return path
 
 
+def em_switch_text(i_switch: int) -> str:
+    """Where the EM phase runs, in the console's numbering (iterations from 0): ``"iteration 4 (after
+    iterations 0-3)"``."""
+    after = ("before any baseline iteration" if i_switch == 0 else "after iteration 0" if i_switch == 1
+             else f"after iterations 0-{i_switch - 1}")
+    return f"iteration {i_switch} ({after})"
+
+
 def plot_costs(costs: dict, path: Path, title: str, i_switch: int | None = None) -> Path:
     """``costs[method]`` is a list over iterations of 1-D arrays of per-sample costs."""
     fig, ax = plt.subplots(figsize=(10, 4.5))
@@ -66,7 +74,7 @@ def plot_costs(costs: dict, path: Path, title: str, i_switch: int | None = None)
         _boxes(ax, data, pos, width, COLORS.get(meth, "gray"))
         ax.plot(pos, [np.mean(d) for d in data], "o-", color=COLORS.get(meth, "gray"), ms=3, label=LABELS.get(meth, meth))
     if i_switch is not None:
-        ax.axvline(i_switch - 0.5, color="k", ls=":", lw=1, label=f"EM switch (after {i_switch} iterations)")
+        ax.axvline(i_switch - 0.5, color="k", ls=":", lw=1, label=f"EM phase at {em_switch_text(i_switch)}")
     n_it = max(len(d) for d in costs.values())
     ax.set_xticks(np.arange(n_it))
     ax.set_xlabel("iteration")
@@ -147,38 +155,57 @@ def plot_actions(actions: dict, path: Path, title: str, names: list[str] | None 
     return path
 
 
-def plot_metric(values: dict, path: Path, title: str, ylabel: str) -> Path:
-    """``values[method]``: ``(seeds, iterations)`` metric; mean ± std over seeds per iteration."""
+def plot_metric(values: dict, path: Path, title: str, ylabel: str, i_switch: int | None = None) -> Path:
+    """``values[method]``: ``(seeds, iterations)`` metric of the sampled batches; the line is the mean over
+    seeds and the band mean ± std over seeds (population std; none with one seed); ``ylabel`` should carry
+    the unit; ``i_switch``: a dotted line where the EM phase runs, as in :func:`plot_costs`."""
     fig, ax = plt.subplots(figsize=(8, 4))
+    n_seeds = 0
     for meth, v in values.items():
         v = np.asarray(v, float)
+        n_seeds = max(n_seeds, v.shape[0])
         it = np.arange(v.shape[1])
         ls = LINESTYLES.get(meth, "-")
         ax.plot(it, v.mean(0), ls + "o", ms=3, color=COLORS.get(meth, "gray"), label=LABELS.get(meth, meth))
         ax.fill_between(it, v.mean(0) - v.std(0), v.mean(0) + v.std(0), color=COLORS.get(meth, "gray"), alpha=0.2)
-    ax.set_xlabel("iteration")
+    if i_switch is not None:
+        ax.axvline(i_switch - 0.5, color="k", ls=":", lw=1, label=f"EM phase at {em_switch_text(i_switch)}")
+    ax.set_xlabel("iteration (from 0)")
     ax.set_ylabel(ylabel)
     ax.legend()
-    return _save(fig, ax, path, title)
+    band = "mean over seeds ± std over seeds (shaded)" if n_seeds > 1 else "one seed"
+    return _save(fig, ax, path, f"{title}\n{band}")
+
+
+def min_signed_rank_p(n: int) -> float:
+    """The smallest one-sided p-value the exact Wilcoxon signed-rank test can give with ``n`` nonzero paired
+    differences: ``2^-n`` (every difference on the same side).  Below 5% only from ``n = 5``."""
+    return 2.0 ** -n if n > 0 else 1.0
 
 
 def paired_test(baseline, dpsoc, confidence: float = 0.95, resamples: int = 9999, seed: int = 0) -> dict:
-    """Paired comparison over seeds of ``dpsoc - baseline`` (one value per seed each).
+    """Paired comparison over seeds of ``dpsoc - baseline`` (one value per seed each; docs/math.md §12.3).
 
     ``diff_mean``: the mean paired difference; ``ci_low, ci_high``: its percentile bootstrap interval
     (``scipy.stats.bootstrap``, seeded: the same data give the same interval); ``p_signed_rank``: the
-    one-sided Wilcoxon signed-rank p-value for "DPSOC-EM lower" (``nan`` below 2 seeds or with all
-    differences zero).  ``verdict``: "lower" when the whole interval is below 0 *and* the signed-rank
-    test gives ``p < 1 - confidence``; "higher" likewise above 0 (the test for "higher"); otherwise "not
-    shown"; "one seed" (no test) with a single seed.  Both must agree because the percentile bootstrap
-    alone is too optimistic for few seeds (3 seeds have 10 distinct resamples); the signed-rank test
-    cannot reach 5% below 5 seeds, so with fewer nothing is shown.
+    one-sided Wilcoxon signed-rank p-value for "DPSOC-EM lower", ``p_reverse`` the same for "higher"
+    (``nan`` below 2 seeds or with all differences zero); ``interval``: ``"below 0"``, ``"above 0"`` or
+    ``"contains 0"``.  ``verdict``:
+
+    * ``"lower"``: the whole interval is below 0 *and* the signed-rank test gives ``p < 1 - confidence``
+      (both, because the percentile bootstrap alone is too optimistic for few seeds: 3 seeds have 10
+      distinct resamples);
+    * ``"reversed"``: the whole interval lies on the wrong side, above 0 (the interval alone decides:
+      a warning against the claim, not a claim; ``p_reverse`` says whether the signed-rank test agrees);
+    * ``"untestable with N seeds"``: neither, and the signed-rank test cannot reach ``1 - confidence`` with
+      this many nonzero differences (``2^-n >= 0.05`` for ``n <= 4``), whatever the data;
+    * ``"not shown"``: otherwise; ``"one seed"`` (no test) with a single seed.
     """
     from scipy import stats
 
     d = np.asarray(dpsoc, float) - np.asarray(baseline, float)
     out = {"diff_mean": float(d.mean()), "ci_low": float("nan"), "ci_high": float("nan"),
-           "p_signed_rank": float("nan"), "verdict": "one seed"}
+           "p_signed_rank": float("nan"), "p_reverse": float("nan"), "interval": "n/a", "verdict": "one seed"}
     if d.size < 2:
         return out
     if np.all(d == d[0]):  # a degenerate bootstrap distribution: the interval is the point
@@ -192,9 +219,30 @@ def paired_test(baseline, dpsoc, confidence: float = 0.95, resamples: int = 9999
         p_less = float(stats.wilcoxon(d, alternative="less").pvalue)
         p_greater = float(stats.wilcoxon(d, alternative="greater").pvalue)
     alpha = 1.0 - confidence
-    verdict = ("lower" if hi < 0 and p_less < alpha else "higher" if lo > 0 and p_greater < alpha else "not shown")
-    out.update(ci_low=lo, ci_high=hi, p_signed_rank=p_less, verdict=verdict)
+    side = "below 0" if hi < 0 else "above 0" if lo > 0 else "contains 0"
+    if hi < 0 and p_less < alpha:
+        verdict = "lower"
+    elif lo > 0:
+        verdict = "reversed"
+    elif min_signed_rank_p(int(np.count_nonzero(d))) >= alpha:
+        verdict = f"untestable with {d.size} seeds"
+    else:
+        verdict = "not shown"
+    out.update(ci_low=lo, ci_high=hi, p_signed_rank=p_less, p_reverse=p_greater, interval=side, verdict=verdict)
     return out
+
+
+def verdict_text(r: dict) -> str:
+    """The claim's verdict as the reports print it: ``yes``, or ``no`` with why (reversed with its interval
+    and the signed-rank p for "higher"; untestable with how many seeds the test needs and the interval's side)."""
+    v = r.get("verdict", "")
+    if r.get("held"):
+        return "yes"
+    if v == "reversed":
+        return f"**no: reversed** (interval above 0; signed-rank p for higher {_fmt(r.get('p_reverse', float('nan')))})"
+    if v.startswith("untestable"):
+        return f"no ({v}: the signed-rank test needs 5; interval {r.get('interval', 'n/a')})"
+    return f"no ({v})"
 
 
 def claims_table(per_seed: dict) -> list[dict]:
@@ -262,7 +310,7 @@ def write_markdown(path: Path, *, title: str, setup: dict, claims: list[dict], f
         lines.append(
             f"| {r['claim']} | {cell(r['baseline_mean'], r['baseline_std'], r['seeds'])} | "
             f"{cell(r['dpsoc_mean'], r['dpsoc_std'], r['seeds'])} | {_diff_cell(r)} | {_fmt(r.get('p_signed_rank', float('nan')))} | "
-            f"{r['seeds_lower']}/{r['seeds']} | {'yes' if r['held'] else '**no** (' + r.get('verdict', '') + ')'} |"
+            f"{r['seeds_lower']}/{r['seeds']} | {verdict_text(r)} |"
         )
     for name, (header, rows) in (extra_tables or {}).items():
         lines += ["", f"## {name}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]

@@ -27,6 +27,7 @@ import numpy as np
 
 from .. import files
 from ..config import MAX_INT, ConfigError, read_toml, show
+from ..errors import resumable
 from ..methods.base import apply_overrides, run_method
 from ..methods.config import DPSOCConfig, check_scale, with_task_init_var
 from ..methods.state import RunState
@@ -243,8 +244,10 @@ def run_experiment(
                 except CheckpointError:
                     done = None
                 n = 0 if done is None else done.iteration
-                e.add_note(f"run directory {str(rd.path)!r} keeps {n} finished iteration{'s' if n != 1 else ''}; "
-                           "running the same command again resumes after them")
+                kept = f"run directory {str(rd.path)!r} keeps {n} finished iteration{'s' if n != 1 else ''}"
+                e.add_note(f"{kept}; running the same command again resumes after them" if resumable(e) else
+                           f"{kept}; the error comes from the computation, so running the same command again "
+                           "would repeat it (a resumed run is bit-identical, docs/reproducibility.md)")
                 raise
             if finish is not None:
                 _final_phase(rd, state, finish, tb)

@@ -96,7 +96,15 @@ def solve_scalar(prob: KLProblem, nu: float, config: KLStepConfig, eta0) -> tupl
                 x = 0.5 * (lo + hi)
             continue
         ksum = float(r.kl.sum())
-        f = math.log(max(ksum, 1e-300)) - math.log(nu)
+        if ksum == 0.0:
+            # KL = 0 exactly: the policy is the reference, the cost does not move it at this multiplier (a
+            # cost flat in the action).  KL decreases in eta, so the budget is slack down to eta_min or met
+            # below this point: try eta_min (no slope to follow from a zero KL)
+            if x <= xmin:
+                return r, call.n, it, "slack (eta = eta_min): KL = 0, the policy is the reference"
+            hi, x = min(hi, x), xmin
+            continue
+        f = math.log(ksum) - math.log(nu)
         if abs(f) <= ftol:
             return r, call.n, it, "converged"
         if f > 0:
@@ -445,5 +453,19 @@ def _raise_unbounded(e: NotPDPoint):
 
 
 def dual_objective(ev: DualEval, eta: np.ndarray, nu: np.ndarray) -> float:
+    """``g(eta) = sum_k E[l_k] + sum_k eta_k (KL_k - nu_k)`` at the backward-pass policy ``ev`` of ``eta``
+    (docs/math.md §6); steps with ``eta_k = 0`` (unconstrained) or ``inf`` (pinned, ``KL_k = 0``) add nothing."""
     use = np.isfinite(eta) & (eta > 0)
     return float(ev.cost.sum() + eta[use] @ (ev.kl[use] - nu[use]))
+
+
+def dual_function(prob: KLProblem, eta: np.ndarray, nu: np.ndarray) -> tuple[float, DualEval]:
+    """The Lagrange dual function of the KL step at any multipliers ``eta`` (T,) with per-step budgets ``nu``
+    (T,): ``g(eta) = min_p sum_k E_p[l_k] + sum_k eta_k (KL_k - nu_k)`` (docs/math.md §6), attained by the
+    backward-pass policy of ``eta`` (returned in the :class:`DualEval`).  By weak duality
+    ``g(eta) <= sum_k E_p[l_k]`` for every ``p`` meeting the budgets; the closed form maximises ``g``.  A total
+    budget ``nu`` with one multiplier is ``eta_k = eta``, ``nu_k = nu / T``.  Raises ``NotPDPoint`` when some
+    ``Quu_k`` is not positive definite at ``eta`` (no minimiser)."""
+    eta = np.asarray(eta, dtype=float)
+    ev = evaluate_eta(prob, backward_pass(prob, eta))
+    return dual_objective(ev, eta, np.asarray(nu, dtype=float)), ev

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from ..config import Config, Interval, Options
+from ..config import Config, Interval, Options, config_error
 
 __all__ = ["MStepConfig", "MSTEP_METHODS", "MSTEP_SOLVERS", "MSTEP_VARIANTS", "MSTEP_OBJECTIVES"]
 
@@ -40,8 +40,14 @@ class MStepConfig(Config):
         scs_eps: SCS ``eps_abs`` and ``eps_rel`` (default 1e-9; SCS is first order, so tight).
         scs_max_iters: SCS iteration limit (default 200000).
         accept_inaccurate: accept CVXPY status ``optimal_inaccurate`` (default False: raise).
-        eig_tol: relative eigenvalue threshold below which ``H_k``, ``P_k`` (and the
-            time-invariant Kronecker sum) count as singular (default 1e-10).
+        eig_tol: relative eigenvalue threshold at or below which ``H_k``, ``P_k`` (and the
+            time-invariant Kronecker sum) count as ill-conditioned: the closed form then solves the step
+            in exact rational arithmetic instead of by Cholesky, CVXPY and the time-invariant variant
+            refuse it (default 1e-10; docs/math.md §5, "Conditioning").
+        sing_tol: relative eigenvalue threshold at or below which they count as singular to working
+            precision: the maximiser is not unique (minimum-norm maximiser with ``min_norm=True``,
+            else an error) (default ``2**-40``, about 9.1e-13, 4096 units of roundoff; must be below
+            ``eig_tol``).
         feas_tol: tolerance of the feasibility checks of closed-form candidates (default 1e-9).
         exact_tol: exact-EM inner iterations stop when the change of the exact objective is
             below ``exact_tol * (1 + |objective|)`` at every step (default 1e-9).
@@ -57,6 +63,7 @@ class MStepConfig(Config):
     scs_max_iters: int = 200_000
     accept_inaccurate: bool = False
     eig_tol: float = 1e-10
+    sing_tol: float = 2.0**-40
     feas_tol: float = 1e-9
     exact_tol: float = 1e-9
     exact_max_iter: int = 1000
@@ -64,7 +71,11 @@ class MStepConfig(Config):
 
     _constraints = {
         "solver": [Options(MSTEP_SOLVERS)],
-        **{name: [Interval(0, None, "neither")] for name in ("clarabel_tol", "scs_eps", "eig_tol", "feas_tol",
-                                                              "exact_tol")},
+        **{name: [Interval(0, None, "neither")] for name in ("clarabel_tol", "scs_eps", "eig_tol", "sing_tol",
+                                                              "feas_tol", "exact_tol")},
         **{name: [Interval(1)] for name in ("clarabel_max_iter", "scs_max_iters", "exact_max_iter")},
     }
+
+    def __post_init__(self):
+        if not self.sing_tol < self.eig_tol:
+            raise config_error("sing_tol", f"must be below eig_tol = {self.eig_tol:g}, got {self.sing_tol:g}")

@@ -71,10 +71,11 @@ import numpy as np
 
 from .. import linalg as la
 from ..models import symmetrize
+from .conditioning import MIN_NORM_HINT, check_time_invariant
 from .config import MStepConfig
 from .constraints import Resolved, clean_sigma
 from .errors import SolverError
-from .objectives import MIN_NORM_HINT, ti_degenerate, ti_normal_equations
+from .objectives import ti_normal_equations
 
 __all__: list[str] = []  # internal: used by soc_opt.mstep.maximize and soc_opt.mstep.exact_em
 
@@ -410,7 +411,7 @@ def cvxpy_ti(model, st, rc, cfg, solver, Fprev, hint=MIN_NORM_HINT):
     n, m, T = model.n, model.m, model.T
     n1 = n + 1
     Q, r = ti_normal_equations(st)
-    ti_degenerate(model, st, cfg, Q, min_norm=False, hint=hint)
+    check_time_invariant(model, st.S, Q, cfg, min_norm=False, hint=hint)
     spectral = rc.f_constrained
     if spectral:  # offset bound / trust regions: the spectral form (module docstring)
         key = ("spectral", n, m, rc.sigma_key, rc.b is not None, T if rc.delta is not None else 0)

@@ -14,6 +14,8 @@ __all__ = [
     "NonUniqueMaximizerError",
     "InfeasibleConstraintsError",
     "ClosedFormUnavailableError",
+    "IllConditionedMaximizerError",
+    "MinNormWarning",
 ]
 
 
@@ -23,7 +25,20 @@ class SolverError(_errors.SolverError):
 
 
 class NonUniqueMaximizerError(ValueError):
-    """The M-step maximiser is not unique (``B_k`` rank deficient or ``P_k`` singular); names the step."""
+    """The M-step maximiser is not unique: ``H_k`` or ``P_k`` is singular to working precision (relative
+    smallest eigenvalue <= ``MStepConfig.sing_tol``); names the step, the threshold and the condition
+    number (docs/math.md §5, "Conditioning")."""
+
+
+class IllConditionedMaximizerError(ValueError):
+    """The M-step maximiser is unique but ill-conditioned (relative smallest eigenvalue of ``H_k`` or
+    ``P_k`` in ``(sing_tol, eig_tol]``) on a route without exact arithmetic (CVXPY, the time-invariant
+    variant); names the step, the thresholds and the condition number (docs/math.md §5, "Conditioning")."""
+
+
+class MinNormWarning(UserWarning):
+    """The M-step returned the minimum-norm maximiser at steps where the maximiser is not unique
+    (``min_norm=True``); names the steps, the threshold and the condition number."""
 
 
 class InfeasibleConstraintsError(ConfigError):

@@ -110,8 +110,10 @@ def _f_step_exact(model, Eas, S, Sigma, rc, method, solver, cfg, Fprev, min_norm
         if not min_norm:
             i = int(np.flatnonzero(p_rel <= cfg.eig_tol)[-1])
             raise NonUniqueMaximizerError(
-                f"exact-EM M-step is not unique at {labels[i]}: Stilde (P_k) is not positive definite "
-                f"(smallest eigenvalue {p_min[i]:.3e}). Pass min_norm=True for the minimum-norm maximiser."
+                f"exact-EM M-step is not resolved at {labels[i]}: Stilde (so P_k) has relative smallest eigenvalue "
+                f"{p_rel[i]:.3e} <= eig_tol = {cfg.eig_tol:g} (smallest eigenvalue {p_min[i]:.3e}, condition number "
+                f"{(1.0 / p_rel[i]) if p_rel[i] > 0 else float('inf'):.3e}). Pass min_norm=True for the minimum-norm "
+                "maximiser."
             )
         F = Eas @ np.linalg.pinv(S, rcond=cfg.eig_tol, hermitian=True)
     else:

@@ -25,22 +25,20 @@ import numpy as np
 from .. import linalg as la
 from ..estep import Moments, moments
 from ..models import AugmentedModel, LinearGaussianPolicy, Smoothed
+from .conditioning import CVXPY_HINT, MIN_NORM_HINT, check_time_invariant, check_time_varying
 from .config import MSTEP_METHODS, MSTEP_OBJECTIVES, MSTEP_SOLVERS, MSTEP_VARIANTS, MStepConfig
 from .constraints import MStepConstraints, pd_guaranteed, require_pd_covariance, sigma_closed
 from .cvx import cvxpy_ti, cvxpy_tv
 from .errors import ClosedFormUnavailableError
+from .exact import EXACT_TI_MAX, unique_maximiser, unique_maximiser_ti
 from .exact_em import run_exact_em
 from .objectives import (
-    CVXPY_HINT,
-    MIN_NORM_HINT,
+    atil,
     check_moments,
     check_policy,
-    degeneracy,
     moment_stats,
     policy_F,
-    raise_if_degenerate,
     surrogate_from_moments,
-    ti_degenerate,
     ti_normal_equations,
 )
 
@@ -66,6 +64,12 @@ class MStepResult:
         history: exact objective only: (iterations+1, T) ``exact_k`` before and after each inner step.
         iterations: number of exact-EM inner iterations (0 otherwise).
         converged: exact-EM stopping rule met (True otherwise).
+        min_norm_steps: closed form: the steps where the maximiser is not unique (singular to working
+            precision) and the minimum-norm maximiser was returned (``min_norm=True``; a
+            :class:`~soc_opt.mstep.errors.MinNormWarning` names them too); the time-invariant variant
+            lists every step.
+        exact_steps: closed form: the ill-conditioned steps whose unique maximiser was computed in exact
+            rational arithmetic (docs/math.md §5, "Conditioning"); the time-invariant variant lists every step.
     """
 
     policy: LinearGaussianPolicy
@@ -77,6 +81,8 @@ class MStepResult:
     history: np.ndarray | None = None
     iterations: int = 0
     converged: bool = True
+    min_norm_steps: tuple[int, ...] = ()
+    exact_steps: tuple[int, ...] = ()
 
 
 def maximize(
@@ -114,14 +120,19 @@ def maximize(
             average of ``previous``).  The number of inner iterations and convergence are in the
             :class:`MStepResult` of :func:`maximize_result`.
         previous: the current policy; trust-region centre and exact-EM starting point.
-        min_norm: return the minimum-norm maximiser when it is not unique (closed form only; the
-            default, as in the EM loop's :class:`~soc_opt.mstep.recipe.MStepRecipe`); ``False``
-            raises :class:`NonUniqueMaximizerError` instead.
+        min_norm: return the minimum-norm maximiser where it is not unique (closed form only; the
+            default, as in the EM loop's :class:`~soc_opt.mstep.recipe.MStepRecipe`), with a
+            :class:`~soc_opt.mstep.errors.MinNormWarning`; ``False`` raises
+            :class:`NonUniqueMaximizerError` instead.  Unique but ill-conditioned steps are solved in
+            exact arithmetic either way (docs/math.md §5, "Conditioning").
         config: :class:`MStepConfig` (tolerances, solver options).
 
     Raises:
-        NonUniqueMaximizerError: ``B_k`` rank deficient or ``P_k`` singular (names the step) with
-            ``min_norm=False`` or ``method="cvxpy"``.
+        NonUniqueMaximizerError: ``H_k`` or ``P_k`` singular to working precision (names the step, the
+            threshold ``MStepConfig.sing_tol`` and the condition number) with ``min_norm=False`` or
+            ``method="cvxpy"``.
+        IllConditionedMaximizerError: a unique but ill-conditioned step (``MStepConfig.eig_tol``) with
+            ``method="cvxpy"`` or ``variant="time_invariant"``.
         InfeasibleConstraintsError: empty constraint set.
         ClosedFormUnavailableError: ``method="closed_form"`` with a set needing CVXPY.
         SolverError: CVXPY failed (status and step in the message).
@@ -227,13 +238,17 @@ def _maximize(model: AugmentedModel, mom: Moments, constraints, method, solver, 
     extra: dict = {}
     if method == "closed_form":
         if variant == "time_varying":
-            F, Sigma = _closed_form_tv(model, st, rc, cfg, min_norm)
+            F, Sigma, sing, ill = _closed_form_tv(model, mom, st, rc, cfg, min_norm)
+            extra = dict(min_norm_steps=tuple(int(k) for k in np.flatnonzero(sing)),
+                         exact_steps=tuple(int(k) for k in np.flatnonzero(ill)))
         else:
-            F, Sigma = _closed_form_ti(model, st, rc, cfg, min_norm)
+            F, Sigma, route = _closed_form_ti(model, mom, st, rc, cfg, min_norm)
+            extra = dict(min_norm_steps=tuple(range(T)) if route == "min_norm" else (),
+                         exact_steps=tuple(range(T)) if route == "exact" else ())
     else:
         hint = CVXPY_HINT if min_norm else MIN_NORM_HINT + " (closed form only)"
         if variant == "time_varying":
-            raise_if_degenerate(model, st, cfg, hint=hint)
+            check_time_varying(model, st.S, cfg, min_norm=False, cvxpy=True, hint=hint)
             F, Sigma, val, status, duals, times = cvxpy_tv(model, st, rc, cfg, solver, Fprev)
         else:
             F, Sigma, val, status, duals, times = cvxpy_ti(model, st, rc, cfg, solver, Fprev, hint=hint)
@@ -252,30 +267,37 @@ def _maximize(model: AugmentedModel, mom: Moments, constraints, method, solver, 
 # --------------------------------------------------------------------------- closed forms
 
 
-def _closed_form_tv(model, st, rc, cfg, min_norm):
+def _closed_form_tv(model, mom, st, rc, cfg, min_norm):
+    """``(F, Sigma, singular, ill)``: Cholesky on well-conditioned steps, exact rational arithmetic on
+    ill-conditioned ones, the minimum-norm maximiser on singular ones (:mod:`soc_opt.mstep.conditioning`)."""
     T = model.T
-    h_bad, p_bad, _, _ = degeneracy(model, st, cfg)
-    degenerate = bool(np.any(h_bad | p_bad))
-    if degenerate and not min_norm:
-        raise_if_degenerate(model, st, cfg)
-    if degenerate:
-        Hp = np.linalg.pinv(st.H, rcond=cfg.eig_tol, hermitian=True)
-        Sp = np.linalg.pinv(st.S, rcond=cfg.eig_tol, hermitian=True)
-        F = Hp @ st.R @ Sp
-    else:
-        Lh, Ls = la.chol(st.H, "H"), la.chol(st.S, "Stilde")
-        F = la.right_cho_solve(la.cho_solve(Lh, st.R), Ls)
+    sing, ill = check_time_varying(model, st.S, cfg, min_norm=min_norm, cvxpy=False)
+    F = np.empty(st.R.shape)
+    well = ~(sing | ill)
+    if well.any():
+        Lh, Ls = la.chol(st.H[well], "H"), la.chol(st.S[well], "Stilde")
+        F[well] = la.right_cho_solve(la.cho_solve(Lh, st.R[well]), Ls)
+    if sing.any():
+        Hp = np.linalg.pinv(st.H[sing], rcond=cfg.sing_tol, hermitian=True)
+        Sp = np.linalg.pinv(st.S[sing], rcond=cfg.sing_tol, hermitian=True)
+        F[sing] = Hp @ st.R[sing] @ Sp
+    if ill.any():
+        At = atil(model)
+        for k in np.flatnonzero(ill):
+            F[k] = unique_maximiser(model.Bs[k], model.So[k], At[k], mom.Szs[k], mom.Sss[k])
     Sigma = sigma_closed(st.H, rc, cfg, [f"time step k={k}" for k in range(T)])
-    return F, Sigma
+    return F, Sigma, sing, ill
 
 
-def _closed_form_ti(model, st, rc, cfg, min_norm):
+def _closed_form_ti(model, mom, st, rc, cfg, min_norm):
     m, n1 = model.m, model.n + 1
     Q, r = ti_normal_equations(st)
-    if ti_degenerate(model, st, cfg, Q, min_norm):
-        vF = np.linalg.pinv(Q, rcond=cfg.eig_tol, hermitian=True) @ r
+    route = check_time_invariant(model, st.S, Q, cfg, min_norm=min_norm, exact=m * n1 <= EXACT_TI_MAX)
+    if route == "exact":
+        F = unique_maximiser_ti(model.Bs, model.So, atil(model), mom.Szs, mom.Sss)
+    elif route == "min_norm":
+        F = la.unvec(np.linalg.pinv(Q, rcond=cfg.sing_tol, hermitian=True) @ r, m, n1)
     else:
-        vF = la.cho_solve(la.chol(Q, "sum_k Stilde_k kron H_k"), r[:, None])[:, 0]
-    F = la.unvec(vF, m, n1)
+        F = la.unvec(la.cho_solve(la.chol(Q, "sum_k Stilde_k kron H_k"), r[:, None])[:, 0], m, n1)
     Sigma = sigma_closed(st.H.sum(0)[None], rc.time_invariant(), cfg, ["time-invariant M-step"])[0]
-    return F, Sigma
+    return F, Sigma, route

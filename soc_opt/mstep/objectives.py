@@ -23,10 +23,11 @@ with ``R = B^T So^{-1} E[(zeta - Atil stilde) stilde^T] = B^T So^{-1} (Szs - Ati
 Its gradient in ``F`` is ``R - H F Stilde``; its Hessian in ``vec(F)`` (column-major) is
 ``-(Stilde kron H)``, negative definite iff ``H > 0`` (``B`` full column rank) and ``Stilde > 0``
 (equivalently ``P_k > 0``: ``P_k`` is the Schur complement of the corner 1 in ``Stilde``).
-Hence the closed form ``F = H^{-1} R Stilde^{-1}`` (Cholesky solves).  When it is not unique a
-:class:`NonUniqueMaximizerError` names the step and the failed condition (``min_norm=False``);
-``min_norm=True`` (the default) returns ``H^+ R Stilde^+``, the minimum Frobenius-norm maximiser
-(``(S kron H)^+ = S^+ kron H^+``).
+Hence the closed form ``F = H^{-1} R Stilde^{-1}``: Cholesky solves on well-conditioned steps, exact
+rational arithmetic on ill-conditioned ones; where it is not unique, ``min_norm=True`` (the default)
+returns ``H^+ R Stilde^+``, the minimum Frobenius-norm maximiser (``(S kron H)^+ = S^+ kron H^+``),
+and ``min_norm=False`` raises a :class:`NonUniqueMaximizerError` naming the step
+(:mod:`soc_opt.mstep.conditioning` decides which, docs/math.md §5 "Conditioning").
 The time-invariant variant's normal equations ``sum_k H_k F Stilde_k = sum_k R_k`` read
 ``(sum_k Stilde_k kron H_k) vec F = vec(sum_k R_k)`` (the paper's ``M = sum_k M_k``).
 
@@ -54,8 +55,6 @@ import numpy as np
 from .. import linalg as la
 from ..estep import Moments, moments
 from ..models import AugmentedModel, LinearGaussianPolicy, ShapeError, Smoothed, symmetrize
-from .config import MStepConfig
-from .errors import NonUniqueMaximizerError
 
 __all__ = [
     "GradHess",
@@ -220,53 +219,7 @@ def surrogate_grad_hess(model: AugmentedModel, mom: Moments, k: int, policy: Lin
     return GradHess(la.vec(R - H @ F @ S), -np.kron(S, H), -0.5 * H)
 
 
-# --------------------------------------------------------------------------- uniqueness
-
-
-def degeneracy(model: AugmentedModel, st: _Stats, cfg: MStepConfig):
-    """Per-step flags: H singular, P singular; plus the numbers for the message."""
-    n = model.n
-    h_min, h_rel = min_eig_rel(st.H)
-    S = st.S
-    P = symmetrize(S[:, :n, :n] - S[:, :n, n:] @ S[:, n:, :n] / S[:, n:, n:])
-    s_scale = np.maximum(np.abs(np.linalg.eigvalsh(S)).max(-1), np.finfo(float).tiny)
-    p_min = np.linalg.eigvalsh(P)[:, 0]
-    h_bad = h_rel <= cfg.eig_tol
-    p_bad = p_min <= cfg.eig_tol * s_scale
-    return h_bad, p_bad, h_min, p_min
-
-
-MIN_NORM_HINT = " Pass min_norm=True for the minimum-norm maximiser."
-CVXPY_HINT = " The minimum-norm maximiser (min_norm=True) needs method='closed_form'."
-
-
-def _nonunique_message(model: AugmentedModel, k: int, h_bad: bool, p_bad: bool, h_min: float, p_min: float,
-                       others: list[int], hint: str = MIN_NORM_HINT) -> str:
-    m = model.m
-    parts = []
-    if h_bad:
-        rank = int(np.linalg.matrix_rank(model.Bs[k]))
-        parts.append(
-            f"B_{k} = [B; By] has rank {rank} < m={m} (not full column rank; smallest eigenvalue of "
-            f"H_{k} = B^T So^-1 B is {h_min:.3e})"
-        )
-    if p_bad:
-        parts.append(f"P_{k} = Cov(s_{k} | Y) is not positive definite (smallest eigenvalue {p_min:.3e})")
-    msg = f"M-step maximiser is not unique at time step k={k}: " + "; ".join(parts)
-    if others:
-        msg += f" (also at steps {others[:10]}{'...' if len(others) > 10 else ''})"
-    return msg + "." + hint
-
-
-def raise_if_degenerate(model, st, cfg, hint=MIN_NORM_HINT):
-    h_bad, p_bad, h_min, p_min = degeneracy(model, st, cfg)
-    bad = np.flatnonzero(h_bad | p_bad)
-    if bad.size:
-        k = int(bad[-1])  # the backward sweep meets the last one first
-        others = [int(j) for j in bad if j != k]
-        raise NonUniqueMaximizerError(
-            _nonunique_message(model, k, bool(h_bad[k]), bool(p_bad[k]), float(h_min[k]), float(p_min[k]), others, hint)
-        )
+# --------------------------------------------------------------------------- time-invariant normal equations
 
 
 def ti_normal_equations(st: _Stats):
@@ -275,22 +228,3 @@ def ti_normal_equations(st: _Stats):
     Q = symmetrize(Q.reshape(n1 * m, n1 * m))
     r = la.vec(st.R.sum(0))
     return Q, r
-
-
-def ti_degenerate(model, st, cfg, Q, min_norm, hint=MIN_NORM_HINT):
-    ev = np.linalg.eigvalsh(Q)
-    bad = ev[0] <= cfg.eig_tol * max(abs(ev[-1]), np.finfo(float).tiny)
-    if bad and not min_norm:
-        h_bad, p_bad, h_min, p_min = degeneracy(model, st, cfg)
-        steps = np.flatnonzero(h_bad | p_bad)
-        detail = ""
-        if steps.size:
-            k = int(steps[-1])
-            detail = " Per step: " + _nonunique_message(
-                model, k, bool(h_bad[k]), bool(p_bad[k]), float(h_min[k]), float(p_min[k]),
-                [int(j) for j in steps if j != k], hint="").split(": ", 1)[1]
-        raise NonUniqueMaximizerError(
-            f"time-invariant M-step maximiser is not unique: sum_k (Stilde_k kron H_k) is singular "
-            f"(smallest eigenvalue {ev[0]:.3e}).{detail}{hint}"
-        )
-    return bool(bad)

@@ -35,7 +35,7 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from .. import files  # noqa: E402
-from ..experiments.report import COLORS, LABELS  # noqa: E402
+from ..experiments.report import COLORS, LABELS, verdict_text  # noqa: E402
 from .spec import RESULT, SweepSpec, describe, read_result, setting_table  # noqa: E402
 
 __all__ = ["write_report", "aggregate", "claims_rows", "versus_key", "QUANTITIES"]
@@ -280,7 +280,9 @@ def write_report(spec: SweepSpec, out: str | Path, status: dict[str, dict]) -> P
         _write_csv(out / "claims.csv", claims)
         lines += ["", "## Claims: DPSOC-EM against LQR-FLM, paired over seeds", "",
                   "A claim holds when the 95% paired bootstrap interval of the mean difference (DPSOC-EM minus "
-                  "LQR-FLM) lies below 0 and the one-sided signed-rank test agrees at 5%.", "",
+                  "LQR-FLM) lies below 0 and the one-sided signed-rank test agrees at 5%; it is reversed when the "
+                  "interval lies wholly above 0; below 5 seeds the signed-rank test cannot reach 5% (untestable; "
+                  "docs/math.md §12.3).", "",
                   "| task | setting | claim | LQR-FLM | DPSOC-EM | difference [95% CI] | signed-rank p | lower on | held |",
                   "|---|---|---|---|---|---|---|---|---|"]
         for r in claims:
@@ -288,7 +290,7 @@ def write_report(spec: SweepSpec, out: str | Path, status: dict[str, dict]) -> P
                          f"{_fmt(r['baseline_mean'])} ± {_fmt(r['baseline_std'])} | {_fmt(r['dpsoc_mean'])} ± "
                          f"{_fmt(r['dpsoc_std'])} | {_fmt(r['diff_mean'])} [{_fmt(r['ci_low'])}, {_fmt(r['ci_high'])}] | "
                          f"{_fmt(r['p_signed_rank'])} | {r['seeds_lower']}/{r['seeds']} | "
-                         f"{'yes' if r['held'] else 'no (' + r['verdict'] + ')'} |")
+                         f"{verdict_text(r)} |")
     failed = [r for r in trial_rows if r["state"] == "failed"]
     if failed:
         lines += ["", "## Failed trials", "", "| trial | error | traceback |", "|---|---|---|"]

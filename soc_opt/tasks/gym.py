@@ -331,7 +331,7 @@ class GymMujocoTask(MujocoTask):
 
         RK4: ``A_k[:, i] = (f(x_k + eps e_i, u_k) - f(x_k - eps e_i, u_k)) / 2 eps`` over the joint
         coordinates of the state (site components are functions of them: zero columns), the same
-        for ``B_k``, and ``c_k = f(x_k, u_k) - A_k x_k - B_k u_k``; ``f`` is :meth:`step`.
+        for ``B_k``, and ``c_k = f(x_k, u_k) - A_k x_k - B_k u_k``; ``f`` is :meth:`soc_opt.tasks.mujoco.MujocoTask.step`.
         """
         mj = import_mujoco()
         if int(self.model.opt.integrator) != int(mj.mjtIntegrator.mjINT_RK4):

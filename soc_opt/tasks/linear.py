@@ -130,7 +130,7 @@ class LinearTask(TaskBase):
         return LinearSimulator(self)
 
     def linearize(self, x=None, u=None, cov=None) -> LinearGaussianDynamics:
-        """The exact model, repeated over ``T`` (process noise ``W`` unless ``cov`` is given)."""
+        """The exact model, repeated over the horizon T (process noise W unless ``cov`` is given)."""
         T = self.T
         if cov is None:
             W = self.W

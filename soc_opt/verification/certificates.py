@@ -19,6 +19,7 @@ in exact rationals (:func:`soc_opt.verification.replay.maximiser`), not taken fr
 from __future__ import annotations
 
 import json
+import warnings
 from fractions import Fraction
 from pathlib import Path
 
@@ -156,7 +157,9 @@ def _uniqueness_found(rng, n, m, T):
         return None
     except mstep.NonUniqueMaximizerError:
         pass
-    first = mstep.maximize(model, sm, y, constraints=mstep.MStepConstraints(cov_floor=0.1), min_norm=True)
+    with warnings.catch_warnings():  # the non-uniqueness is the point here: no MinNormWarning
+        warnings.simplefilter("ignore", mstep.MinNormWarning)
+        first = mstep.maximize(model, sm, y, constraints=mstep.MStepConstraints(cov_floor=0.1), min_norm=True)
     gh = mstep.surrogate_grad_hess(model, mom, 0, first)
     w, V = np.linalg.eigh(gh.hess)
     v = V[:, -1]  # null direction of the Hessian

@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from . import checks, checks_ecm
+from . import checks, checks_ecm, checks_kl
 from .common import child_rng
 from .hypotheses import STANDING
 
@@ -144,7 +144,8 @@ def _hessian_impl(rng, instances: int, full: bool):
 CLAIMS: tuple[Claim, ...] = (
     Claim("uniqueness", "Theorem uniqueness ([F_j e_j])", "docs/math.md §5, §9.1",
           "the per-step M-step maximiser [F_j e_j] of Lbar_j is unique",
-          "none stated (the rank condition appears only in the proof)",
+          "as written: none stated (the rank condition appears only in the proof); the corrected statement: the "
+          "stacked B_j = [B^d_j; B^y_j] of full column rank (H_j > 0) and the standing hypotheses",
           "the [F_j e_j] equation has a unique solution iff H_j = B_j^T (So_j)^-1 B_j > 0 with the stacked "
           "B_j = [B^d_j; B^y_j] (so m <= n+1); P_j|T > 0 is automatic under the model given P0 > 0 and So_k > 0",
           CORRECTED, f"{CERT_DIR}/uniqueness_n1_m2_T1.json", checks.uniqueness_gain, standing=STANDING),
@@ -194,6 +195,15 @@ CLAIMS: tuple[Claim, ...] = (
           "estep.smooth's means, P_t|T, P_(t+1,t)|T and log p(Y) equal those of conditioning the joint Gaussian of "
           "(s_0..s_T, y_0..y_(T-1)) on Y with dense linear algebra",
           "small T (dense oracle)", None, HOLDS, None, checks_ecm.smoother_oracle, standing=STANDING),
+    Claim("kl_step", "Implementation: KL-constrained LQG step", "docs/math.md §6",
+          "lqg.kl_step (closed form: the dual over the multipliers, one backward pass per trial multiplier) solves "
+          "min sum_k E[l_k] s.t. KL_k <= nu_k (or sum_k KL_k <= nu): every KL_k (by lqg.kl_divergence) meets its "
+          "budget, with equality where eta_k > 10 eta_min; the policy minimises the Lagrangian sum_k E[l_k] + "
+          "sum_k eta_k KL_k (finite differences of lqg.expected_cost and lqg.kl_divergence); the dual value equals "
+          "the cost, and the dual function (lqg.dual.dual_function) at other multipliers stays below it",
+          "convex stage costs (positive definite action block), positive definite reference covariances, finite "
+          "budgets in [0.05, 0.5] per step; n <= 3, m <= 2, T <= 4",
+          None, HOLDS, None, checks_kl.kl_step_kkt),
 )
 
 _TAGS = {c.key: i + 10 for i, c in enumerate(CLAIMS)}

@@ -17,8 +17,8 @@ __all__ = ["EMConfig"]
 @dataclass(frozen=True)
 class EMConfig(MStepRecipe):
     """The EM phase of DPSOC-EM (docs/math.md §3–§5, paper Algorithm 1): the M-step recipe
-    (:class:`soc_opt.mstep.recipe.MStepRecipe`: ``method``, ``variant``, ``objective``,
-    ``cov_floor_scale``, ``entropy_floor``, ``trust_region``, ``min_norm``, ``mstep``) plus:
+    (:class:`soc_opt.mstep.recipe.MStepRecipe`, whose fields are method, variant, objective,
+    cov_floor_scale, entropy_floor, trust_region, min_norm and mstep) plus:
 
     n_em:          EM recursions at the switch (each samples ``M`` rollouts of the current EM policy).
     y_mode:        cost observations ``Y``: "model" (the paper), "measured", "optimistic" (docs/math.md §3).

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple
 import numpy as np
 
 from ... import lqg
+from ...errors import FlatCostError
 from ...lqg import LocalModel
 from ...models import LinearGaussianPolicy, Rollouts
 from ...noise import aware as noise_aware
@@ -120,6 +121,13 @@ def fit_batch(task: Task, cfg: LQRFLMConfig, state: RunState, drawn: Drawn, nois
     s_bar = noise.expansion_point(data, dyn)
     a_bar = drawn.rollouts.a.mean(axis=0)
     cost = task.cost_expansion(s_bar, a_bar)
+    if not (np.any(cost.C) or np.any(cost.c)):
+        raise FlatCostError(
+            f"the cost expansion of task {task.name} around the samples of iteration {state.iteration} is zero at "
+            f"every step (no gradient or curvature in the state or the action): the cost does not change near "
+            "the mean trajectory (an indicator cost such as an alive bonus, or a constant one), so the KL step "
+            "has nothing to follow; give the task a smooth cost ([[cost]] terms, docs/tasks.md; for gym: tasks "
+            "docs/gym.md)")
     local, wrap = noise.lqg_model(dyn, cost, est, f" (iteration {state.iteration})")
     return Batch(drawn.rollouts, est, local, wrap, timings)
 
