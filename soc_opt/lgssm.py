@@ -442,11 +442,14 @@ def _means(F, b, H, HT, R, d, yt, Pp, Pf, info: _Information | None, mu0, batch)
     return pm, fm, np.broadcast_to(loglik, (M,)).copy()
 
 
-def _c(x) -> np.ndarray:
-    """``x`` as a writable C-ordered float array, each leading axis that repeats one entry (stride 0, a
-    broadcast) cut to length 1: the compiled kernels index such an axis at 0."""
-    x = np.asarray(x, dtype=float)
-    x = x[tuple(slice(0, 1) if st == 0 and sz > 1 else slice(None) for st, sz in zip(x.strides[:-2], x.shape[:-2]))]
+def _c(x, cut: bool = True) -> np.ndarray:
+    """A time-major array ``(K, M, ...)`` of the prepared model as the kernels take it: sequence-major
+    ``(M, K, ...)``, writable, C-ordered and, with ``cut`` (the matrices), each of the two leading axes
+    that repeats one entry (stride 0, a broadcast) cut to length 1 (the kernels index such an axis at 0).
+    An array that was sequence-major to begin with (the §11 smoother's emissions) is not copied."""
+    x = np.swapaxes(np.asarray(x, dtype=float), 0, 1)
+    if cut:
+        x = x[tuple(slice(0, 1) if st == 0 and sz > 1 else slice(None) for st, sz in zip(x.strides[:2], x.shape[:2]))]
     x = np.ascontiguousarray(x)
     return x if x.flags.writeable else x.copy()
 
@@ -486,8 +489,8 @@ def _kernel_args(pr: _Prepared, H=None, d=None) -> _KernelArgs:
     W = _c(W) if info else np.zeros((1, 1, 1, 1))
     wdiag = bool(info and not np.any(W * (1.0 - np.eye(p))))
     F = _c(pr.F)
-    return _KernelArgs(F, np.ascontiguousarray(_T(F)), _c(pr.Q), _c(pr.b), _c(pr.H) if H is None else H,
-                       _c(pr.d) if d is None else d, _c(pr.y), W, wdiag, _c(pr.R), info)
+    return _KernelArgs(F, np.ascontiguousarray(_T(F)), _c(pr.Q), _c(pr.b, False), _c(pr.H) if H is None else H,
+                       _c(pr.d, False) if d is None else d, _c(pr.y, False), W, wdiag, _c(pr.R), info)
 
 
 def _forward_compiled(pr: _Prepared, linearize: Callable | None) -> _Pass:
@@ -497,8 +500,8 @@ def _forward_compiled(pr: _Prepared, linearize: Callable | None) -> _Pass:
 
     T, (K, M, p), n = pr.F.shape[0], pr.y.shape, pr.F.shape[-1]
     H = d = None
-    if linearize is not None:
-        H, d = np.empty((K, M, p, n)), np.empty((K, M, p))
+    if linearize is not None:  # filled step by step, sequence-major
+        H, d = np.empty((M, K, p, n)), np.empty((M, K, p))
     a = _kernel_args(pr, H, d)
     Pp, Pf = np.empty((M, T + 1, n, n)), np.empty((M, K, n, n))
     pm, fm = np.empty((M, T + 1, n)), np.empty((M, K, n))
@@ -506,12 +509,12 @@ def _forward_compiled(pr: _Prepared, linearize: Callable | None) -> _Pass:
     FPf, ll, status = np.empty((M, T, n, n)), np.zeros(M), np.zeros(2, dtype=np.int64)
     for k0, k1 in [(0, K)] if linearize is None else [(k, k + 1) for k in range(K)]:
         if linearize is not None:
-            H[k0], d[k0] = linearize(k0, pm[:, k0].copy())
+            H[:, k0], d[:, k0] = linearize(k0, pm[:, k0].copy())
         kern.forward(k0, k1, T, a.F, a.FT, a.Q, a.b, a.H, a.d, a.y, a.W, a.wdiag, a.R, a.info, Pp, Pf, pm, fm, FPf, ll,
                      status)
         _raise(status)
     loglik = -0.5 * (K * p * _LOG_2PI + ll)
-    return _Pass(pm, Pp, fm, Pf, loglik, pr._replace(H=a.H, d=a.d), FPf)
+    return _Pass(pm, Pp, fm, Pf, loglik, pr._replace(H=np.swapaxes(a.H, 0, 1), d=np.swapaxes(a.d, 0, 1)), FPf)
 
 
 def kalman_filter(params: Params, y, linearize: Callable | None = None, kernels: str | None = None) -> Filtered:

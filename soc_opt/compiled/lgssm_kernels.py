@@ -3,8 +3,8 @@ smoother's case).  :mod:`soc_opt.lgssm` prepares the model (decorrelation, white
 these for ``lgssm`` with a sequence axis on a matrix; its numpy loops are the reference they are
 tested against (``tests/test_compiled.py``).
 
-Arrays are time-major and C-ordered; a matrix shared by the sequences or the steps has length 1 on
-that axis (``F (T|1, M|1, n, n)``, ...).  Per step ``k`` and sequence ``i`` (module docstring of
+Arrays are sequence-major and C-ordered; a matrix shared by the sequences or the steps has length 1
+on that axis (``F (M|1, T|1, n, n)``, ``y (M, K, p)``, ...).  Per step ``k`` and sequence ``i`` (module docstring of
 :mod:`soc_opt.lgssm`, steps 2-4, one sequence at a time instead of stacks over the sequences):
 
 * the update in covariance form (``p <= n``): ``S = H P H^T + R = L L^T``, ``W = L^{-1} H P``,
@@ -62,16 +62,16 @@ def _update(k, i, P, m, H, d, y, W, wdiag, R, info, X, fm, work):
     returns ``(code, log|S| + v^T S^{-1} v)`` with ``code`` 0, or 1 / 2 on a failure."""
     Hw, G, A, piv, v, w, g, Pg, S, L, Wm = work
     n, p = P.shape[0], y.shape[2]
-    Hk = H[_at(H.shape[0], k), _at(H.shape[1], i)]
-    dk = d[k, i]
-    yk = y[k, i]
+    Hk = H[_at(H.shape[0], i), _at(H.shape[1], k)]
+    dk = d[i, k]
+    yk = y[i, k]
     for r in range(p):
         acc = yk[r] - dk[r]
         for c in range(n):
             acc -= Hk[r, c] * m[c]
         v[r] = acc
     if info:
-        Wk = W[_at(W.shape[0], k), _at(W.shape[1], i)]
+        Wk = W[_at(W.shape[0], i), _at(W.shape[1], k)]
         logdet = 0.0
         if wdiag:
             for r in range(p):
@@ -110,7 +110,7 @@ def _update(k, i, P, m, H, d, y, W, wdiag, R, info, X, fm, work):
             quad -= g[a] * Pg[a]
             fm[a] = m[a] + Pg[a]
         return 0, logdet + quad
-    Rk = R[_at(R.shape[0], k), _at(R.shape[1], i)]
+    Rk = R[_at(R.shape[0], i), _at(R.shape[1], k)]
     for r in range(p):  # (H P)[r] = sum_c H[r, c] P[c] (P symmetric: the rows of (P H^T)^T)
         for a in range(n):
             Wm[r, a] = 0.0
@@ -162,16 +162,16 @@ def _update(k, i, P, m, H, d, y, W, wdiag, R, info, X, fm, work):
 def _predict(k, i, F, FT, Q, b, X, fm, FP, Pn, pn):
     """``FP = F P^f``, ``Pn = F P^f F^T + Q``, ``pn = F m^f + b`` of sequence ``i`` at step ``k``."""
     n = X.shape[0]
-    FTk = FT[_at(FT.shape[0], k), _at(FT.shape[1], i)]
-    Qk = Q[_at(Q.shape[0], k), _at(Q.shape[1], i)]
-    np.dot(F[_at(F.shape[0], k), _at(F.shape[1], i)], X, FP)
+    FTk = FT[_at(FT.shape[0], i), _at(FT.shape[1], k)]
+    Qk = Q[_at(Q.shape[0], i), _at(Q.shape[1], k)]
+    np.dot(F[_at(F.shape[0], i), _at(F.shape[1], k)], X, FP)
     np.dot(FP, FTk, Pn)
     for a in range(n):
         for c in range(n):
             Pn[a, c] += Qk[a, c]
     symmetrize(Pn)
     for a in range(n):
-        pn[a] = b[k, i, a]
+        pn[a] = b[i, k, a]
     for c in range(n):  # F m^f, F's columns in turn (the rows of F^T)
         u = fm[c]
         for a in range(n):
@@ -213,7 +213,7 @@ def forward(k0, k1, T, F, FT, Q, b, H, d, y, W, wdiag, R, info, Pp, Pf, pm, fm, 
     The outputs are sequence-major: ``Pp (M, T+1, n, n)``, ``Pf (M, K, n, n)``, ``pm (M, T+1, n)``,
     ``fm (M, K, n)``, ``FPf (M, T, n, n)``.  Reads ``Pp[:, k0]``, ``pm[:, k0]``; writes ``Pf[:, k], fm[:, k]``
     and, for ``k < T``, ``Pp[:, k+1], pm[:, k+1], FPf[:, k]``; adds ``log|S_k| + v_k^T S_k^{-1} v_k`` to ``ll``.
-    ``info``: information form with the whitening ``W (K|1, M|1, p, p)`` (``wdiag``: ``W`` diagonal); else
+    ``info``: information form with the whitening ``W (M|1, K|1, p, p)`` (``wdiag``: ``W`` diagonal); else
     covariance form with ``R``.  Returns after writing ``status`` on the first failure.
     """
     M, n, p = pm.shape[0], pm.shape[2], y.shape[2]
@@ -261,7 +261,7 @@ def smooth(T, F, FT, Q, b, H, d, y, W, wdiag, R, info, P0, mu0, cov, mean, cross
     """Filter and smoother of each sequence in turn (module docstring): ``P0 (M|1, n, n)``, ``mu0 (M, n)``;
     results as :func:`smoother`'s, ``ll`` as :func:`forward`'s.  On a failure ``status`` is set as those do
     (for a predicted covariance: the first step over the sequences smoothed so far, then the rest filtered)."""
-    M, n, p, K = mu0.shape[0], mu0.shape[1], y.shape[2], y.shape[0]
+    M, n, p, K = mu0.shape[0], mu0.shape[1], y.shape[2], y.shape[1]
     work = _work(n, p)
     Pp, Pf, FPf = np.empty((T + 1, n, n)), np.empty((K, n, n)), np.empty((T, n, n))
     pm, fm = np.empty((T + 1, n)), np.empty((K, n))
