@@ -15,15 +15,18 @@ Which path runs (:func:`backend`):
 ``SOC_OPT_KERNELS=numba`` without numba is an error (:class:`ImportError` on first use).  Every run
 records the path in its ``config.json`` (``environment.kernels``, :func:`describe`).
 
-Compiled functions are cached on disk (``cache=True``) under the user's cache directory,
-``$SOC_OPT_CACHE_DIR`` or ``$XDG_CACHE_HOME/soc_opt/numba`` (default ``~/.cache/soc_opt/numba``), never in
-the source tree: a process pays the compilation once per kernel and machine, later ones load it
-(``NUMBA_CACHE_DIR``, when the user has set it, is respected).  Importing this module does not import
-numba; the kernel modules do, on first use.
+Compiled functions are cached on disk under the user's cache directory, ``$SOC_OPT_CACHE_DIR`` or
+``$XDG_CACHE_HOME/soc_opt/numba`` (default ``~/.cache/soc_opt/numba``), never in the source tree, keyed by
+the content of this package's source (:func:`source_hash`), not by where the checkout is: the first
+process on a machine compiles a version of the kernels (tens of seconds), every later one, in any clone
+of the same code, loads them (:func:`jit`).  Importing this module does not import numba; the kernel
+modules do, on first use.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import importlib.util
 import os
 from pathlib import Path
@@ -35,8 +38,9 @@ ENV = "SOC_OPT_KERNELS"
 _CHOICES = ("numpy", "numba")
 
 
+@functools.lru_cache(maxsize=1)
 def available() -> bool:
-    """Whether numba can be imported (without importing it)."""
+    """Whether numba can be imported (without importing it; looked up once per process)."""
     return importlib.util.find_spec("numba") is not None
 
 
@@ -81,21 +85,62 @@ def cache_dir() -> Path:
     return Path(base) / "soc_opt" / "numba"
 
 
-def jit(fn):
-    """``numba.njit`` with the project's options: cached on disk under :func:`cache_dir` (unless the user
-    set ``NUMBA_CACHE_DIR``), GIL released (the rollouts' threads), multiply-adds fused
-    (``fastmath={"contract"}``: no reassociation, so a kernel's rounding is fixed by its code and the CPU),
-    no bounds checks."""
-    import numba
-    from numba.core import config
+@functools.lru_cache(maxsize=1)
+def source_hash() -> str:
+    """SHA-256 of the kernels' source (every module of this package, in name order): the key of their cache."""
+    h = hashlib.sha256()
+    for f in sorted(Path(__file__).parent.glob("*.py")):
+        h.update(f.name.encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()
 
-    # numba fixes a function's cache location when the function is decorated, from config.CACHE_DIR
-    # (NUMBA_CACHE_DIR): ours is set for the decoration only, so numba's own default stays for others
-    own = not config.CACHE_DIR
-    if own:
-        config.CACHE_DIR = str(cache_dir())
+
+@functools.lru_cache(maxsize=1)
+def _cache_class():
+    """numba's function cache with a locator of our own: one directory per version of the kernels' source
+    under :func:`cache_dir`, found by the source's content (:func:`source_hash`), not by the path of the
+    checkout, so that another clone of the same code loads what this one compiled, and a change to any
+    module of this package (a kernel or a helper it calls) compiles anew."""
+    from numba.core.caching import CompileResultCacheImpl, FunctionCache, _CacheLocator
+
+    class Locator(_CacheLocator):
+        def __init__(self, py_func, py_file):
+            self._lineno = py_func.__code__.co_firstlineno
+            self._path = str(cache_dir() / f"kernels-{source_hash()[:20]}")
+
+        def get_cache_path(self):
+            return self._path
+
+        def get_source_stamp(self):
+            return source_hash()
+
+        def get_disambiguator(self):
+            return str(self._lineno)
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            loc = cls(py_func, py_file)
+            loc.ensure_cache_path()
+            return loc
+
+    class Impl(CompileResultCacheImpl):
+        _locator_classes = [Locator]
+
+    class Cache(FunctionCache):
+        _impl_class = Impl
+
+    return Cache
+
+
+def jit(fn):
+    """``numba.njit`` with the project's options: cached on disk under :func:`cache_dir` (module docstring),
+    GIL released (the rollouts' threads), multiply-adds fused (``fastmath={"contract"}``: no reassociation,
+    so a kernel's rounding is fixed by its code and the CPU), no bounds checks.  Where the cache directory
+    cannot be written the kernels are compiled in each process (never cached in the source tree)."""
+    import numba
+
+    disp = numba.njit(nogil=True, fastmath={"contract"}, boundscheck=False)(fn)
     try:
-        return numba.njit(cache=True, nogil=True, fastmath={"contract"}, boundscheck=False)(fn)
-    finally:
-        if own:
-            config.CACHE_DIR = ""
+        disp._cache = _cache_class()(disp.py_func)  # what numba's own cache=True does, with our locator
+    except (OSError, RuntimeError, ImportError, AttributeError):
+        pass
+    return disp
