@@ -1,4 +1,4 @@
-"""Small dense factorisations for the compiled kernels (numba; C-ordered 2-D arrays, results written
+"""Small dense factorisations for the compiled kernels (docs/math.md §0 conventions; numba, C-ordered 2-D arrays, results written
 into arrays the caller owns, so that the loops allocate nothing).
 
 Cholesky and LU with partial pivoting (docs/architecture.md, "Conventions": covariances by Cholesky;
