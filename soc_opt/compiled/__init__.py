@@ -100,9 +100,9 @@ def _cache_class():
     under :func:`cache_dir`, found by the source's content (:func:`source_hash`), not by the path of the
     checkout, so that another clone of the same code loads what this one compiled, and a change to any
     module of this package (a kernel or a helper it calls) compiles anew."""
-    from numba.core.caching import CompileResultCacheImpl, FunctionCache, _CacheLocator
+    from numba.core.caching import CompileResultCacheImpl, FunctionCache, UserProvidedCacheLocator
 
-    class Locator(_CacheLocator):
+    class Locator(UserProvidedCacheLocator):  # every method of the locator protocol overridden
         def __init__(self, py_func, py_file):
             self._lineno = py_func.__code__.co_firstlineno
             self._path = str(cache_dir() / f"kernels-{source_hash()[:20]}")
