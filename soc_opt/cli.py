@@ -108,6 +108,10 @@ def _run_method(args, task, out: Path) -> int:
             _print(f"{args.method} run in {out} already finished ({done.iteration} iterations); nothing to do "
                    "(--restart to run it again)")
             return 0
+    if cfg.baseline.noise.estimator == "kinematic":  # the estimator whose smoother and filter have compiled kernels
+        from .compiled import describe
+
+        _print(f"kernels: {describe()} (recorded in config.json; docs/architecture.md, \"Compiled kernels\")")
 
     def finish(state, log):
         _final_phase(task, args.method, cfg, args.seed, state, out, log)

@@ -44,11 +44,17 @@ Algorithm (all steps batched over the sequences and, outside the two recursions,
 An extended filter (the §11 estimator's first pass) passes ``linearize(k, m_k) -> (H_k, d_k)``,
 called with the predicted means ``m_k (M, n)`` at each step; the emissions are then per sequence.
 
+Covariances per sequence run the same steps one sequence at a time in compiled loops
+(:mod:`soc_opt.compiled.lgssm_kernels`, numba) when numba is installed: ``kernels=None`` (default)
+takes the path :func:`soc_opt.compiled.backend` names, ``"numpy"`` or ``"numba"`` force one.  The numpy
+loops below are the reference; the two agree to rounding (``tests/test_compiled.py``).  Shared
+covariances always take the numpy path (one recursion for all sequences).
+
 Public API:
-    Initial, Dynamics, Emissions, Params        parameter bundles
-    kalman_filter(params, y, linearize=None)    -> Filtered
-    rts_smoother(params, y, linearize=None)     -> Posterior
-    log_likelihood(params, y)                   -> (M,)
+    Initial, Dynamics, Emissions, Params                      parameter bundles
+    kalman_filter(params, y, linearize=None, kernels=None)    -> Filtered
+    rts_smoother(params, y, linearize=None, kernels=None)     -> Posterior
+    log_likelihood(params, y, kernels=None)                   -> (M,)
 """
 
 from __future__ import annotations
@@ -58,6 +64,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from . import compiled as _compiled
 from .linalg import T as _T
 from .linalg import chol, right_cho_solve, tri_solve
 from .models import NotPositiveDefiniteError, ShapeError, symmetrize
@@ -250,7 +257,7 @@ def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 class _Pass(NamedTuple):
-    """Forward pass, time-major: everything :func:`rts_smoother` needs."""
+    """Forward pass, time-major (sequence-major when ``compiled`` is set): everything :func:`rts_smoother` needs."""
 
     pm: np.ndarray  # (T+1, M, n) predicted means
     Pp: np.ndarray  # (T+1, *B, n, n)
@@ -258,12 +265,26 @@ class _Pass(NamedTuple):
     Pf: np.ndarray  # (K, *B, n, n)
     loglik: np.ndarray  # (M,)
     prep: _Prepared
+    compiled: np.ndarray | None = None  # F P^f (M, T, n, n) for the compiled smoother (_forward_compiled)
 
 
-def _forward(params: Params, y, linearize: Callable | None) -> _Pass:
+def _setup(params: Params, y, linearize: Callable | None) -> _Prepared:
     if linearize is not None and params.cross is not None:
         raise ValueError("lgssm: an extended filter (linearize) takes independent noises (cross=None)")
-    pr = _prepare(params, y, per_sequence=linearize is not None)
+    return _prepare(params, y, per_sequence=linearize is not None)
+
+
+def _compiled_path(pr: _Prepared, kernels: str | None) -> bool:
+    """Whether this model runs in the compiled kernels: covariances per sequence and numba chosen."""
+    return bool(pr.batch) and _compiled.backend(kernels) == "numba"
+
+
+def _forward(params: Params, y, linearize: Callable | None, kernels: str | None = None) -> _Pass:
+    pr = _setup(params, y, linearize)
+    return _forward_compiled(pr, linearize) if _compiled_path(pr, kernels) else _forward_numpy(pr, linearize)
+
+
+def _forward_numpy(pr: _Prepared, linearize: Callable | None) -> _Pass:
     F, Q, H, R, b, d, yt, batch = pr.F, pr.Q, pr.H, pr.R, pr.b, pr.d, pr.y, pr.batch
     T, K, M, n, p = F.shape[0], yt.shape[0], yt.shape[1], F.shape[-1], yt.shape[2]
     if linearize is not None:
@@ -334,6 +355,18 @@ class _Information(NamedTuple):
 def _information(H, R, n: int, p: int, extended: bool) -> _Information | None:
     """The update in the ``n`` state dimensions instead of the ``p`` observed ones when there are more
     observations than states and ``R`` is positive definite; ``None`` otherwise (covariance form)."""
+    W = _whitening(R, n, p)
+    if W is None:
+        return None
+    if extended:  # filled step by step as the emissions are linearised
+        return _Information(W, np.empty(H.shape), np.empty(H.shape[:-2] + (n, n)))
+    Hw = W @ H
+    return _Information(W, Hw, _T(Hw) @ Hw)
+
+
+def _whitening(R, n: int, p: int) -> np.ndarray | None:
+    """``W = L_R^{-1}`` (the shape of ``R``) when the update goes in information form (``p > n``, ``R``
+    positive definite), else ``None``."""
     if p <= n:
         return None
     # one R repeated over the leading axes (a broadcast view, stride 0: the §11 estimator's rho^2 I) is
@@ -346,12 +379,7 @@ def _information(H, R, n: int, p: int, extended: bool) -> _Information | None:
         return None
     # the whitening transform itself (a triangular solve per R, shared by every sequence and column of H)
     W = tri_solve(LR, np.broadcast_to(np.eye(p), LR.shape))
-    if shared:
-        W = np.broadcast_to(W, R.shape)
-    if extended:  # filled step by step as the emissions are linearised
-        return _Information(W, np.empty(H.shape), np.empty(H.shape[:-2] + (n, n)))
-    Hw = W @ H
-    return _Information(W, Hw, _T(Hw) @ Hw)
+    return np.broadcast_to(W, R.shape) if shared else W
 
 
 def _means(F, b, H, HT, R, d, yt, Pp, Pf, info: _Information | None, mu0, batch):
@@ -414,13 +442,91 @@ def _means(F, b, H, HT, R, d, yt, Pp, Pf, info: _Information | None, mu0, batch)
     return pm, fm, np.broadcast_to(loglik, (M,)).copy()
 
 
-def kalman_filter(params: Params, y, linearize: Callable | None = None) -> Filtered:
+def _c(x, cut: bool = True) -> np.ndarray:
+    """A time-major array ``(K, M, ...)`` of the prepared model as the kernels take it: sequence-major
+    ``(M, K, ...)``, writable, C-ordered and, with ``cut`` (the matrices), each of the two leading axes
+    that repeats one entry (stride 0, a broadcast) cut to length 1 (the kernels index such an axis at 0).
+    An array that was sequence-major to begin with (the §11 smoother's emissions) is not copied."""
+    x = np.swapaxes(np.asarray(x, dtype=float), 0, 1)
+    if cut:
+        x = x[tuple(slice(0, 1) if st == 0 and sz > 1 else slice(None) for st, sz in zip(x.strides[:2], x.shape[:2]))]
+    x = np.ascontiguousarray(x)
+    return x if x.flags.writeable else x.copy()
+
+
+def _raise(status):
+    """Raise what the numpy path raises for a compiled kernel's ``status`` (:mod:`soc_opt.compiled.lgssm_kernels`)."""
+    code, k = int(status[0]), int(status[1])
+    if code == 1:
+        raise NotPositiveDefiniteError(f"lgssm: innovation covariance S[{k}] is not positive definite")
+    if code == 2:
+        raise np.linalg.LinAlgError(f"lgssm: I + P G singular at step {k} (information form)")
+    if code == 3:
+        raise NotPositiveDefiniteError(
+            f"predicted covariance P[{k}] (Cov(z_{k} | y_0..y_{k - 1})) is not positive definite")
+
+
+class _KernelArgs(NamedTuple):
+    """The prepared model as the compiled kernels take it (:mod:`soc_opt.compiled.lgssm_kernels`)."""
+
+    F: np.ndarray
+    FT: np.ndarray
+    Q: np.ndarray
+    b: np.ndarray
+    H: np.ndarray
+    d: np.ndarray
+    y: np.ndarray
+    W: np.ndarray
+    wdiag: bool
+    R: np.ndarray
+    info: bool
+
+
+def _kernel_args(pr: _Prepared, H=None, d=None) -> _KernelArgs:
+    n, p = pr.F.shape[-1], pr.y.shape[2]
+    W = _whitening(pr.R, n, p)
+    info = W is not None
+    W = _c(W) if info else np.zeros((1, 1, 1, 1))
+    wdiag = bool(info and not np.any(W * (1.0 - np.eye(p))))
+    F = _c(pr.F)
+    return _KernelArgs(F, np.ascontiguousarray(_T(F)), _c(pr.Q), _c(pr.b, False), _c(pr.H) if H is None else H,
+                       _c(pr.d, False) if d is None else d, _c(pr.y, False), W, wdiag, _c(pr.R), info)
+
+
+def _forward_compiled(pr: _Prepared, linearize: Callable | None) -> _Pass:
+    """The forward pass with covariances per sequence in the compiled kernel (module docstring); its
+    arrays are sequence-major (``compiled`` is set), those of :func:`_forward_numpy` time-major."""
+    from .compiled import lgssm_kernels as kern
+
+    T, (K, M, p), n = pr.F.shape[0], pr.y.shape, pr.F.shape[-1]
+    H = d = None
+    if linearize is not None:  # filled step by step, sequence-major
+        H, d = np.empty((M, K, p, n)), np.empty((M, K, p))
+    a = _kernel_args(pr, H, d)
+    Pp, Pf = np.empty((M, T + 1, n, n)), np.empty((M, K, n, n))
+    pm, fm = np.empty((M, T + 1, n)), np.empty((M, K, n))
+    Pp[:, 0], pm[:, 0] = pr.P0, pr.mu0
+    FPf, ll, status = np.empty((M, T, n, n)), np.zeros(M), np.zeros(2, dtype=np.int64)
+    for k0, k1 in [(0, K)] if linearize is None else [(k, k + 1) for k in range(K)]:
+        if linearize is not None:
+            H[:, k0], d[:, k0] = linearize(k0, pm[:, k0].copy())
+        kern.forward(k0, k1, T, a.F, a.FT, a.Q, a.b, a.H, a.d, a.y, a.W, a.wdiag, a.R, a.info, Pp, Pf, pm, fm, FPf, ll,
+                     status)
+        _raise(status)
+    loglik = -0.5 * (K * p * _LOG_2PI + ll)
+    return _Pass(pm, Pp, fm, Pf, loglik, pr._replace(H=np.swapaxes(a.H, 0, 1), d=np.swapaxes(a.d, 0, 1)), FPf)
+
+
+def kalman_filter(params: Params, y, linearize: Callable | None = None, kernels: str | None = None) -> Filtered:
     """Filtered and predicted moments and ``log p(Y)`` of ``y (M, K, p)`` (module docstring, steps 1-3).
 
     ``linearize(k, m_k) -> (H_k (M, p, n), d_k (M, p))``: an extended filter, linearised at the
-    predicted means ``m_k (M, n)``; the emissions of ``params`` are then ignored.
+    predicted means ``m_k (M, n)``; the emissions of ``params`` are then ignored.  ``kernels``: the path
+    of covariances per sequence (module docstring; ``None``: :func:`soc_opt.compiled.backend`).
     """
-    fp = _forward(params, y, linearize)
+    fp = _forward(params, y, linearize, kernels)
+    if fp.compiled is not None:  # sequence-major already
+        return Filtered(fp.pm, fp.Pp, fp.fm, fp.Pf, fp.loglik)
     b = fp.prep.batch
     return Filtered(_seq_major(fp.pm), _seq_major(fp.Pp) if b else fp.Pp, _seq_major(fp.fm),
                     _seq_major(fp.Pf) if b else fp.Pf, fp.loglik)
@@ -431,19 +537,22 @@ def _seq_major(X: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.swapaxes(X, 0, 1))
 
 
-def log_likelihood(params: Params, y) -> np.ndarray:
-    """``log p(y_0..y_{K-1})`` per sequence, ``(M,)`` (the filter pass only)."""
-    return _forward(params, y, None).loglik
+def log_likelihood(params: Params, y, kernels: str | None = None) -> np.ndarray:
+    """``log p(y_0..y_{K-1})`` per sequence, ``(M,)`` (the filter pass only; ``kernels`` as in :func:`kalman_filter`)."""
+    return _forward(params, y, None, kernels).loglik
 
 
 # --------------------------------------------------------------------------- smoother
 
 
-def rts_smoother(params: Params, y, linearize: Callable | None = None) -> Posterior:
-    """Rauch-Tung-Striebel smoother of ``y (M, K, p)`` (module docstring, step 4); ``linearize`` as in
-    :func:`kalman_filter`.  Raises :class:`~soc_opt.models.NotPositiveDefiniteError` when a
-    predicted covariance is not positive definite."""
-    fp = _forward(params, y, linearize)
+def rts_smoother(params: Params, y, linearize: Callable | None = None, kernels: str | None = None) -> Posterior:
+    """Rauch-Tung-Striebel smoother of ``y (M, K, p)`` (module docstring, step 4); ``linearize`` and
+    ``kernels`` as in :func:`kalman_filter`.  Raises :class:`~soc_opt.models.NotPositiveDefiniteError`
+    when a predicted covariance is not positive definite."""
+    pr = _setup(params, y, linearize)
+    if _compiled_path(pr, kernels):
+        return _smoother_compiled(pr, linearize)
+    fp = _forward_numpy(pr, linearize)
     F, Q = fp.prep.F, fp.prep.Q
     Pp, Pf, pm, fm = fp.Pp, fp.Pf, fp.pm, fp.fm
     T, K = F.shape[0], fm.shape[0]
@@ -486,3 +595,28 @@ def rts_smoother(params: Params, y, linearize: Callable | None = None) -> Poster
     if batch:
         cov, cross = _seq_major(cov), _seq_major(cross)
     return Posterior(_seq_major(mean), cov, cross, fp.loglik)
+
+
+def _smoother_compiled(pr: _Prepared, linearize: Callable | None) -> Posterior:
+    """:func:`rts_smoother` in the compiled kernels (sequence-major results): filter and smoother of one
+    sequence after the other, or, for an extended filter, the forward pass of all sequences step by step
+    and then the smoother."""
+    from .compiled import lgssm_kernels as kern
+
+    T, (K, M, p), n = pr.F.shape[0], pr.y.shape, pr.F.shape[-1]
+    cov, mean, cross = np.empty((M, T + 1, n, n)), np.empty((M, T + 1, n)), np.empty((M, T, n, n))
+    status = np.zeros(2, dtype=np.int64)
+    if linearize is None:
+        a = _kernel_args(pr)
+        P0 = np.ascontiguousarray(np.broadcast_to(pr.P0, (M if pr.P0.ndim == 3 else 1, n, n)))
+        ll = np.zeros(M)
+        kern.smooth(T, a.F, a.FT, a.Q, a.b, a.H, a.d, a.y, a.W, a.wdiag, a.R, a.info, P0,
+                    np.ascontiguousarray(pr.mu0), cov, mean, cross, ll, status)
+        _raise(status)
+        return Posterior(mean, cov, cross, -0.5 * (K * p * _LOG_2PI + ll))
+    fp = _forward_compiled(pr, linearize)
+    last = (fp.Pf, fp.fm) if K == T + 1 else (fp.Pp, fp.pm)
+    cov[:, T], mean[:, T] = last[0][:, T], last[1][:, T]
+    kern.smoother(T, fp.Pp, fp.Pf, fp.pm, fp.fm, fp.compiled, cov, mean, cross, status)
+    _raise(status)
+    return Posterior(mean, cov, cross, fp.loglik)

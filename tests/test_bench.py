@@ -24,6 +24,7 @@ COLUMNS = {
     "mstep": {"method", "constraints", "time_per_step_s", "objective_gap", "max_gain_diff"},
     "lqg": {"n", "m", "T", "budget", "cf_ms_median", "objective_gap"},
     "iteration": {"method", "phase", "median_s", "n"},
+    "compiled": {"case", "numpy_ms", "numba_ms", "ratio", "max_abs_diff"},
     "noisefit": {"M", "method", "bias_A", "bias_B"},
     "gym_envs": {"env", "cost_first", "cost_last", "cost_best", "seconds_per_iteration", "error"},
     "env_steps": {"env", "T", "steps", "repeats", "median_steps_per_s", "min_steps_per_s", "max_steps_per_s"},

@@ -22,6 +22,20 @@ def test_the_record_names_the_versions_this_process_runs():
     assert json.loads(json.dumps(env)) == env                     # stored as JSON as is
 
 
+def test_the_record_names_the_path_of_the_compiled_kernels(monkeypatch):
+    """``kernels``: ``numba <version>`` when the compiled kernels run, ``numpy`` otherwise
+    (soc_opt.compiled); a run resumed on the other path says so, like any other difference."""
+    from soc_opt import compiled
+
+    monkeypatch.setenv(compiled.ENV, "numpy")
+    env = environment()
+    assert env["kernels"].startswith("numpy")
+    if compiled.available():
+        monkeypatch.setenv(compiled.ENV, "numba")
+        assert environment()["kernels"].startswith("numba ")
+        assert any(d.startswith("kernels: numpy") for d in environment_differences(env, environment()))
+
+
 def test_differences_list_each_changed_entry_and_nothing_for_an_old_record():
     env = environment()
     other = json.loads(json.dumps(env))

@@ -16,10 +16,11 @@ from ..config import ConfigError
 __all__ = ["PARTS", "DEFAULT_PARTS", "SUPPORT", "parse_parts", "run_part"]
 
 #: Every benchmark part, in the order ``soc-opt bench`` runs them.
-PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration", "noisefit", "gym_envs", "env_steps")
+PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration", "compiled", "noisefit", "gym_envs", "env_steps")
 #: The parts of a plain ``soc-opt bench`` (``noisefit``: ~3 CPU minutes, ``gym_envs``: minutes per
 #: environment; both only on request, as is ``env_steps``, the soc_opt Gymnasium environments' steps/s).
-DEFAULT_PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration")
+#: ``compiled``: the numba kernels against the numpy path, and their compile and cache-load times.
+DEFAULT_PARTS = ("rollouts", "fit", "estep", "mstep", "lqg", "iteration", "compiled")
 #: Modules of this package that are not ``bench`` parts: the solver benchmark of ``soc-opt solvers``
 #: (``qp_bench``, its report and qpbenchmark export ``qp_bench_report``; the earlier ``solvers`` and
 #: ``solvers_report``, ``--legacy``), the fatrop build-time study (``fatrop_scale``) and the guarded worker

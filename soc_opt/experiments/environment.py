@@ -16,7 +16,7 @@ from importlib import metadata
 __all__ = ["environment", "environment_differences", "PACKAGES"]
 
 # the packages whose arithmetic a run's numbers depend on
-PACKAGES = ("soc_opt", "numpy", "scipy", "mujoco", "scikit-learn", "casadi", "cvxpy", "clarabel", "scs")
+PACKAGES = ("soc_opt", "numpy", "scipy", "mujoco", "scikit-learn", "casadi", "cvxpy", "clarabel", "scs", "numba")
 
 
 def _version(name: str) -> str | None:
@@ -40,9 +40,13 @@ def _blas() -> list[str]:
 
 
 def environment() -> dict:
-    """``{"python", "machine", "blas", "packages": {name: version}}`` of this process."""
+    """``{"python", "machine", "blas", "kernels", "packages": {name: version}}`` of this process; ``kernels`` is
+    the path of the compiled kernels (:func:`soc_opt.compiled.describe`: ``"numba <version>"`` or ``"numpy"``),
+    which round differently from the numpy path (docs/reproducibility.md)."""
+    from ..compiled import describe
+
     return {"python": platform.python_version(), "machine": f"{platform.system()} {platform.machine()}",
-            "implementation": sys.implementation.name, "blas": _blas(),
+            "implementation": sys.implementation.name, "blas": _blas(), "kernels": describe(),
             "packages": {p: _version(p) for p in PACKAGES}}
 
 
@@ -53,7 +57,7 @@ def environment_differences(old: dict | None, new: dict) -> list[str]:
     if not isinstance(old, dict):
         return []
     out = []
-    for key in ("python", "machine", "implementation", "blas"):
+    for key in ("python", "machine", "implementation", "blas", "kernels"):
         if key in old and old[key] != new.get(key):
             out.append(f"{key}: {old[key]} -> {new.get(key)}")
     olds, news = old.get("packages"), new.get("packages") or {}

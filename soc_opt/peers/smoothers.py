@@ -22,7 +22,8 @@ dynamax's ``lgssm_smoother`` smooths one sequence; ``jit(vmap(...))`` over the `
 (its documented way to batch) recomputes the covariances for every sequence: that is its design, not a
 handicap added here.  The like-for-like row is therefore also timed: soc_opt's core with the
 covariances made per sequence (:func:`run_soc_opt_per_sequence`, an initial covariance with a
-sequence axis, as when every sequence has its own model), which does dynamax's work.  pykalman has
+sequence axis, as when every sequence has its own model), which does dynamax's work; it runs in the
+compiled kernels when numba is installed (:mod:`soc_opt.compiled`; the row's ``kernels`` says which path ran).  pykalman has
 no batch axis: one ``smooth`` call per sequence.  The calls are timed interleaved (soc_opt, its core,
 its core per sequence, dynamax, in turn, in a random order drawn afresh every round from a fixed seed),
 so that a change of the machine's load hits all of them and each follows each other equally often: a
@@ -49,7 +50,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .. import lgssm
+from .. import compiled, lgssm
 from ..estep import closed_loop, smooth
 from ..models import AugmentedModel, LinearGaussianPolicy, symmetrize
 from . import require
@@ -269,7 +270,7 @@ def compare(rng: np.random.Generator, n: int, T: int = 100, M: int = 20, m: int 
     dc = _diff(ref, runs["core"][-1])
     row = {"n": n, "m": m, "T": T, "sequences": M, "soc_opt_ms": 1e3 * so_s, "soc_opt_core_ms": 1e3 * sec["core"],
            "soc_opt_per_seq_ms": 1e3 * sec["per_seq"], "core_max_dmean": dc["mean"], "per_seq_max_dmean": d["mean"],
-           "per_seq_max_dcov": d["cov"], "per_seq_max_dloglik": d["loglik"]}
+           "per_seq_max_dcov": d["cov"], "per_seq_max_dloglik": d["loglik"], "kernels": compiled.describe()}
     if "dynamax" in peers:
         dx = runs["dynamax"][-1]
         d = _diff(ref, dx)

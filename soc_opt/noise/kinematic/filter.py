@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ... import compiled
 from ...models import LinearGaussianPolicy, ShapeError, check_array
 from ..estimator import FilteredPolicy
 from .model import AccelMap
@@ -133,11 +134,8 @@ class KinematicFilter:
             pred = _vm(zp, self.A[k - 1].T) + _vm(np.asarray(a_prev, dtype=float), self.Bz[k - 1].T) + self.cz[k - 1]
         km = self.__dict__.get("_km")
         if km is not None and self.online:
-            r2 = self.R[0, 0]
             hx, H = km.measure(pred)
-            Ht = np.swapaxes(H, -1, -2)
-            g = np.einsum("...ij,...j->...i", Ht, s_k - hx) / r2
-            return km.measure(pred + np.linalg.solve(self.Lm[k] + Ht @ H / r2, g[..., None])[..., 0], False)
+            return km.measure(pred + _online_update(s_k, hx, H, self.Lm[k], self.R[0, 0]), False)
         if km is None:
             dz = pred - self.zbar[k]
             nu = s_k - self.h0[k] - _vm(dz, self.H[k].T)
@@ -169,6 +167,27 @@ class KinematicFilter:
     def from_dict(d) -> "KinematicFilter":
         """From :meth:`to_dict` output (a file saved before ``online`` existed reads as nominal gains)."""
         return KinematicFilter(**{k: np.asarray(d[k]) for k in _FIELDS if k in d or k != "online"})
+
+
+def _online_update(s_k, hx, H, Lm, r2: float, kernels: str | None = None) -> np.ndarray:
+    """``(Lm + H^T H / r2)^{-1} H^T (s_k - hx) / r2`` per row of ``s_k, hx (..., n)``, ``H (..., n, nz)``: the
+    relinearised update of the module docstring.  With numba, one compiled loop over the rows
+    (:mod:`soc_opt.compiled.kinematic_kernels`; ``kernels`` as in :func:`soc_opt.compiled.backend`),
+    which agrees with the numpy reference below to rounding; each row computed alone either way."""
+    if compiled.backend(kernels) == "numba":
+        from ...compiled import kinematic_kernels
+
+        lead, (n, nz) = H.shape[:-2], H.shape[-2:]
+        out = np.empty(lead + (nz,))
+        ok = kinematic_kernels.online_update(np.ascontiguousarray(np.broadcast_to(s_k, lead + (n,))).reshape(-1, n),
+                                             np.ascontiguousarray(hx).reshape(-1, n), np.ascontiguousarray(H).reshape(-1, n, nz),
+                                             np.ascontiguousarray(Lm), float(r2), out.reshape(-1, nz))
+        if not ok:
+            raise np.linalg.LinAlgError("kinematic filter: singular update matrix Lm + H^T H / rho^2")
+        return out
+    Ht = np.swapaxes(H, -1, -2)
+    g = np.einsum("...ij,...j->...i", Ht, s_k - hx) / r2
+    return np.linalg.solve(Lm + Ht @ H / r2, g[..., None])[..., 0]
 
 
 def _vm(x: np.ndarray, A: np.ndarray) -> np.ndarray:
