@@ -69,6 +69,7 @@ import numpy as np
 
 from .. import files, plugins
 from ..config import IMPLIED_WHEN_ABSENT, ConfigError
+from ..reading import kind_of
 from .statefile import MAX_STATE_BYTES, MAX_TREE_BYTES, StateFileError, decode_state, encode_state, peek_state
 
 try:  # POSIX advisory locks; elsewhere a pid check stands in (see _PidLock)
@@ -350,13 +351,18 @@ def peek_checkpoint(path: Path) -> dict:
 
 
 def run_record(path: Path) -> dict | None:
-    """The ``config.json`` of the run directory ``path``, or None when ``path`` is not one.
+    """The ``config.json`` of the run directory ``path``, or None when ``path`` is not one; a
+    :class:`RunDirectoryError` naming it when ``config.json`` is not a file (a FIFO, socket or device).
 
     A run directory's ``config.json`` is a JSON table with ``format = "soc_opt run"`` (written since
     issue 31), or, written before, with the keys ``method`` (a string), ``seed`` and ``config`` (a table)."""
     p = Path(path) / "config.json"
     if not os.path.lexists(p):
         return None
+    mode = os.lstat(p).st_mode
+    if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):  # a FIFO, socket or device where a run keeps its record
+        raise RunDirectoryError(f"{str(p)!r} is {kind_of(mode)}, not a regular file: no run of soc_opt wrote it, "
+                                "so the folder is not a run directory; remove it or use another --out")
     try:
         meta = files.read_json_file(p, limit=files.MAX_JSON_BYTES)
     except (OSError, ConfigError):

@@ -104,6 +104,10 @@ def solve_scalar(prob: KLProblem, nu: float, config: KLStepConfig, eta0) -> tupl
                 return r, call.n, it, "slack (eta = eta_min): KL = 0, the policy is the reference"
             hi, x = min(hi, x), xmin
             continue
+        if not ksum > 0.0:  # a KL is >= 0: a negative or NaN total means the evaluation at eta is wrong
+            raise SolverError(f"KL(eta={math.exp(x):.6g}) = {ksum!r} is negative or not a number: the KL of a Gaussian policy to "
+                              "its reference cannot be; the dual's KL evaluation (lqg/backward.py) or the problem's "
+                              "covariances are wrong")
         f = math.log(ksum) - math.log(nu)
         if abs(f) <= ftol:
             return r, call.n, it, "converged"
