@@ -622,6 +622,12 @@ def main(argv: list[str] | None = None) -> int:
             sys.stderr.flush()
             os._exit(130)
         return 130
+    except BrokenPipeError:  # the reader of the output went away (`soc-opt ... | head`): stop as a pipe stage does
+        try:  # no second error when the interpreter flushes standard output at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 141
     except Exception as e:
         if debug:
             traceback.print_exc()

@@ -386,3 +386,18 @@ def test_an_unfinished_run_in_a_folder_soc_opt_cannot_write_is_one_line_naming_t
     assert main(args) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert str(out / "lock") in line and "not writable" in line and os.strerror(errno_) in line, line
+
+
+def test_output_read_by_a_pipe_that_closes_early_ends_quietly_like_a_pipe_stage(tmp_path):
+    """`soc-opt sweep FILE --dry-run | head -2`: the reader goes away; no "BrokenPipeError" line, exit 141."""
+    import subprocess
+    import sys
+
+    sweep = tmp_path / "s.toml"
+    sweep.write_text('tasks = ["linear2d"]\nmethods = ["lqr-flm", "dpsoc-em"]\nseeds = 3000\n')
+    p = subprocess.Popen([sys.executable, "-m", "soc_opt.cli", "sweep", str(sweep), "--dry-run"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.readline()
+    p.stdout.close()  # the reader is gone before most of the 6000 lines (more than a pipe holds) are written
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 141 and "BrokenPipeError" not in err and "error" not in err, err
