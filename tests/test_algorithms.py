@@ -164,13 +164,14 @@ def test_dpsoc_em_rejects_a_switch_outside_the_run_before_sampling():
 
 
 def test_em_records_keep_the_metrics_columns_in_their_order():
-    """metrics.csv columns of an EM record: recursion index, diagnostics, then the phase timings."""
+    """metrics.csv columns of an EM record: the batch's prior-fit time, recursion index, diagnostics, then
+    the phase timings."""
     task = load_task("linear2d", overrides={"T": 10})
     cfg = DPSOCConfig(i_switch=0, baseline=LQRFLMConfig(iterations=1, samples=4, init_var=10.0))
     state = registry.run(task, "dpsoc-em", cfg, seed=0)
     em = next(r for r in state.history if r.phase == "em")
     keys = list(em.summary())
-    em_block = ["em_recursion", "surrogate_old", "surrogate_new", "loglik_old", "loglik_new",
+    em_block = ["time_prior", "em_recursion", "surrogate_old", "surrogate_new", "loglik_old", "loglik_new",
                 "time_fit_augmented", "time_estep", "time_mstep"]
     start = keys.index("time_rollouts") + 1
     assert keys[start:start + len(em_block)] == em_block

@@ -92,10 +92,15 @@ def sample(task: Task, cfg: LQRFLMConfig, policy, rng: np.random.Generator) -> t
 
 
 def draw(task: Task, cfg: LQRFLMConfig, state: RunState, rng: np.random.Generator, noise: NoiseStrategy) -> Drawn:
-    """Step 1 on ``state.policy``: its samples, estimated from ``state.prior`` and ``state.last_rollouts``."""
+    """Step 1 on ``state.policy``: its samples, estimated from ``state.prior`` and ``state.last_rollouts``.
+    Timings: ``rollouts``, the estimator's own (``estimator``), and ``prior``, the rest of the estimate
+    (the mixture prior's variational fit, docs/math.md §2)."""
     rollouts, timings = sample(task, cfg, state.policy, rng)
+    t0 = time.perf_counter()
     est = noise.estimate(state.prior, rollouts, cfg.fit, state.policy, rng, previous=state.last_rollouts)
+    spent = time.perf_counter() - t0
     timings.update(est.timings)
+    timings["prior"] = max(spent - sum(est.timings.values()), 0.0)  # the rest of step 2a: the mixture prior's fit
     return Drawn(rollouts, est, timings, record(state.iteration, "baseline", task, rollouts, kl=0.0, nu=0.0, mult=1.0))
 
 
