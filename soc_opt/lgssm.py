@@ -11,7 +11,7 @@ With ``K = T`` the last state ``z_T`` is not observed (the E-step's closed loop,
 ``K = T + 1`` every state is (the §10 measurements ``s_k``, the §11 measurements of ``h(z_k)``).
 
 Parameters are bundled as :class:`Params` (:class:`Initial`, :class:`Dynamics`,
-:class:`Emissions` and the cross-covariance ``C``).  ``M`` sequences are processed at once: the
+:class:`Emissions` and the noise cross-covariance ``C``).  ``M`` sequences are processed at once: the
 observations are ``y (M, K, p)``; means (``mu0``, ``b``, ``d``) may carry a leading ``M`` axis.
 When every matrix (``P0, F, Q, H, R, C``) is shared by the sequences, so are all covariances and
 gains: they are computed once and only the means are per sequence (the E-step's case, where all
@@ -117,47 +117,51 @@ class Params(NamedTuple):
         initial:   :class:`Initial`
         dynamics:  :class:`Dynamics`
         emissions: :class:`Emissions`
-        cross:     (T, n, p) or (M, T, n, p) ``C_k = Cov(w_k, v_k)``, or ``None`` (independent noises)
+        noise_cross_cov: (T, n, p) or (M, T, n, p) ``C_k = Cov(w_k, v_k)``, or ``None`` (independent noises)
     """
 
     initial: Initial
     dynamics: Dynamics
     emissions: Emissions
-    cross: np.ndarray | None = None
+    noise_cross_cov: np.ndarray | None = None
 
 
 class Filtered(NamedTuple):
     """Output of :func:`kalman_filter`; ``*`` is ``()`` when the covariances are shared, ``(M,)`` otherwise.
 
     Fields:
-        pred_mean: (M, T+1, n)     ``m_k = E[z_k | y_0..y_{k-1}]`` (``m_0 = mu0``)
-        pred_cov:  (*, T+1, n, n)  ``P_k = Cov(z_k | y_0..y_{k-1})``
-        filt_mean: (M, K, n)       ``E[z_k | y_0..y_k]``
-        filt_cov:  (*, K, n, n)    ``Cov(z_k | y_0..y_k)``
-        loglik:    (M,)            ``log p(y_0..y_{K-1})``
+        predicted_means:       (M, T+1, n)     ``m_k = E[z_k | y_0..y_{k-1}]`` (``m_0 = mu0``)
+        predicted_covariances: (*, T+1, n, n)  ``P_k = Cov(z_k | y_0..y_{k-1})``
+        filtered_means:        (M, K, n)       ``E[z_k | y_0..y_k]``
+        filtered_covariances:  (*, K, n, n)    ``Cov(z_k | y_0..y_k)``
+        marginal_loglik:       (M,)            ``log p(y_0..y_{K-1})``
+
+    The names are dynamax's (``PosteriorGSSMFiltered``).
     """
 
-    pred_mean: np.ndarray
-    pred_cov: np.ndarray
-    filt_mean: np.ndarray
-    filt_cov: np.ndarray
-    loglik: np.ndarray
+    predicted_means: np.ndarray
+    predicted_covariances: np.ndarray
+    filtered_means: np.ndarray
+    filtered_covariances: np.ndarray
+    marginal_loglik: np.ndarray
 
 
 class Posterior(NamedTuple):
     """Output of :func:`rts_smoother`; ``*`` as in :class:`Filtered`.
 
     Fields:
-        mean:   (M, T+1, n)     ``E[z_k | Y]``
-        cov:    (*, T+1, n, n)  ``Cov(z_k | Y)``
-        cross:  (*, T, n, n)    ``Cov(z_{k+1}, z_k | Y)``
-        loglik: (M,)            ``log p(Y)``
+        smoothed_means:             (M, T+1, n)     ``E[z_k | Y]``
+        smoothed_covariances:       (*, T+1, n, n)  ``Cov(z_k | Y)``
+        smoothed_cross_covariances: (*, T, n, n)    ``Cov(z_{k+1}, z_k | Y)``
+        marginal_loglik:            (M,)            ``log p(Y)``
+
+    The names are dynamax's (``PosteriorGSSMSmoothed``).
     """
 
-    mean: np.ndarray
-    cov: np.ndarray
-    cross: np.ndarray
-    loglik: np.ndarray
+    smoothed_means: np.ndarray
+    smoothed_covariances: np.ndarray
+    smoothed_cross_covariances: np.ndarray
+    marginal_loglik: np.ndarray
 
 
 # --------------------------------------------------------------------------- preparation
@@ -223,10 +227,10 @@ def _prepare(params: Params, y, per_sequence: bool = False) -> _Prepared:
     d = np.broadcast_to(d if d.ndim == 3 else d[:, None], (K, M, p))
     mu0 = np.broadcast_to(mu0, (M, n))
     yt = np.swapaxes(y, 0, 1)
-    if params.cross is not None and np.any(params.cross):  # (an all-zero C is independent noise: nothing to remove)
-        C, pC = _time_major("cross", params.cross, 3, M, (T,))
+    if params.noise_cross_cov is not None and np.any(params.noise_cross_cov):  # (all-zero C: independent noises)
+        C, pC = _time_major("noise_cross_cov", params.noise_cross_cov, 3, M, (T,))
         if C.shape[-2:] != (n, p):
-            raise ShapeError(f"lgssm: cross must end in ({n}, {p}), got {C.shape}")
+            raise ShapeError(f"lgssm: noise_cross_cov must end in ({n}, {p}), got {C.shape}")
         per = per or pC
         if per:
             F, Q, H, R, C = (x if f else x[:, None] for x, f in ((F, pF), (Q, pQ), (H, pH), (R, pR), (C, pC)))
@@ -269,8 +273,8 @@ class _Pass(NamedTuple):
 
 
 def _setup(params: Params, y, linearize: Callable | None) -> _Prepared:
-    if linearize is not None and params.cross is not None:
-        raise ValueError("lgssm: an extended filter (linearize) takes independent noises (cross=None)")
+    if linearize is not None and params.noise_cross_cov is not None:
+        raise ValueError("lgssm: an extended filter (linearize) takes independent noises (noise_cross_cov=None)")
     return _prepare(params, y, per_sequence=linearize is not None)
 
 
