@@ -171,7 +171,8 @@ def test_extended_filter_with_the_model_linearisation_is_the_linear_filter(p):
     lin = lgssm.rts_smoother(params, y)
     assert ext.smoothed_covariances.shape == (M, T + 1, 3, 3)
     np.testing.assert_allclose(ext.smoothed_means, lin.smoothed_means, atol=1e-12)
-    np.testing.assert_allclose(ext.smoothed_covariances, np.broadcast_to(lin.smoothed_covariances, ext.smoothed_covariances.shape), atol=1e-12)
+    np.testing.assert_allclose(ext.smoothed_covariances,
+                               np.broadcast_to(lin.smoothed_covariances, ext.smoothed_covariances.shape), atol=1e-12)
     np.testing.assert_allclose(ext.marginal_loglik, lin.marginal_loglik, atol=1e-10)
     filt = lgssm.kalman_filter(params, y)
     np.testing.assert_allclose(np.stack(seen[: T + 1], 1), filt.predicted_means[:, : T + 1], atol=1e-12)
