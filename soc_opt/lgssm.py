@@ -289,9 +289,14 @@ def _forward(params: Params, y, linearize: Callable | None, kernels: str | None 
 
 
 def _forward_numpy(pr: _Prepared, linearize: Callable | None) -> _Pass:
+    """The forward pass in numpy (module docstring, steps 2-3): per step, the extended filter's
+    linearisation (:func:`_linearize_step`), the measurement update in one of its forms
+    (:func:`_update_information`, :func:`_update_scalar`, :func:`_update_covariance`) and the prediction
+    (:func:`_predict`); then the means and ``log p(Y)`` for all steps at once (:func:`_means`)."""
     F, Q, H, R, b, d, yt, batch = pr.F, pr.Q, pr.H, pr.R, pr.b, pr.d, pr.y, pr.batch
     T, K, M, n, p = F.shape[0], yt.shape[0], yt.shape[1], F.shape[-1], yt.shape[2]
-    if linearize is not None:
+    extended = linearize is not None
+    if extended:
         H, d = np.empty((K, M, p, n)), np.empty((K, M, p))
     FT, HT = _T(F), _T(H)
     # 2-D products by ndarray.dot (shared covariances): a third of matmul's call overhead at these sizes
@@ -299,7 +304,7 @@ def _forward_numpy(pr: _Prepared, linearize: Callable | None) -> _Pass:
     Pp = np.empty((T + 1,) + batch + (n, n))
     Pf = np.empty((K,) + batch + (n, n))
     Pp[0] = pr.P0
-    info = _information(H, R, n, p, linearize is not None)
+    info = _information(H, R, n, p, extended)
     eye = np.eye(n)
     rs = R[:, 0, 0].tolist() if p == 1 and not batch and info is None else None  # scalar observation noises
     m, g = pr.mu0, None
@@ -308,43 +313,73 @@ def _forward_numpy(pr: _Prepared, linearize: Callable | None) -> _Pass:
     # themselves) but never feed back into their symmetric part beyond rounding.
     for k in range(K):
         P = Pp[k]
-        if linearize is not None:
-            if k:  # the previous step's update and prediction of the means, to linearise at
-                m = _mv(F[k - 1], m + _mv(g, yt[k - 1] - _mv(H[k - 1], m) - d[k - 1])) + b[k - 1]
-            H[k], d[k] = linearize(k, m)
-            if info is not None:
-                info.Hw[k] = Hw = info.W[k] @ H[k]
-                info.G[k] = _T(Hw) @ Hw
-        if info is not None:  # P^f = (P^{-1} + H^T R^{-1} H)^{-1} = (I + P G)^{-1} P, in the n state dimensions
-            X = np.linalg.solve(eye + mm(P, info.G[k]), P)
-            if linearize is not None:
-                g = X @ _T(info.Hw[k]) @ info.W[k]
-        elif rs is not None:  # shared covariances, scalar observation: P - a a^T / s, a = P H^T
-            PHt = P.dot(HT[k])
-            X = P - PHt.dot(PHt.T) / (H[k].dot(PHt)[0, 0] + rs[k])
+        if extended:
+            m = _linearize_step(k, m, g, linearize, F, b, H, d, yt, info)
+        if info is not None:
+            X, g = _update_information(P, k, info, eye, mm, extended)
+        elif rs is not None:
+            X = _update_scalar(P, H[k], HT[k], rs[k])
         else:
-            PHt = mm(P, HT[k])
-            S = mm(H[k], PHt)
-            S += R[k]
-            if linearize is not None:
-                g = right_cho_solve(PHt, chol(S, f"innovation covariance S[{k}]"))
-            if p == 1:
-                X = P - mm(PHt, PHt.swapaxes(-1, -2)) / S
-            else:
-                try:
-                    L = np.linalg.cholesky(S)
-                except np.linalg.LinAlgError:
-                    raise NotPositiveDefiniteError(f"lgssm: innovation covariance S[{k}] is not positive definite") from None
-                W = tri_solve(L, PHt.swapaxes(-1, -2))  # L^{-1} H P
-                X = P - mm(W.swapaxes(-1, -2), W)
+            X, g = _update_covariance(P, k, H[k], HT[k], R[k], mm, extended)
         Pf[k] = X
         if k < T:
-            X = mm(mm(F[k], X), FT[k]) if batch else F[k].dot(X).dot(FT[k])
-            X += Q[k]
-            Pp[k + 1] = X
+            Pp[k + 1] = _predict(X, F[k], FT[k], Q[k], mm, batch)
     Pp, Pf = symmetrize(Pp), symmetrize(Pf)
     pm, fm, loglik = _means(F, b, H, HT, R, d, yt, Pp, Pf, info, pr.mu0, batch)
     return _Pass(pm, Pp, fm, Pf, loglik, pr._replace(H=H, d=d))
+
+
+def _linearize_step(k: int, m, g, linearize: Callable, F, b, H, d, yt, info: _Information | None) -> np.ndarray:
+    """Extended filter, step ``k``: the predicted means ``m_k (M, n)`` (the previous step's update with
+    its gain ``g`` and prediction of ``m``; ``m_0 = mu0``), and ``H[k], d[k] = linearize(k, m_k)`` written
+    into the stacks (with the information form's whitened rows ``Hw_k`` and ``G_k``).  Returns ``m_k``."""
+    if k:
+        m = _mv(F[k - 1], m + _mv(g, yt[k - 1] - _mv(H[k - 1], m) - d[k - 1])) + b[k - 1]
+    H[k], d[k] = linearize(k, m)
+    if info is not None:
+        info.Hw[k] = Hw = info.W[k] @ H[k]
+        info.G[k] = _T(Hw) @ Hw
+    return m
+
+
+def _update_information(P, k: int, info: _Information, eye, mm, gain: bool):
+    """Information form (``p > n``, module docstring step 2): ``P^f = (P^{-1} + H^T R^{-1} H)^{-1}
+    = (I + P G)^{-1} P``, in the ``n`` state dimensions.  Returns ``(P^f, K_k)`` with the gain
+    ``K_k = P^f H^T R^{-1}`` when ``gain`` (the extended filter's), else ``None``."""
+    X = np.linalg.solve(eye + mm(P, info.G[k]), P)
+    return X, (X @ _T(info.Hw[k]) @ info.W[k] if gain else None)
+
+
+def _update_scalar(P, Hk, HTk, r: float):
+    """Covariance form for shared covariances and a scalar observation: ``P - a a^T / s`` with
+    ``a = P H^T``, ``s = H P H^T + r``."""
+    PHt = P.dot(HTk)
+    return P - PHt.dot(PHt.T) / (Hk.dot(PHt)[0, 0] + r)
+
+
+def _update_covariance(P, k: int, Hk, HTk, Rk, mm, gain: bool):
+    """Covariance form (module docstring step 2): ``S = H P H^T + R``, ``P^f = P - P H^T S^{-1} H P``
+    (``S`` scalar, or by its Cholesky factor ``L``: ``P - W^T W``, ``W = L^{-1} H P``).  Returns
+    ``(P^f, K_k)`` with the gain ``K_k = P H^T S^{-1}`` when ``gain`` (the extended filter's), else ``None``."""
+    PHt = mm(P, HTk)
+    S = mm(Hk, PHt)
+    S += Rk
+    g = right_cho_solve(PHt, chol(S, f"innovation covariance S[{k}]")) if gain else None
+    if S.shape[-1] == 1:
+        return P - mm(PHt, PHt.swapaxes(-1, -2)) / S, g
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        raise NotPositiveDefiniteError(f"lgssm: innovation covariance S[{k}] is not positive definite") from None
+    W = tri_solve(L, PHt.swapaxes(-1, -2))  # L^{-1} H P
+    return P - mm(W.swapaxes(-1, -2), W), g
+
+
+def _predict(X, Fk, FTk, Qk, mm, batch) -> np.ndarray:
+    """Prediction: ``P_{k+1} = F'_k P^f_k F'^T_k + Q'_k``."""
+    X = mm(mm(Fk, X), FTk) if batch else Fk.dot(X).dot(FTk)
+    X += Qk
+    return X
 
 
 class _Information(NamedTuple):
