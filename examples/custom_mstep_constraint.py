@@ -47,8 +47,8 @@ base = [Sigma >> Sigma_min]
 
 # 1. without the custom constraint: same maximiser as the closed form
 cp.Problem(cp.Maximize(objective), base).solve(solver=cp.CLARABEL)
-closed = mstep.maximize_moments(model, mom, constraints=mstep.MStepConstraints(cov_floor=Sigma_min.tolist()),
-                                min_norm=True)
+closed = mstep.maximize(model, mom, constraints=mstep.MStepConstraints(cov_floor=Sigma_min.tolist()),
+                                min_norm=True).policy
 F_closed = np.concatenate([closed.K[k], closed.k[k][:, None]], axis=1).reshape(-1, order="F")
 print(f"closed-form gains: max |[K k]| = {np.abs(F_closed).max():.3f}")
 print(f"no custom constraint: |f - f_closed|_max = {np.abs(f.value - F_closed).max():.2e}, "

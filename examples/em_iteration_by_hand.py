@@ -33,13 +33,13 @@ print(f"E-step: log p(Y) = {np.mean(sm.loglik):.3f} (mean over {Y.shape[0]} sequ
 
 # 5. M-step: the DP sweep of the Proposition, closed form, covariance floor at half the current one
 cons = mstep.MStepConstraints(cov_floor=(0.5 * np.asarray(policy.cov)).tolist())
-new = mstep.maximize(model, sm, Y, constraints=cons, method="closed_form", min_norm=True)
+new = mstep.maximize(model, estep.moments(sm, Y), constraints=cons, method="closed_form", min_norm=True).policy
 before = mstep.surrogate(model, sm, Y, policy).sum()
 after = mstep.surrogate(model, sm, Y, new).sum()
 print(f"M-step: surrogate sum_k Lbar_k {before:.3f} -> {after:.3f}")
 
 # the same M-step by CVXPY (Clarabel) agrees with the closed form
-new_cvx = mstep.maximize(model, sm, Y, constraints=cons, method="cvxpy", min_norm=True)
+new_cvx = mstep.maximize(model, estep.moments(sm, Y), constraints=cons, method="cvxpy", min_norm=True).policy
 print(f"closed form vs CVXPY: max |K diff| = {np.abs(new.K - new_cvx.K).max():.2e}")
 
 # 6. evaluate: sample the EM policy

@@ -8,15 +8,20 @@ integrated out of the augmented model (docs/math.md §1), giving the closed loop
 
 with ``As_k = [A_k; Ay_k]`` and ``Bs_k = [B_k; By_k]``.  The noise of ``s_{k+1}``
 and the noise of ``y_k`` are correlated (off-diagonal block of ``S_k``); the
-filter below treats this exactly by decorrelation (see :func:`kalman_filter`).
+Gaussian core (:mod:`soc_opt.lgssm`) treats this exactly by decorrelation.  The filter and
+smoother are the core's one entry point each (:func:`soc_opt.lgssm.kalman_filter`,
+:func:`soc_opt.lgssm.rts_smoother`) on :func:`params`, the closed loop as an ``lgssm.Params``;
+the functions below are adapters from ``(model, policy, y, mu0, P0)`` to them (inputs checked once,
+one sequence without the ``M`` axis).
 
 Also the sufficient statistics (:class:`Moments`) the M-step consumes.
 
 Public functions:
     closed_loop(model, policy)                       -> (Mk, mk, Sk)
-    kalman_filter(model, policy, y, mu0, P0)         -> Filtered
-    smooth(model, policy, y, mu0, P0)                -> Smoothed
-    log_likelihood(model, policy, y, mu0, P0)        -> float | (M,)
+    params(model, policy, mu0, P0)                   -> lgssm.Params
+    kalman_filter(model, policy, y, mu0, P0)         -> lgssm.Filtered      (adapter)
+    smooth(model, policy, y, mu0, P0)                -> Smoothed            (adapter)
+    log_likelihood(model, policy, y, mu0, P0)        -> float | (M,)        (adapter)
     moments(smoothed, y)                             -> Moments
 """
 
@@ -38,7 +43,6 @@ from .models import (
 )
 
 __all__ = [
-    "Filtered",
     "Moments",
     "closed_loop",
     "kalman_filter",
@@ -111,28 +115,6 @@ def _validate(model, policy, y, mu0, P0) -> tuple[np.ndarray, bool, np.ndarray, 
 # --------------------------------------------------------------------------- filter
 
 
-@dataclass(frozen=True)
-class Filtered:
-    """Output of :func:`kalman_filter` (docs/math.md §4).
-
-    For one observation sequence:
-        pred_mean: (T+1, n)    ``E[s_k | y_0..y_{k-1}]`` (``k = 0``: ``mu0``; ``k = T``: given all of ``Y``)
-        pred_cov:  (T+1, n, n) ``Cov(s_k | y_0..y_{k-1})``
-        filt_mean: (T, n)      ``E[s_k | y_0..y_k]``
-        filt_cov:  (T, n, n)   ``Cov(s_k | y_0..y_k)``
-        loglik:    float       ``log p(Y) = sum_k log p(y_k | y_0..y_{k-1})``
-    For ``M`` sequences every field has a leading ``M`` axis and ``loglik`` is ``(M,)``.
-    The covariances do not depend on ``y``: in the batched case they are read-only
-    broadcast views of one ``(T+1, n, n)`` / ``(T, n, n)`` array.
-    """
-
-    pred_mean: np.ndarray
-    pred_cov: np.ndarray
-    filt_mean: np.ndarray
-    filt_cov: np.ndarray
-    loglik: float | np.ndarray
-
-
 def params(model: AugmentedModel, policy: LinearGaussianPolicy, mu0, P0) -> lgssm.Params:
     """The closed loop (:func:`closed_loop`) as the Gaussian core's model (:mod:`soc_opt.lgssm`).
 
@@ -158,72 +140,43 @@ def _unbatch(x: np.ndarray, batched: bool, M: int, shared: bool = False) -> np.n
     return x if batched else x[0]
 
 
-def kalman_filter(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> Filtered:
-    """Kalman filter on the closed loop with correlated process/measurement noise (docs/math.md §4).
+def kalman_filter(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> lgssm.Filtered:
+    """:func:`soc_opt.lgssm.kalman_filter` on the closed loop (:func:`params`, docs/math.md §4).
 
-    Model (closed loop, :func:`closed_loop`): given ``s_k``,
-    ``(s_{k+1}, y_k) ~ N(M_k s_k + m_k, S_k)`` with blocks ``Ms_k, My_k`` (rows of ``M_k``),
-    ``ms_k, my_k`` and ``S_ss, S_sy, S_yy``; ``s_0 ~ N(mu0, P0)``; ``y_k`` observed for
-    ``k = 0..T-1``, ``s_T`` unobserved.
-
-    Recursions, starting from ``m_0 = mu0``, ``P_0 = P0`` (``m_k, P_k`` predicted, i.e.
-    given ``y_0..y_{k-1}``):
-
-    1. Update with ``y_k`` (scalar): ``v_k = y_k - My_k m_k - my_k``,
-       ``s_k^v = My_k P_k My_k^T + S_yy``, gain ``g_k = P_k My_k^T / s_k^v``;
-       ``m_k^f = m_k + g_k v_k``,
-       ``P_k^f = P_k - s_k^v g_k g_k^T``;
-       ``log p(y_k | y_0..y_{k-1}) = -1/2 (log 2 pi + log s_k^v + v_k^2 / s_k^v)``.
-    2. Predict ``s_{k+1}``.  The noise of ``s_{k+1}`` is correlated with the noise of
-       ``y_k``, so it is split as ``e_s = G_k e_y + e'_k`` with ``G_k = S_sy / S_yy`` and
-       ``e'_k ~ N(0, Q_k)``, ``Q_k = S_ss - S_sy S_yy^{-1} S_ys``, independent of ``e_y``
-       (and of ``s_k`` and all earlier ``y``).  Since ``e_y = y_k - My_k s_k - my_k``,
-       ``s_{k+1} = F_k s_k + b_k + e'_k`` with ``F_k = Ms_k - G_k My_k`` and
-       ``b_k = ms_k + G_k (y_k - my_k)``, hence
-       ``m_{k+1} = F_k m_k^f + b_k``, ``P_{k+1} = F_k P_k^f F_k^T + Q_k``.
-
-    Every covariance is symmetrised.  ``y`` is ``(T,)`` or ``(M, T)`` (means and ``loglik``
-    vectorised over ``M``; the covariances do not depend on ``y`` and are computed once).
-    The recursions are those of the Gaussian core, :func:`soc_opt.lgssm.kalman_filter`, on
-    :func:`params` (the closed loop with its cross-covariance ``S_sy``).
+    An adapter: checks ``(model, policy, y, mu0, P0)`` once, runs the Gaussian core's one filter on
+    :func:`params` (correlated ``s_{k+1}``/``y_k`` noise removed by decorrelation, lgssm's module
+    docstring, step 1) and returns its :class:`~soc_opt.lgssm.Filtered`.  ``y`` is ``(T,)`` or
+    ``(M, T)``; for ``(T,)`` the fields have no ``M`` axis and ``marginal_loglik`` is a float, for
+    ``(M, T)`` the covariances (which do not depend on ``y``) are read-only broadcast views.
+    ``predicted_means[T]`` is ``E[s_T | Y]`` (``s_T`` is not observed).
     """
     Y, batched, mu0, P0 = _validate(model, policy, y, mu0, P0)
     fp = lgssm.kalman_filter(_params(model, policy, mu0, P0), Y[:, :, None])
     M = Y.shape[0]
-    return Filtered(
-        pred_mean=_unbatch(fp.pred_mean, batched, M),
-        pred_cov=_unbatch(fp.pred_cov, batched, M, shared=True),
-        filt_mean=_unbatch(fp.filt_mean, batched, M),
-        filt_cov=_unbatch(fp.filt_cov, batched, M, shared=True),
-        loglik=fp.loglik if batched else float(fp.loglik[0]),
+    return lgssm.Filtered(
+        predicted_means=_unbatch(fp.predicted_means, batched, M),
+        predicted_covariances=_unbatch(fp.predicted_covariances, batched, M, shared=True),
+        filtered_means=_unbatch(fp.filtered_means, batched, M),
+        filtered_covariances=_unbatch(fp.filtered_covariances, batched, M, shared=True),
+        marginal_loglik=fp.marginal_loglik if batched else float(fp.marginal_loglik[0]),
     )
 
 
 def log_likelihood(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> float | np.ndarray:
-    """``log p(Y)`` under the closed loop (filter pass only): a float, or ``(M,)`` for ``y (M, T)``."""
-    return kalman_filter(model, policy, y, mu0, P0).loglik
+    """``log p(Y)`` under the closed loop (:func:`kalman_filter`'s ``marginal_loglik``): a float, or
+    ``(M,)`` for ``y (M, T)``."""
+    return kalman_filter(model, policy, y, mu0, P0).marginal_loglik
 
 
 # --------------------------------------------------------------------------- smoother
 
 
 def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> Smoothed:
-    """Rauch–Tung–Striebel smoother on the closed loop (docs/math.md §4).
+    """:func:`soc_opt.lgssm.rts_smoother` on the closed loop (:func:`params`, docs/math.md §4).
 
-    Runs :func:`kalman_filter` and then, backwards from ``s_hat_T = m_T``, ``P^s_T = P_T``
-    (the last prediction already conditions on all of ``Y``), for ``k = T-1..0``:
-
-        J_k = P_k^f F_k^T P_{k+1}^{-1}                (a solve with P_{k+1}, not an inverse)
-        s_hat_k = m_k^f + J_k (s_hat_{k+1} - m_{k+1})
-        P^s_k = (I - J_k F_k) P_k^f (I - J_k F_k)^T + J_k (Q_k + P^s_{k+1}) J_k^T
-        Cov(s_{k+1}, s_k | Y) = P^s_{k+1} J_k^T
-
-    with ``F_k, Q_k`` the decorrelated transition of :func:`kalman_filter` (given
-    ``s_{k+1}`` and ``y_0..y_k``, ``s_k`` is independent of ``y_{k+1}..``, and
-    ``s_{k+1} = F_k s_k + b_k + e'_k`` with ``e'_k`` independent of ``s_k, y_0..y_k``).
-    The covariance update is the Joseph-like form of ``P^f - J P_{k+1} J^T + J P^s J^T``:
-    a sum of positive semidefinite terms, so it stays positive definite over long horizons.
-    The smoother is the Gaussian core's, :func:`soc_opt.lgssm.rts_smoother`, on :func:`params`.
+    An adapter, as :func:`kalman_filter`: the Gaussian core's Kalman filter and RTS smoother (lgssm's
+    module docstring, steps 1-4) on :func:`params`, returned as the :class:`~soc_opt.models.Smoothed`
+    the M-step takes (:func:`moments`).
 
     Args:
         model: the augmented model :class:`~soc_opt.models.AugmentedModel` of
@@ -235,8 +188,9 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
         mu0: ``(n,)`` mean of the initial state ``s_0``.
         P0: ``(n, n)`` covariance of ``s_0`` (positive definite).
 
-    Returns :class:`~soc_opt.models.Smoothed`; for ``y (M, T)`` every field has a leading
-    ``M`` axis (covariances are read-only broadcast views: they do not depend on ``y``).
+    Returns :class:`~soc_opt.models.Smoothed` (``mean``, ``cov``, ``cross = Cov(s_{k+1}, s_k | Y)``,
+    ``loglik = log p(Y)``); for ``y (M, T)`` every field has a leading ``M`` axis (covariances are
+    read-only broadcast views: they do not depend on ``y``).
     Raises :class:`~soc_opt.models.ShapeError` for inconsistent shapes and
     :class:`~soc_opt.models.NotPositiveDefiniteError` when a predicted covariance is not
     positive definite.
@@ -244,12 +198,11 @@ def smooth(model: AugmentedModel, policy: LinearGaussianPolicy, y, mu0, P0) -> S
     Y, batched, mu0, P0 = _validate(model, policy, y, mu0, P0)
     post = lgssm.rts_smoother(_params(model, policy, mu0, P0), Y[:, :, None])
     M = Y.shape[0]
-    mean, cov, cross = post.mean, post.cov, post.cross
     return Smoothed(
-        mean=_unbatch(mean, batched, M),
-        cov=_unbatch(cov, batched, M, shared=True),
-        cross=_unbatch(cross, batched, M, shared=True),
-        loglik=post.loglik if batched else float(post.loglik[0]),
+        mean=_unbatch(post.smoothed_means, batched, M),
+        cov=_unbatch(post.smoothed_covariances, batched, M, shared=True),
+        cross=_unbatch(post.smoothed_cross_covariances, batched, M, shared=True),
+        loglik=post.marginal_loglik if batched else float(post.marginal_loglik[0]),
     )
 
 

@@ -11,7 +11,7 @@ With ``K = T`` the last state ``z_T`` is not observed (the E-step's closed loop,
 ``K = T + 1`` every state is (the §10 measurements ``s_k``, the §11 measurements of ``h(z_k)``).
 
 Parameters are bundled as :class:`Params` (:class:`Initial`, :class:`Dynamics`,
-:class:`Emissions` and the cross-covariance ``C``).  ``M`` sequences are processed at once: the
+:class:`Emissions` and the noise cross-covariance ``C``).  ``M`` sequences are processed at once: the
 observations are ``y (M, K, p)``; means (``mu0``, ``b``, ``d``) may carry a leading ``M`` axis.
 When every matrix (``P0, F, Q, H, R, C``) is shared by the sequences, so are all covariances and
 gains: they are computed once and only the means are per sequence (the E-step's case, where all
@@ -117,47 +117,51 @@ class Params(NamedTuple):
         initial:   :class:`Initial`
         dynamics:  :class:`Dynamics`
         emissions: :class:`Emissions`
-        cross:     (T, n, p) or (M, T, n, p) ``C_k = Cov(w_k, v_k)``, or ``None`` (independent noises)
+        noise_cross_cov: (T, n, p) or (M, T, n, p) ``C_k = Cov(w_k, v_k)``, or ``None`` (independent noises)
     """
 
     initial: Initial
     dynamics: Dynamics
     emissions: Emissions
-    cross: np.ndarray | None = None
+    noise_cross_cov: np.ndarray | None = None
 
 
 class Filtered(NamedTuple):
     """Output of :func:`kalman_filter`; ``*`` is ``()`` when the covariances are shared, ``(M,)`` otherwise.
 
     Fields:
-        pred_mean: (M, T+1, n)     ``m_k = E[z_k | y_0..y_{k-1}]`` (``m_0 = mu0``)
-        pred_cov:  (*, T+1, n, n)  ``P_k = Cov(z_k | y_0..y_{k-1})``
-        filt_mean: (M, K, n)       ``E[z_k | y_0..y_k]``
-        filt_cov:  (*, K, n, n)    ``Cov(z_k | y_0..y_k)``
-        loglik:    (M,)            ``log p(y_0..y_{K-1})``
+        predicted_means:       (M, T+1, n)     ``m_k = E[z_k | y_0..y_{k-1}]`` (``m_0 = mu0``)
+        predicted_covariances: (*, T+1, n, n)  ``P_k = Cov(z_k | y_0..y_{k-1})``
+        filtered_means:        (M, K, n)       ``E[z_k | y_0..y_k]``
+        filtered_covariances:  (*, K, n, n)    ``Cov(z_k | y_0..y_k)``
+        marginal_loglik:       (M,)            ``log p(y_0..y_{K-1})``
+
+    The names are dynamax's (``PosteriorGSSMFiltered``).
     """
 
-    pred_mean: np.ndarray
-    pred_cov: np.ndarray
-    filt_mean: np.ndarray
-    filt_cov: np.ndarray
-    loglik: np.ndarray
+    predicted_means: np.ndarray
+    predicted_covariances: np.ndarray
+    filtered_means: np.ndarray
+    filtered_covariances: np.ndarray
+    marginal_loglik: np.ndarray
 
 
 class Posterior(NamedTuple):
     """Output of :func:`rts_smoother`; ``*`` as in :class:`Filtered`.
 
     Fields:
-        mean:   (M, T+1, n)     ``E[z_k | Y]``
-        cov:    (*, T+1, n, n)  ``Cov(z_k | Y)``
-        cross:  (*, T, n, n)    ``Cov(z_{k+1}, z_k | Y)``
-        loglik: (M,)            ``log p(Y)``
+        smoothed_means:             (M, T+1, n)     ``E[z_k | Y]``
+        smoothed_covariances:       (*, T+1, n, n)  ``Cov(z_k | Y)``
+        smoothed_cross_covariances: (*, T, n, n)    ``Cov(z_{k+1}, z_k | Y)``
+        marginal_loglik:            (M,)            ``log p(Y)``
+
+    The names are dynamax's (``PosteriorGSSMSmoothed``).
     """
 
-    mean: np.ndarray
-    cov: np.ndarray
-    cross: np.ndarray
-    loglik: np.ndarray
+    smoothed_means: np.ndarray
+    smoothed_covariances: np.ndarray
+    smoothed_cross_covariances: np.ndarray
+    marginal_loglik: np.ndarray
 
 
 # --------------------------------------------------------------------------- preparation
@@ -223,10 +227,10 @@ def _prepare(params: Params, y, per_sequence: bool = False) -> _Prepared:
     d = np.broadcast_to(d if d.ndim == 3 else d[:, None], (K, M, p))
     mu0 = np.broadcast_to(mu0, (M, n))
     yt = np.swapaxes(y, 0, 1)
-    if params.cross is not None and np.any(params.cross):  # (an all-zero C is independent noise: nothing to remove)
-        C, pC = _time_major("cross", params.cross, 3, M, (T,))
+    if params.noise_cross_cov is not None and np.any(params.noise_cross_cov):  # (all-zero C: independent noises)
+        C, pC = _time_major("noise_cross_cov", params.noise_cross_cov, 3, M, (T,))
         if C.shape[-2:] != (n, p):
-            raise ShapeError(f"lgssm: cross must end in ({n}, {p}), got {C.shape}")
+            raise ShapeError(f"lgssm: noise_cross_cov must end in ({n}, {p}), got {C.shape}")
         per = per or pC
         if per:
             F, Q, H, R, C = (x if f else x[:, None] for x, f in ((F, pF), (Q, pQ), (H, pH), (R, pR), (C, pC)))
@@ -269,8 +273,8 @@ class _Pass(NamedTuple):
 
 
 def _setup(params: Params, y, linearize: Callable | None) -> _Prepared:
-    if linearize is not None and params.cross is not None:
-        raise ValueError("lgssm: an extended filter (linearize) takes independent noises (cross=None)")
+    if linearize is not None and params.noise_cross_cov is not None:
+        raise ValueError("lgssm: an extended filter (linearize) takes independent noises (noise_cross_cov=None)")
     return _prepare(params, y, per_sequence=linearize is not None)
 
 
@@ -285,9 +289,14 @@ def _forward(params: Params, y, linearize: Callable | None, kernels: str | None 
 
 
 def _forward_numpy(pr: _Prepared, linearize: Callable | None) -> _Pass:
+    """The forward pass in numpy (module docstring, steps 2-3): per step, the extended filter's
+    linearisation (:func:`_linearize_step`), the measurement update in one of its forms
+    (:func:`_update_information`, :func:`_update_scalar`, :func:`_update_covariance`) and the prediction
+    (:func:`_predict`); then the means and ``log p(Y)`` for all steps at once (:func:`_means`)."""
     F, Q, H, R, b, d, yt, batch = pr.F, pr.Q, pr.H, pr.R, pr.b, pr.d, pr.y, pr.batch
     T, K, M, n, p = F.shape[0], yt.shape[0], yt.shape[1], F.shape[-1], yt.shape[2]
-    if linearize is not None:
+    extended = linearize is not None
+    if extended:
         H, d = np.empty((K, M, p, n)), np.empty((K, M, p))
     FT, HT = _T(F), _T(H)
     # 2-D products by ndarray.dot (shared covariances): a third of matmul's call overhead at these sizes
@@ -295,7 +304,7 @@ def _forward_numpy(pr: _Prepared, linearize: Callable | None) -> _Pass:
     Pp = np.empty((T + 1,) + batch + (n, n))
     Pf = np.empty((K,) + batch + (n, n))
     Pp[0] = pr.P0
-    info = _information(H, R, n, p, linearize is not None)
+    info = _information(H, R, n, p, extended)
     eye = np.eye(n)
     rs = R[:, 0, 0].tolist() if p == 1 and not batch and info is None else None  # scalar observation noises
     m, g = pr.mu0, None
@@ -304,43 +313,73 @@ def _forward_numpy(pr: _Prepared, linearize: Callable | None) -> _Pass:
     # themselves) but never feed back into their symmetric part beyond rounding.
     for k in range(K):
         P = Pp[k]
-        if linearize is not None:
-            if k:  # the previous step's update and prediction of the means, to linearise at
-                m = _mv(F[k - 1], m + _mv(g, yt[k - 1] - _mv(H[k - 1], m) - d[k - 1])) + b[k - 1]
-            H[k], d[k] = linearize(k, m)
-            if info is not None:
-                info.Hw[k] = Hw = info.W[k] @ H[k]
-                info.G[k] = _T(Hw) @ Hw
-        if info is not None:  # P^f = (P^{-1} + H^T R^{-1} H)^{-1} = (I + P G)^{-1} P, in the n state dimensions
-            X = np.linalg.solve(eye + mm(P, info.G[k]), P)
-            if linearize is not None:
-                g = X @ _T(info.Hw[k]) @ info.W[k]
-        elif rs is not None:  # shared covariances, scalar observation: P - a a^T / s, a = P H^T
-            PHt = P.dot(HT[k])
-            X = P - PHt.dot(PHt.T) / (H[k].dot(PHt)[0, 0] + rs[k])
+        if extended:
+            m = _linearize_step(k, m, g, linearize, F, b, H, d, yt, info)
+        if info is not None:
+            X, g = _update_information(P, k, info, eye, mm, extended)
+        elif rs is not None:
+            X = _update_scalar(P, H[k], HT[k], rs[k])
         else:
-            PHt = mm(P, HT[k])
-            S = mm(H[k], PHt)
-            S += R[k]
-            if linearize is not None:
-                g = right_cho_solve(PHt, chol(S, f"innovation covariance S[{k}]"))
-            if p == 1:
-                X = P - mm(PHt, PHt.swapaxes(-1, -2)) / S
-            else:
-                try:
-                    L = np.linalg.cholesky(S)
-                except np.linalg.LinAlgError:
-                    raise NotPositiveDefiniteError(f"lgssm: innovation covariance S[{k}] is not positive definite") from None
-                W = tri_solve(L, PHt.swapaxes(-1, -2))  # L^{-1} H P
-                X = P - mm(W.swapaxes(-1, -2), W)
+            X, g = _update_covariance(P, k, H[k], HT[k], R[k], mm, extended)
         Pf[k] = X
         if k < T:
-            X = mm(mm(F[k], X), FT[k]) if batch else F[k].dot(X).dot(FT[k])
-            X += Q[k]
-            Pp[k + 1] = X
+            Pp[k + 1] = _predict(X, F[k], FT[k], Q[k], mm, batch)
     Pp, Pf = symmetrize(Pp), symmetrize(Pf)
     pm, fm, loglik = _means(F, b, H, HT, R, d, yt, Pp, Pf, info, pr.mu0, batch)
     return _Pass(pm, Pp, fm, Pf, loglik, pr._replace(H=H, d=d))
+
+
+def _linearize_step(k: int, m, g, linearize: Callable, F, b, H, d, yt, info: _Information | None) -> np.ndarray:
+    """Extended filter, step ``k``: the predicted means ``m_k (M, n)`` (the previous step's update with
+    its gain ``g`` and prediction of ``m``; ``m_0 = mu0``), and ``H[k], d[k] = linearize(k, m_k)`` written
+    into the stacks (with the information form's whitened rows ``Hw_k`` and ``G_k``).  Returns ``m_k``."""
+    if k:
+        m = _mv(F[k - 1], m + _mv(g, yt[k - 1] - _mv(H[k - 1], m) - d[k - 1])) + b[k - 1]
+    H[k], d[k] = linearize(k, m)
+    if info is not None:
+        info.Hw[k] = Hw = info.W[k] @ H[k]
+        info.G[k] = _T(Hw) @ Hw
+    return m
+
+
+def _update_information(P, k: int, info: _Information, eye, mm, gain: bool):
+    """Information form (``p > n``, module docstring step 2): ``P^f = (P^{-1} + H^T R^{-1} H)^{-1}
+    = (I + P G)^{-1} P``, in the ``n`` state dimensions.  Returns ``(P^f, K_k)`` with the gain
+    ``K_k = P^f H^T R^{-1}`` when ``gain`` (the extended filter's), else ``None``."""
+    X = np.linalg.solve(eye + mm(P, info.G[k]), P)
+    return X, (X @ _T(info.Hw[k]) @ info.W[k] if gain else None)
+
+
+def _update_scalar(P, Hk, HTk, r: float):
+    """Covariance form for shared covariances and a scalar observation: ``P - a a^T / s`` with
+    ``a = P H^T``, ``s = H P H^T + r``."""
+    PHt = P.dot(HTk)
+    return P - PHt.dot(PHt.T) / (Hk.dot(PHt)[0, 0] + r)
+
+
+def _update_covariance(P, k: int, Hk, HTk, Rk, mm, gain: bool):
+    """Covariance form (module docstring step 2): ``S = H P H^T + R``, ``P^f = P - P H^T S^{-1} H P``
+    (``S`` scalar, or by its Cholesky factor ``L``: ``P - W^T W``, ``W = L^{-1} H P``).  Returns
+    ``(P^f, K_k)`` with the gain ``K_k = P H^T S^{-1}`` when ``gain`` (the extended filter's), else ``None``."""
+    PHt = mm(P, HTk)
+    S = mm(Hk, PHt)
+    S += Rk
+    g = right_cho_solve(PHt, chol(S, f"innovation covariance S[{k}]")) if gain else None
+    if S.shape[-1] == 1:
+        return P - mm(PHt, PHt.swapaxes(-1, -2)) / S, g
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        raise NotPositiveDefiniteError(f"lgssm: innovation covariance S[{k}] is not positive definite") from None
+    W = tri_solve(L, PHt.swapaxes(-1, -2))  # L^{-1} H P
+    return P - mm(W.swapaxes(-1, -2), W), g
+
+
+def _predict(X, Fk, FTk, Qk, mm, batch) -> np.ndarray:
+    """Prediction: ``P_{k+1} = F'_k P^f_k F'^T_k + Q'_k``."""
+    X = mm(mm(Fk, X), FTk) if batch else Fk.dot(X).dot(FTk)
+    X += Qk
+    return X
 
 
 class _Information(NamedTuple):

@@ -93,11 +93,11 @@ def test_compiled_smoother_matches_brute_force_conditioning_and_the_numpy_path(c
     filt = lgssm.kalman_filter(params, y, kernels="numba")
     for i in range(M):
         mean, cov, cross, ll = _brute_force(_seq(params, i, M), y[i])
-        np.testing.assert_allclose(post.mean[i], mean, atol=1e-9)
-        np.testing.assert_allclose(post.cov[i], cov, atol=1e-9)
-        np.testing.assert_allclose(post.cross[i], cross, atol=1e-9)
-        np.testing.assert_allclose(post.loglik[i], ll, atol=1e-9)
-        np.testing.assert_allclose(filt.loglik[i], ll, atol=1e-9)
+        np.testing.assert_allclose(post.smoothed_means[i], mean, atol=1e-9)
+        np.testing.assert_allclose(post.smoothed_covariances[i], cov, atol=1e-9)
+        np.testing.assert_allclose(post.smoothed_cross_covariances[i], cross, atol=1e-9)
+        np.testing.assert_allclose(post.marginal_loglik[i], ll, atol=1e-9)
+        np.testing.assert_allclose(filt.marginal_loglik[i], ll, atol=1e-9)
         np.testing.assert_allclose(lgssm.log_likelihood(params, y, kernels="numba")[i], ll, atol=1e-9)
     for got, want in zip(post, ref):
         _close(got, want)
@@ -138,7 +138,7 @@ def test_compiled_extended_filter_linearises_at_the_predictions_and_equals_the_n
         _close(a, b)
     _close(np.stack(seen["numba"]), np.stack(seen["numpy"]))
     filt = lgssm.kalman_filter(params, y, linearize=hook("numba"), kernels="numba")
-    _close(np.stack(seen["numba"][-(T + 1):], 1), filt.pred_mean[:, :T + 1])
+    _close(np.stack(seen["numba"][-(T + 1):], 1), filt.predicted_means[:, :T + 1])
 
 
 @needs_numba

@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 from scipy.linalg import block_diag
 from scipy.stats import multivariate_normal
 
-from soc_opt.estep import Filtered, closed_loop, kalman_filter, log_likelihood, moments, smooth
+from soc_opt import lgssm
+from soc_opt.estep import closed_loop, kalman_filter, log_likelihood, moments, smooth
 from soc_opt.models import (
     AugmentedModel,
     LinearGaussianPolicy,
@@ -240,18 +241,18 @@ def test_filter_matches_conditioning_on_past_observations():
     n, T = 3, 5
     Y = sample_y(rng, model, policy, mu0, P0, 2)
     f = kalman_filter(model, policy, Y, mu0, P0)
-    assert isinstance(f, Filtered)
-    assert f.pred_mean.shape == (2, T + 1, n) and f.filt_cov.shape == (2, T, n, n)
+    assert isinstance(f, lgssm.Filtered)
+    assert f.predicted_means.shape == (2, T + 1, n) and f.filtered_covariances.shape == (2, T, n, n)
     for i in range(2):
         for t in range(T + 1):
             mean, joint, _ = oracle(model, policy, mu0, P0, Y[i], n_obs=t)  # y_0..y_{t-1}
-            assert_close(f.pred_mean[i, t], mean[t], f"predicted mean {t}")
-            assert_close(f.pred_cov[i, t], block(joint, n, t, t), f"predicted cov {t}")
+            assert_close(f.predicted_means[i, t], mean[t], f"predicted mean {t}")
+            assert_close(f.predicted_covariances[i, t], block(joint, n, t, t), f"predicted cov {t}")
             if t < T:
                 mean, joint, _ = oracle(model, policy, mu0, P0, Y[i], n_obs=t + 1)  # y_0..y_t
-                assert_close(f.filt_mean[i, t], mean[t], f"filtered mean {t}")
-                assert_close(f.filt_cov[i, t], block(joint, n, t, t), f"filtered cov {t}")
-        assert_close(f.loglik[i], oracle(model, policy, mu0, P0, Y[i])[2], "filter log p(Y)")
+                assert_close(f.filtered_means[i, t], mean[t], f"filtered mean {t}")
+                assert_close(f.filtered_covariances[i, t], block(joint, n, t, t), f"filtered cov {t}")
+        assert_close(f.marginal_loglik[i], oracle(model, policy, mu0, P0, Y[i])[2], "filter log p(Y)")
 
 
 def test_log_likelihood_equals_smoother_loglik():
@@ -296,19 +297,19 @@ def test_long_horizon_covariances_stay_positive_definite():
     Y = sample_y(rng, model, policy, mu0, P0, M)
     sm = smooth(model, policy, Y, mu0, P0)
     f = kalman_filter(model, policy, Y, mu0, P0)
-    for arr in (sm.mean, sm.cov, sm.cross, sm.loglik, f.filt_cov, f.pred_cov):
+    for arr in (sm.mean, sm.cov, sm.cross, sm.loglik, f.filtered_covariances, f.predicted_covariances):
         assert np.all(np.isfinite(arr))
     cov, cross = sm.cov[0], sm.cross[0]
     np.testing.assert_array_equal(cov, np.swapaxes(cov, 1, 2))
     assert np.linalg.eigvalsh(cov)[:, 0].min() > 0
-    assert np.linalg.eigvalsh(f.filt_cov[0])[:, 0].min() > 0
+    assert np.linalg.eigvalsh(f.filtered_covariances[0])[:, 0].min() > 0
     # joint covariance of (s_{k+1}, s_k) | Y is positive definite
     pair = np.block([[cov[1:], cross], [np.swapaxes(cross, 1, 2), cov[:-1]]])
     assert np.linalg.eigvalsh(0.5 * (pair + np.swapaxes(pair, 1, 2)))[:, 0].min() > 0
     # smoothing never increases uncertainty: P^s_k <= P^f_k
-    gap = np.linalg.eigvalsh(f.filt_cov[0] - cov[:-1])[:, 0]
+    gap = np.linalg.eigvalsh(f.filtered_covariances[0] - cov[:-1])[:, 0]
     assert gap.min() > -1e-10 * np.abs(cov).max()
-    np.testing.assert_allclose(sm.loglik, f.loglik, rtol=0, atol=0)
+    np.testing.assert_allclose(sm.loglik, f.marginal_loglik, rtol=0, atol=0)
 
 
 # --------------------------------------------------------------------------- moments

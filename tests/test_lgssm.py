@@ -53,7 +53,7 @@ def _seq(params: lgssm.Params, i: int, M: int) -> lgssm.Params:
     return lgssm.Params(lgssm.Initial(pick(ini.mean, 1), pick(ini.cov, 2)),
                         lgssm.Dynamics(pick(dyn.weights, 3), pick(dyn.bias, 2), pick(dyn.cov, 3)),
                         lgssm.Emissions(pick(em.weights, 3), pick(em.bias, 2), pick(em.cov, 3)),
-                        None if params.cross is None else pick(params.cross, 3))
+                        None if params.noise_cross_cov is None else pick(params.noise_cross_cov, 3))
 
 
 def _brute_force(params: lgssm.Params, y: np.ndarray):
@@ -63,7 +63,7 @@ def _brute_force(params: lgssm.Params, y: np.ndarray):
     H, d, R = em.weights, em.bias, em.cov
     T, n = F.shape[0], F.shape[1]
     K, p = y.shape
-    C = np.zeros((T, n, p)) if params.cross is None else params.cross
+    C = np.zeros((T, n, p)) if params.noise_cross_cov is None else params.noise_cross_cov
     blocks = [ini.cov] + [np.block([[Q[k], C[k]], [C[k].T, R[k]]]) for k in range(T)] + ([R[T]] if K == T + 1 else [])
     dims = [b_.shape[0] for b_ in blocks]
     N = sum(dims)
@@ -124,16 +124,16 @@ def test_smoother_matches_brute_force_conditioning(case):
                           per_sequence=case["per_sequence"])
     post = lgssm.rts_smoother(params, y)
     filt = lgssm.kalman_filter(params, y)
-    assert post.mean.shape == (M, T + 1, 3)
+    assert post.smoothed_means.shape == (M, T + 1, 3)
     shared = not case["per_sequence"]
-    assert post.cov.shape == ((T + 1, 3, 3) if shared else (M, T + 1, 3, 3))
+    assert post.smoothed_covariances.shape == ((T + 1, 3, 3) if shared else (M, T + 1, 3, 3))
     for i in range(M):
         mean, cov, cross, ll = _brute_force(_seq(params, i, M), y[i])
-        np.testing.assert_allclose(post.mean[i], mean, atol=1e-9)
-        np.testing.assert_allclose(post.cov if shared else post.cov[i], cov, atol=1e-9)
-        np.testing.assert_allclose(post.cross if shared else post.cross[i], cross, atol=1e-9)
-        np.testing.assert_allclose(post.loglik[i], ll, atol=1e-9)
-        np.testing.assert_allclose(filt.loglik[i], ll, atol=1e-9)
+        np.testing.assert_allclose(post.smoothed_means[i], mean, atol=1e-9)
+        np.testing.assert_allclose(post.smoothed_covariances if shared else post.smoothed_covariances[i], cov, atol=1e-9)
+        np.testing.assert_allclose(post.smoothed_cross_covariances if shared else post.smoothed_cross_covariances[i], cross, atol=1e-9)
+        np.testing.assert_allclose(post.marginal_loglik[i], ll, atol=1e-9)
+        np.testing.assert_allclose(filt.marginal_loglik[i], ll, atol=1e-9)
         np.testing.assert_allclose(lgssm.log_likelihood(params, y)[i], ll, atol=1e-9)
 
 
@@ -143,16 +143,16 @@ def test_filter_last_step_matches_smoother_and_prefix_conditioning():
     params, y = _instance(rng, M=2, T=4, n=3, p=2, K=5, correlated=True)
     filt = lgssm.kalman_filter(params, y)
     post = lgssm.rts_smoother(params, y)
-    np.testing.assert_allclose(filt.filt_mean[:, -1], post.mean[:, -1], atol=1e-12)
+    np.testing.assert_allclose(filt.filtered_means[:, -1], post.smoothed_means[:, -1], atol=1e-12)
     # prefix: a model with the first k+1 steps
     k = 2
     ini, dyn, em = params.initial, params.dynamics, params.emissions
     sub = lgssm.Params(ini, lgssm.Dynamics(dyn.weights[:k], dyn.bias[:, :k], dyn.cov[:k]),
-                       lgssm.Emissions(em.weights[:k + 1], em.bias[:k + 1], em.cov[:k + 1]), params.cross[:k])
+                       lgssm.Emissions(em.weights[:k + 1], em.bias[:k + 1], em.cov[:k + 1]), params.noise_cross_cov[:k])
     for i in range(2):
         mean, cov, _, _ = _brute_force(_seq(sub, i, 2), y[i, :k + 1])
-        np.testing.assert_allclose(filt.filt_mean[i, k], mean[k], atol=1e-9)
-        np.testing.assert_allclose(filt.filt_cov[k], cov[k], atol=1e-9)
+        np.testing.assert_allclose(filt.filtered_means[i, k], mean[k], atol=1e-9)
+        np.testing.assert_allclose(filt.filtered_covariances[k], cov[k], atol=1e-9)
 
 
 @pytest.mark.parametrize("p", [2, 4])
@@ -169,12 +169,13 @@ def test_extended_filter_with_the_model_linearisation_is_the_linear_filter(p):
 
     ext = lgssm.rts_smoother(params, y, linearize=linearize)
     lin = lgssm.rts_smoother(params, y)
-    assert ext.cov.shape == (M, T + 1, 3, 3)
-    np.testing.assert_allclose(ext.mean, lin.mean, atol=1e-12)
-    np.testing.assert_allclose(ext.cov, np.broadcast_to(lin.cov, ext.cov.shape), atol=1e-12)
-    np.testing.assert_allclose(ext.loglik, lin.loglik, atol=1e-10)
+    assert ext.smoothed_covariances.shape == (M, T + 1, 3, 3)
+    np.testing.assert_allclose(ext.smoothed_means, lin.smoothed_means, atol=1e-12)
+    np.testing.assert_allclose(ext.smoothed_covariances,
+                               np.broadcast_to(lin.smoothed_covariances, ext.smoothed_covariances.shape), atol=1e-12)
+    np.testing.assert_allclose(ext.marginal_loglik, lin.marginal_loglik, atol=1e-10)
     filt = lgssm.kalman_filter(params, y)
-    np.testing.assert_allclose(np.stack(seen[: T + 1], 1), filt.pred_mean[:, : T + 1], atol=1e-12)
+    np.testing.assert_allclose(np.stack(seen[: T + 1], 1), filt.predicted_means[:, : T + 1], atol=1e-12)
 
 
 def test_shapes_are_checked():

@@ -30,8 +30,6 @@ from soc_opt.mstep import (
     exact_objective,
     exact_objective_from_moments,
     maximize,
-    maximize_moments,
-    maximize_moments_result,
     surrogate,
     surrogate_from_moments,
     surrogate_grad_hess,
@@ -255,7 +253,7 @@ def test_closed_form_is_a_maximum_under_random_perturbations(seed, n, m, cons):
     c = float(rng.normal())
     C = {"floor_scalar": MStepConstraints(cov_floor=0.2), "floor_matrix": MStepConstraints(cov_floor=Smin),
          "entropy": MStepConstraints(entropy_floor=c)}[cons]
-    pol = maximize(model, sm, y, constraints=C, min_norm=False)
+    pol = maximize(model, moments(sm, y), constraints=C, min_norm=False).policy
     best = surrogate(model, sm, y, pol)
     H, R, S = quad_terms(model, mom)
     # first-order condition, test-side formula
@@ -278,7 +276,7 @@ def test_closed_form_is_a_maximum_under_random_perturbations(seed, n, m, cons):
 
 def test_time_invariant_closed_form_satisfies_summed_normal_equations():
     model, sm, y, mom, rng = instance(5, 3, 2, T=5)
-    pol = maximize(model, sm, y, constraints=MStepConstraints(entropy_floor=0.3), variant="time_invariant", min_norm=False)
+    pol = maximize(model, moments(sm, y), constraints=MStepConstraints(entropy_floor=0.3), variant="time_invariant", min_norm=False).policy
     assert np.allclose(pol.K, pol.K[0]) and np.allclose(pol.cov, pol.cov[0])
     H, R, S = quad_terms(model, mom)
     F = F_of(pol)[0]
@@ -293,11 +291,11 @@ def test_time_varying_steps_decouple():
     """With moments fixed, phi_j depends only on step j's data (the sweep is separable)."""
     model, sm, y, mom, rng = instance(6, 3, 2, T=4)
     C = MStepConstraints(cov_floor=0.1)
-    p1 = maximize_moments(model, mom, constraints=C, min_norm=False)
+    p1 = maximize(model, mom, constraints=C, min_norm=False).policy
     Szz, Szs = np.array(mom.Szz), np.array(mom.Szs)
     Szs[1] += 0.3
     mom2 = type(mom)(Szz, Szs, mom.Sss, mom.count)
-    p2 = maximize_moments(model, mom2, constraints=C, min_norm=False)
+    p2 = maximize(model, mom2, constraints=C, min_norm=False).policy
     same = [0, 2, 3]
     assert np.array_equal(p1.K[same], p2.K[same]) and not np.allclose(p1.K[1], p2.K[1])
 
@@ -305,7 +303,7 @@ def test_time_varying_steps_decouple():
 def test_batched_moments_from_several_sequences():
     model, sm, y, mom, rng = instance(8, 2, 2, T=3, M=4)
     assert mom.count == 4
-    pol = maximize(model, sm, y, constraints=MStepConstraints(cov_floor=0.1), min_norm=False)
+    pol = maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=0.1), min_norm=False).policy
     H, R, S = quad_terms(model, mom)
     assert np.abs(R - H @ F_of(pol) @ S).max() <= 1e-9 * np.abs(R).max()
 
@@ -324,8 +322,8 @@ CLOSED_FORM_SETS = {
 def _compare(seed, n, m, T, cons, variant, solver, tol):
     model, sm, y, mom, rng = instance(seed, n, m, T=T)
     C = CLOSED_FORM_SETS[cons](rng, m)
-    cf = maximize_moments_result(model, mom, constraints=C, variant=variant, min_norm=False)
-    cv = maximize_moments_result(model, mom, constraints=C, method="cvxpy", solver=solver, variant=variant, min_norm=False)
+    cf = maximize(model, mom, constraints=C, variant=variant, min_norm=False)
+    cv = maximize(model, mom, constraints=C, method="cvxpy", solver=solver, variant=variant, min_norm=False)
     # optimal value reported by the solver (plus the constants it omits) vs closed form
     want = cf.objective if variant == "time_varying" else np.array([cf.objective.sum()])
     assert rel_err(cv.solver_value, want) <= tol
@@ -356,8 +354,8 @@ def test_cvxpy_clarabel_entropy_floor_covariance(variant, n, m):
     T = 4
     model, sm, y, mom, rng = instance(11, n, m, T=T)
     C = MStepConstraints(entropy_floor=(1.5 * rng.normal(size=T)).tolist())
-    cf = maximize_moments(model, mom, constraints=C, variant=variant, min_norm=False)
-    cv = maximize_moments_result(model, mom, constraints=C, method="cvxpy", variant=variant, min_norm=False)
+    cf = maximize(model, mom, constraints=C, variant=variant, min_norm=False).policy
+    cv = maximize(model, mom, constraints=C, method="cvxpy", variant=variant, min_norm=False)
     assert all(s == "optimal" for s in cv.status)
     assert rel_err(cv.policy.cov, cf.cov) <= 1e-6
 
@@ -370,7 +368,7 @@ def test_cvxpy_entropy_floor_uses_no_exponential_cones():
 
     model, sm, y, mom, rng = instance(16, 3, 2, T=2)
     C = MStepConstraints(entropy_floor=[-0.4, 0.7])
-    res = maximize_moments_result(model, mom, constraints=C, method="cvxpy", min_norm=False)
+    res = maximize(model, mom, constraints=C, method="cvxpy", min_norm=False)
     prob = CACHE[("factored", 3, 2, (False, True, False), False, 0)]
     assert prob.problem.is_dpp()
     data = prob.problem.get_problem_data(cp.CLARABEL)[0]
@@ -407,10 +405,10 @@ def test_relaxation_rule_for_combined_covariance_constraints():
                            lambda k: np.exp((0.5 + np.linalg.slogdet(H[k])[1]) / 2) * np.linalg.inv(H[k])),
     }
     for name, (C, want) in cases.items():
-        cf = maximize_moments_result(model, mom, constraints=C, min_norm=False)
+        cf = maximize(model, mom, constraints=C, min_norm=False)
         for k in range(3):
             assert rel_err(cf.policy.cov[k], want(k)) <= 1e-10, name
-        cv = maximize_moments_result(model, mom, constraints=C, method="cvxpy", min_norm=False)
+        cv = maximize(model, mom, constraints=C, method="cvxpy", min_norm=False)
         assert rel_err(cv.solver_value, cf.objective) <= 1e-6, name
 
 
@@ -420,33 +418,36 @@ def test_per_step_covariance_constraints():
     model, sm, y, mom, rng = instance(15, 3, m, T=T)
     prev = random_policy(rng, T, 3, m)
     ent = np.linalg.slogdet(prev.cov)[1]
-    pol = maximize(model, sm, y, constraints=MStepConstraints(entropy_floor=ent.tolist()), min_norm=False)
+    pol = maximize(model, moments(sm, y), constraints=MStepConstraints(entropy_floor=ent.tolist()), min_norm=False).policy
     assert np.allclose(np.linalg.slogdet(pol.cov)[1], ent, atol=1e-10)
-    cv = maximize(model, sm, y, constraints=MStepConstraints(entropy_floor=ent.tolist()), method="cvxpy", min_norm=False)
+    cv = maximize(model, moments(sm, y), constraints=MStepConstraints(entropy_floor=ent.tolist()), method="cvxpy", min_norm=False).policy
     assert np.allclose(np.linalg.slogdet(cv.cov)[1], ent, atol=1e-6)
     floors = 0.5 * np.asarray(prev.cov)
-    pol = maximize(model, sm, y, constraints=MStepConstraints(cov_floor=floors.tolist()), min_norm=False)
+    pol = maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=floors.tolist()), min_norm=False).policy
     assert np.array_equal(pol.cov, floors)
-    cv = maximize(model, sm, y, constraints=MStepConstraints(cov_floor=floors.tolist()), method="cvxpy", min_norm=False)
+    cv = maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=floors.tolist()), method="cvxpy",
+                  min_norm=False).policy
     assert rel_err(cv.cov, floors) <= 1e-6
     # time-invariant: max_k c_k, and a dominating floor
-    ti = maximize(model, sm, y, constraints=MStepConstraints(entropy_floor=ent.tolist()), variant="time_invariant", min_norm=False)
+    ti = maximize(model, moments(sm, y), constraints=MStepConstraints(entropy_floor=ent.tolist()), variant="time_invariant",
+                  min_norm=False).policy
     assert np.allclose(np.linalg.slogdet(ti.cov)[1], ent.max(), atol=1e-10)
     nested = np.stack([(1.0 + j) * np.eye(m) for j in range(T)])
-    ti = maximize(model, sm, y, constraints=MStepConstraints(cov_floor=nested.tolist()), variant="time_invariant", min_norm=False)
+    ti = maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=nested.tolist()), variant="time_invariant",
+                  min_norm=False).policy
     assert np.allclose(ti.cov, T * np.eye(m))
     with pytest.raises(ValueError, match="dominates"):
-        maximize(model, sm, y, constraints=MStepConstraints(cov_floor=floors.tolist()), variant="time_invariant", min_norm=False)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=floors.tolist()), variant="time_invariant", min_norm=False)
     with pytest.raises(ShapeError, match="entropy_floor"):
-        maximize(model, sm, y, constraints=MStepConstraints(entropy_floor=ent[:2].tolist()), min_norm=False)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(entropy_floor=ent[:2].tolist()), min_norm=False)
     with pytest.raises(ShapeError, match="cov_floor"):
-        maximize(model, sm, y, constraints=MStepConstraints(cov_floor=floors[:2].tolist()), min_norm=False)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=floors[:2].tolist()), min_norm=False)
     with pytest.raises(InfeasibleConstraintsError, match="step 2"):
         bad = np.array(floors)
         bad[2] = 10 * np.eye(m)
         MStepConstraints(cov_floor=bad.tolist(), cov_ceiling=np.eye(m).tolist())
     # per-step floors in the exact-EM step
-    res = maximize_moments_result(model, mom, constraints=MStepConstraints(cov_floor=floors.tolist()), objective="exact",
+    res = maximize(model, mom, constraints=MStepConstraints(cov_floor=floors.tolist()), objective="exact",
                                   previous=prev, config=MStepConfig(exact_max_iter=20), min_norm=False)
     assert all(np.linalg.eigvalsh(res.policy.cov[k] - floors[k])[0] >= -1e-10 for k in range(T))
 
@@ -454,11 +455,11 @@ def test_per_step_covariance_constraints():
 def test_cvxpy_problem_is_built_once_and_dpp():
     model, sm, y, mom, rng = instance(12, 2, 2, T=3)
     C = MStepConstraints(cov_floor=0.2, offset_bound=0.1)
-    maximize_moments(model, mom, constraints=C, method="cvxpy", min_norm=False)
+    maximize(model, mom, constraints=C, method="cvxpy", min_norm=False)
     keys = set(CACHE)
     built = {k: id(v.problem) for k, v in CACHE.items()}
     model2, sm2, y2, mom2, _ = instance(13, 2, 2, T=5)
-    maximize_moments(model2, mom2, constraints=C, method="cvxpy", min_norm=False)
+    maximize(model2, mom2, constraints=C, method="cvxpy", min_norm=False)
     assert set(CACHE) == keys
     assert all(id(CACHE[k].problem) == built[k] for k in keys)
     assert all(v.problem.is_dpp() for v in CACHE.values())
@@ -474,9 +475,9 @@ def _kkt_scale(R):
 @pytest.mark.parametrize("variant", ["time_varying", "time_invariant"])
 def test_offset_bound_kkt(variant):
     model, sm, y, mom, rng = instance(21, 3, 2, T=4)
-    free = maximize_moments(model, mom, constraints=MStepConstraints(cov_floor=0.1), variant=variant, min_norm=False)
+    free = maximize(model, mom, constraints=MStepConstraints(cov_floor=0.1), variant=variant, min_norm=False).policy
     b = 0.5 * np.abs(free.k).min()  # binds every component
-    res = maximize_moments_result(model, mom, constraints=MStepConstraints(cov_floor=0.1, offset_bound=b), method="cvxpy",
+    res = maximize(model, mom, constraints=MStepConstraints(cov_floor=0.1, offset_bound=b), method="cvxpy",
                                   variant=variant, min_norm=False)
     H, R, S = quad_terms(model, mom)
     F = F_of(res.policy)
@@ -551,7 +552,7 @@ def test_trust_region_kkt(variant):
         F0 = F_of(prev)[0]
         Fp = F0 + rng.normal(size=(T, 2, 4)) * 0.2 * delta / 4
         prev = policy_from(Fp, prev.cov)
-    res = maximize_moments_result(model, mom, constraints=MStepConstraints(cov_floor=0.1, trust_region=delta), method="cvxpy",
+    res = maximize(model, mom, constraints=MStepConstraints(cov_floor=0.1, trust_region=delta), method="cvxpy",
                                   variant=variant, previous=prev, min_norm=False)
     H, R, S = quad_terms(model, mom)
     mu = _assert_trust_region_kkt(res, prev, H, R, S, delta, variant)
@@ -570,7 +571,7 @@ def test_trust_region_matches_secular_equation_oracle():
     model, sm, y, mom, rng = instance(25, n, m, T=T)
     prev = random_policy(rng, T, n, m)
     delta = 0.05
-    res = maximize_moments_result(model, mom, constraints=MStepConstraints(cov_floor=0.1, trust_region=delta), method="cvxpy",
+    res = maximize(model, mom, constraints=MStepConstraints(cov_floor=0.1, trust_region=delta), method="cvxpy",
                                   previous=prev, min_norm=False)
     H, R, S = quad_terms(model, mom)
     for k in range(T):
@@ -613,7 +614,7 @@ def test_trust_region_clarabel_solves_random_instances(variant):
     for i in range(30):
         n, m = sizes[i % 3]
         model, mom, prev, delta = _trust_region_instance(700 + i, n, m, variant)
-        res = maximize_moments_result(model, mom, constraints=MStepConstraints(cov_floor=0.1, trust_region=delta), method="cvxpy",
+        res = maximize(model, mom, constraints=MStepConstraints(cov_floor=0.1, trust_region=delta), method="cvxpy",
                                       variant=variant, previous=prev, min_norm=False)
         assert all(s == "optimal" for s in res.status), (i, n, m, res.status)
         H, R, S = quad_terms(model, mom)
@@ -638,10 +639,10 @@ def test_trust_region_solution_does_not_depend_on_earlier_solves():
         return MStepConstraints(cov_floor=0.1, trust_region=d)
 
     model, mom, prev, delta = _trust_region_instance(801, 6, 2, "time_varying")
-    first = maximize_moments_result(model, mom, constraints=C(delta), method="cvxpy", previous=prev, min_norm=False)
+    first = maximize(model, mom, constraints=C(delta), method="cvxpy", previous=prev, min_norm=False)
     model2, mom2, prev2, delta2 = _trust_region_instance(802, 6, 2, "time_varying")
-    maximize_moments(model2, mom2, constraints=C(delta2), method="cvxpy", previous=prev2, min_norm=False)
-    again = maximize_moments_result(model, mom, constraints=C(delta), method="cvxpy", previous=prev, min_norm=False)
+    maximize(model2, mom2, constraints=C(delta2), method="cvxpy", previous=prev2, min_norm=False)
+    again = maximize(model, mom, constraints=C(delta), method="cvxpy", previous=prev, min_norm=False)
     assert np.array_equal(F_of(first.policy), F_of(again.policy))
     assert np.array_equal(np.stack([d["trust"] for d in first.duals]), np.stack([d["trust"] for d in again.duals]))
 
@@ -654,7 +655,7 @@ def test_offset_bound_and_trust_region_kkt():
     b = 0.1
     prev = LinearGaussianPolicy(prev.K, np.clip(prev.k, -b, b), prev.cov)  # a feasible centre
     delta = 0.3
-    res = maximize_moments_result(model, mom, constraints=MStepConstraints(cov_floor=0.1, offset_bound=b, trust_region=delta),
+    res = maximize(model, mom, constraints=MStepConstraints(cov_floor=0.1, offset_bound=b, trust_region=delta),
                                   method="cvxpy", previous=prev, min_norm=False)
     assert all(s == "optimal" for s in res.status)
     H, R, S = quad_terms(model, mom)
@@ -684,7 +685,7 @@ def test_floor_and_ceiling_kkt():
     m = 2
     Smin = random_spd(rng, m, floor=0.05)
     Smax = Smin + random_spd(rng, m, floor=0.01)
-    res = maximize_moments_result(model, mom, constraints=MStepConstraints(cov_floor=Smin, cov_ceiling=Smax), method="cvxpy",
+    res = maximize(model, mom, constraints=MStepConstraints(cov_floor=Smin, cov_ceiling=Smax), method="cvxpy",
                                   min_norm=False)
     H, R, S = quad_terms(model, mom)
     for k in range(3):
@@ -713,8 +714,8 @@ def test_entropy_floor_and_ceiling_kkt_scs():
     c = float(np.linalg.slogdet(Smax)[1]) - 0.3
     C = MStepConstraints(entropy_floor=c, cov_ceiling=Smax)
     with pytest.raises(ClosedFormUnavailableError, match="cvxpy"):
-        maximize_moments(model, mom, constraints=C, min_norm=False)
-    res = maximize_moments_result(model, mom, constraints=C, method="cvxpy", solver="SCS", min_norm=False)
+        maximize(model, mom, constraints=C, min_norm=False)
+    res = maximize(model, mom, constraints=C, method="cvxpy", solver="SCS", min_norm=False)
     for k in range(2):
         Sig = res.policy.cov[k]
         nu, Z2 = float(res.duals[k]["entropy_floor"]), res.duals[k]["cov_ceiling"]
@@ -742,9 +743,9 @@ def test_exact_em_inner_iterations_never_decrease_exact_objective(seed, n, m, co
     if variant == "time_invariant":
         start = LinearGaussianPolicy(*(np.broadcast_to(a[0], a.shape) for a in (start.K, start.k, start.cov)))
     # a feasible start (EM is monotone from a feasible point)
-    res0 = maximize_moments_result(model, mom, constraints=C, objective="exact", previous=start, variant=variant,
+    res0 = maximize(model, mom, constraints=C, objective="exact", previous=start, variant=variant,
                                    config=MStepConfig(exact_max_iter=1), min_norm=False)
-    res = maximize_moments_result(model, mom, constraints=C, objective="exact", previous=res0.policy, variant=variant,
+    res = maximize(model, mom, constraints=C, objective="exact", previous=res0.policy, variant=variant,
                                   config=MStepConfig(exact_max_iter=60), min_norm=False)
     h = res.history if variant == "time_varying" else res.history.sum(1, keepdims=True)
     assert h.shape[0] == res.iterations + 1 >= 2
@@ -761,8 +762,8 @@ def test_exact_em_with_offset_bound_is_monotone_and_feasible():
     start = LinearGaussianPolicy(start.K, np.clip(start.k, -b, b), start.cov)
     C = MStepConstraints(offset_bound=b)
     with pytest.raises(ClosedFormUnavailableError, match="cvxpy"):
-        maximize_moments(model, mom, constraints=C, objective="exact", previous=start, min_norm=False)
-    res = maximize_moments_result(model, mom, constraints=C, objective="exact", method="cvxpy", previous=start,
+        maximize(model, mom, constraints=C, objective="exact", previous=start, min_norm=False)
+    res = maximize(model, mom, constraints=C, objective="exact", method="cvxpy", previous=start,
                                   config=MStepConfig(exact_max_iter=15), min_norm=False)
     assert np.all(np.abs(res.policy.k) <= b * (1 + 1e-7))
     h = res.history
@@ -811,7 +812,7 @@ def test_exact_em_never_decreases_log_likelihood(seed):
     ll = [float(np.sum(estep.log_likelihood(model, pol, y, mu0, P0)))]
     for _ in range(50):
         sm = estep.smooth(model, pol, y, mu0, P0)
-        pol = maximize(model, sm, y, objective="exact", previous=pol, config=cfg, min_norm=False)
+        pol = maximize(model, moments(sm, y), objective="exact", previous=pol, config=cfg, min_norm=False).policy
         ll.append(float(np.sum(estep.log_likelihood(model, pol, y, mu0, P0))))
     assert np.all(np.diff(ll) >= -1e-9 * np.abs(ll[1:]))
     assert ll[-1] > ll[0]
@@ -826,15 +827,15 @@ def test_min_norm_solution_for_non_unique_maximiser(which):
     model, sm, y, mom, rng = instance(51, 3, 2, T=3, **kw)
     C = MStepConstraints(cov_floor=0.1)
     with pytest.raises(NonUniqueMaximizerError, match="k=1") as e:
-        maximize(model, sm, y, constraints=C, min_norm=False)
+        maximize(model, moments(sm, y), constraints=C, min_norm=False)
     msg = str(e.value)
     if which == "B":
         assert "rank 1 < m=2" in msg
     else:
         assert "P_1" in msg and "smallest eigenvalue" in msg
     with pytest.raises(NonUniqueMaximizerError, match="k=1"):
-        maximize(model, sm, y, constraints=C, method="cvxpy", min_norm=False)
-    pol = maximize(model, sm, y, constraints=C, min_norm=True)
+        maximize(model, moments(sm, y), constraints=C, method="cvxpy", min_norm=False)
+    pol = maximize(model, moments(sm, y), constraints=C, min_norm=True).policy
     H, R, S = quad_terms(model, mom)
     Q = np.kron(S[1], H[1])
     v = np.linalg.lstsq(Q, R[1].reshape(-1, order="F"), rcond=1e-10)[0]
@@ -849,8 +850,8 @@ def test_time_invariant_min_norm_and_error():
     model, sm, y, mom, rng = instance(52, 3, 2, T=1, deficient_step=0)
     C = MStepConstraints(cov_floor=0.1)
     with pytest.raises(NonUniqueMaximizerError, match="time-invariant"):
-        maximize(model, sm, y, constraints=C, variant="time_invariant", min_norm=False)
-    pol = maximize(model, sm, y, constraints=C, variant="time_invariant", min_norm=True)
+        maximize(model, moments(sm, y), constraints=C, variant="time_invariant", min_norm=False)
+    pol = maximize(model, moments(sm, y), constraints=C, variant="time_invariant", min_norm=True).policy
     H, R, S = quad_terms(model, mom)
     v = np.linalg.lstsq(np.kron(S[0], H[0]), R[0].reshape(-1, order="F"), rcond=1e-10)[0]
     assert rel_err(F_of(pol)[0].reshape(-1, order="F"), v) <= 1e-6
@@ -859,7 +860,7 @@ def test_time_invariant_min_norm_and_error():
 def test_entropy_floor_needs_full_rank_B_even_with_min_norm():
     model, sm, y, mom, rng = instance(53, 3, 2, T=3, deficient_step=2)
     with pytest.raises(NonUniqueMaximizerError, match="k=2.*entropy_floor"):
-        maximize(model, sm, y, constraints=MStepConstraints(entropy_floor=0.0), min_norm=True)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(entropy_floor=0.0), min_norm=True)
 
 
 # --------------------------------------------------------------------------- errors
@@ -869,30 +870,31 @@ def test_wrong_shapes_raise_shape_error():
     model, sm, y, mom, rng = instance(61, 3, 2, T=4)
     model5 = random_model(rng, 3, 2, 5)
     with pytest.raises(ShapeError, match="moments Szz"):
-        maximize(model5, sm, y, constraints=MStepConstraints(cov_floor=0.1), min_norm=False)
+        maximize(model5, moments(sm, y), constraints=MStepConstraints(cov_floor=0.1), min_norm=False)
     with pytest.raises(ShapeError, match="y"):
-        maximize(model, sm, y[:3], constraints=MStepConstraints(cov_floor=0.1), min_norm=False)
+        maximize(model, moments(sm, y[:3]), constraints=MStepConstraints(cov_floor=0.1), min_norm=False)
     with pytest.raises(ShapeError, match="policy K"):
         surrogate(model, sm, y, random_policy(rng, 4, 2, 2))
     with pytest.raises(ShapeError, match="cov_floor"):
-        maximize(model, sm, y, constraints=MStepConstraints(cov_floor=np.eye(3)), min_norm=False)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=np.eye(3)), min_norm=False)
     with pytest.raises(ShapeError, match="offset_bound"):
-        maximize(model, sm, y, constraints=MStepConstraints(cov_floor=0.1, offset_bound=(1.0, 2.0, 3.0)), method="cvxpy", min_norm=False)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=0.1, offset_bound=(1.0, 2.0, 3.0)), method="cvxpy",
+                 min_norm=False)
     with pytest.raises(ShapeError, match="previous"):
-        maximize(model, sm, y, constraints=MStepConstraints(cov_floor=0.1), previous=random_policy(rng, 3, 3, 2), min_norm=False)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=0.1), previous=random_policy(rng, 3, 3, 2), min_norm=False)
 
 
 def test_no_covariance_constraint_is_an_error_unless_singular_allowed():
     model, sm, y, mom, rng = instance(62, 3, 2, T=3)
     for C in (MStepConstraints(), MStepConstraints(cov_ceiling=1.0)):
         with pytest.raises(ValueError, match="Sigma_k = 0"):
-            maximize(model, sm, y, constraints=C, min_norm=False)
+            maximize(model, moments(sm, y), constraints=C, min_norm=False)
     with pytest.raises(ValueError, match="cov_ceiling alone"):
-        maximize(model, sm, y, constraints=MStepConstraints(cov_ceiling=1.0), min_norm=False)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(cov_ceiling=1.0), min_norm=False)
     for C in (MStepConstraints(allow_singular=True), MStepConstraints(cov_ceiling=1.0, allow_singular=True)):
-        pol = maximize(model, sm, y, constraints=C, min_norm=False)
+        pol = maximize(model, moments(sm, y), constraints=C, min_norm=False).policy
         assert np.all(pol.cov == 0) and pol.allow_singular
-        pol2 = maximize(model, sm, y, constraints=C, method="cvxpy", min_norm=False)
+        pol2 = maximize(model, moments(sm, y), constraints=C, method="cvxpy", min_norm=False).policy
         assert np.abs(pol2.cov).max() <= 1e-7 and np.allclose(pol2.K, pol.K, rtol=1e-6, atol=1e-8)
 
 
@@ -903,9 +905,10 @@ def test_infeasible_constraint_sets_are_named():
         MStepConstraints(cov_floor=np.diag([1.0, 3.0]), cov_ceiling=np.diag([2.0, 2.0]))
     model, sm, y, mom, rng = instance(63, 3, 2, T=3)
     with pytest.raises(InfeasibleConstraintsError, match="entropy_floor.*cov_ceiling"):
-        maximize(model, sm, y, constraints=MStepConstraints(entropy_floor=1.0, cov_ceiling=1.0), min_norm=False)  # log det I = 0 < 1
+        # log det I = 0 < 1
+        maximize(model, moments(sm, y), constraints=MStepConstraints(entropy_floor=1.0, cov_ceiling=1.0), min_norm=False)
     with pytest.raises(InfeasibleConstraintsError, match="cov_floor.*cov_ceiling"):
-        maximize(model, sm, y, constraints=MStepConstraints(cov_floor=0.5, cov_ceiling=np.diag([1.0, 0.2])), min_norm=False)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=0.5, cov_ceiling=np.diag([1.0, 0.2])), min_norm=False)
     with pytest.raises(ConfigError, match="positive semidefinite"):
         MStepConstraints(cov_floor=-np.eye(2))
     with pytest.raises(ConfigError, match="offset_bound"):
@@ -916,20 +919,20 @@ def test_closed_form_unavailable_and_missing_previous():
     model, sm, y, mom, rng = instance(64, 3, 2, T=3)
     for C in (MStepConstraints(cov_floor=0.1, offset_bound=1.0), MStepConstraints(cov_floor=0.1, trust_region=1.0)):
         with pytest.raises(ClosedFormUnavailableError, match="method='cvxpy'"):
-            maximize(model, sm, y, constraints=C, previous=random_policy(rng, 3, 3, 2), min_norm=False)
+            maximize(model, moments(sm, y), constraints=C, previous=random_policy(rng, 3, 3, 2), min_norm=False)
     with pytest.raises(ValueError, match="trust_region needs previous"):
-        maximize(model, sm, y, constraints=MStepConstraints(cov_floor=0.1, trust_region=1.0), method="cvxpy", min_norm=False)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=0.1, trust_region=1.0), method="cvxpy", min_norm=False)
     with pytest.raises(ValueError, match="needs previous"):
-        maximize(model, sm, y, objective="exact", min_norm=False)
+        maximize(model, moments(sm, y), objective="exact", min_norm=False)
     with pytest.raises(ValueError, match="method"):
-        maximize(model, sm, y, constraints=MStepConstraints(cov_floor=0.1), method="newton", min_norm=False)
+        maximize(model, moments(sm, y), constraints=MStepConstraints(cov_floor=0.1), method="newton", min_norm=False)
 
 
 def test_solver_failure_raises_solver_error():
     model, sm, y, mom, rng = instance(65, 3, 2, T=2)
     cfg = MStepConfig(scs_max_iters=2, scs_eps=1e-12)
     with pytest.raises(SolverError, match="SCS") as e:
-        maximize(model, sm, y, constraints=MStepConstraints(entropy_floor=0.0, offset_bound=0.01), method="cvxpy",
+        maximize(model, moments(sm, y), constraints=MStepConstraints(entropy_floor=0.0, offset_bound=0.01), method="cvxpy",
                  solver="SCS", config=cfg, min_norm=False)
     assert e.value.status is not None and e.value.step == 1  # the backward sweep starts at T-1
     # one base class for every solver path: soc_opt.errors.SolverError catches it too

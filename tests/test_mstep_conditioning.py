@@ -24,8 +24,7 @@ from soc_opt.mstep import (
     MStepConfig,
     MStepConstraints,
     NonUniqueMaximizerError,
-    maximize_moments,
-    maximize_moments_result,
+    maximize,
 )
 from soc_opt.mstep.objectives import surrogate_from_moments
 from soc_opt.testing import random_mstep_instance
@@ -86,12 +85,12 @@ def test_near_parallel_actuators_return_the_unique_maximiser_not_a_truncation():
     Fstar = rounded(exact_maximiser(model, mom))
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no MinNormWarning: nothing is truncated
-        res = maximize_moments_result(model, mom, constraints=COV)
+        res = maximize(model, mom, constraints=COV)
     F = F_of(res.policy)[0]
     assert res.exact_steps == (0,) and res.min_norm_steps == ()
     assert np.max(np.abs(F - Fstar) / np.abs(Fstar)) <= 4 * np.finfo(float).eps  # correctly rounded, up to ulps
     assert np.linalg.norm(Fstar) > 1e5  # the unique maximiser is large: a truncation would be far from it
-    strict = maximize_moments(model, mom, constraints=COV, min_norm=False)  # unique: no error either
+    strict = maximize(model, mom, constraints=COV, min_norm=False).policy  # unique: no error either
     assert np.array_equal(F_of(strict)[0], F)
     # the minimum-norm truncation (what the closed form used to return) loses most of the objective
     Ft = F_of(res.policy).copy()
@@ -115,7 +114,7 @@ def _R(model, mom):
 def test_ill_conditioned_step_is_refused_by_cvxpy_naming_the_threshold_and_the_condition_number():
     model, mom = near_parallel()
     with pytest.raises(IllConditionedMaximizerError) as e:
-        maximize_moments(model, mom, constraints=COV, method="cvxpy", min_norm=False)
+        maximize(model, mom, constraints=COV, method="cvxpy", min_norm=False)
     msg = str(e.value)
     assert "k=0" in msg and "eig_tol = 1e-10" in msg and "condition number 9.67" in msg
 
@@ -126,11 +125,11 @@ def test_exactly_parallel_actuators_are_singular_with_a_consistent_rank_message(
     Ao[0, :, 3] = Ao[0, :, 2]  # identical columns: rank 1 exactly
     model = AugmentedModel(Ao, model.co, model.So, 2)
     with pytest.raises(NonUniqueMaximizerError) as e:
-        maximize_moments(model, mom, constraints=COV, min_norm=False)
+        maximize(model, mom, constraints=COV, min_norm=False)
     msg = str(e.value)
     assert "numerical rank 1 < m=2" in msg and "sing_tol" in msg and "rank 2 < m=2" not in msg
     with pytest.warns(MinNormWarning, match=r"time steps \[0\].*minimum-norm"):
-        res = maximize_moments_result(model, mom, constraints=COV)
+        res = maximize(model, mom, constraints=COV)
     assert res.min_norm_steps == (0,) and res.exact_steps == ()
 
 
@@ -147,7 +146,7 @@ def test_ill_conditioned_P_is_solved_exactly_and_not_called_non_positive_definit
     model = AugmentedModel(Ao, model.co, model.So, 2)
     P = mom.Sss[0][:2, :2] - np.outer(mom.Sss[0][:2, 2], mom.Sss[0][2, :2]) / mom.Sss[0][2, 2]
     assert np.linalg.eigvalsh(P)[0] > 0
-    res = maximize_moments_result(model, mom, constraints=COV, min_norm=False)
+    res = maximize(model, mom, constraints=COV, min_norm=False)
     assert res.exact_steps == (0,)
     Fstar = rounded(exact_maximiser(model, mom))
     assert np.max(np.abs(F_of(res.policy)[0] - Fstar) / np.abs(Fstar)) <= 4 * np.finfo(float).eps
@@ -163,15 +162,15 @@ def test_more_actions_than_outputs_is_singular():
     whatever its entries (the whitened ``B`` has only ``n+1`` singular values to measure)."""
     model, mom = random_mstep_instance(1, 3, 2, np.random.default_rng(5))
     with pytest.raises(NonUniqueMaximizerError, match="numerical rank 2 < m=3"):
-        maximize_moments(model, mom, constraints=COV, min_norm=False)
+        maximize(model, mom, constraints=COV, min_norm=False)
 
 
 def test_time_invariant_ill_conditioned_step_is_solved_exactly_up_to_its_size_limit():
     """With ``T = 1`` the time-invariant maximiser is the per-step one: exact below ``EXACT_TI_MAX`` unknowns."""
     model, mom = near_parallel()
     Fstar = rounded(exact_maximiser(model, mom))
-    res = maximize_moments_result(model, mom, constraints=COV, variant="time_invariant", min_norm=False)
+    res = maximize(model, mom, constraints=COV, variant="time_invariant", min_norm=False)
     assert res.exact_steps == (0,)
     assert np.max(np.abs(F_of(res.policy)[0] - Fstar) / np.abs(Fstar)) <= 4 * np.finfo(float).eps
     with pytest.raises(IllConditionedMaximizerError, match="eig_tol = 1e-10.*no exact solve"):
-        maximize_moments(model, mom, constraints=COV, variant="time_invariant", method="cvxpy", min_norm=False)
+        maximize(model, mom, constraints=COV, variant="time_invariant", method="cvxpy", min_norm=False)

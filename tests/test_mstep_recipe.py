@@ -27,8 +27,8 @@ def test_recipe_maximize_is_the_m_step_with_the_recipes_settings():
     sm = estep.smooth(model, policy, y, mu0, P0)
     recipe = MStepRecipe(cov_floor_scale=0.5, variant="time_invariant")
     got = recipe.maximize(model, sm, y, previous=policy)
-    ref = mstep.maximize(model, sm, y, constraints=MStepConstraints(cov_floor=(0.5 * np.asarray(policy.cov)).tolist()),
-                         variant="time_invariant", previous=policy, min_norm=True)
+    ref = mstep.maximize(model, estep.moments(sm, y), constraints=MStepConstraints(cov_floor=(0.5 * np.asarray(policy.cov)).tolist()),
+                         variant="time_invariant", previous=policy, min_norm=True).policy
     np.testing.assert_array_equal(got.K, ref.K)
     np.testing.assert_array_equal(got.cov, ref.cov)
 

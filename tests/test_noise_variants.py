@@ -88,7 +88,7 @@ def test_default_em_update_is_the_paper_recursion_bit_for_bit():
     Y = fit.cost_observations("model", ro, model, policy, task.mu0, task.P0, rng)
     sm = estep.smooth(model, policy, Y, task.mu0, task.P0)
     cons = mstep.MStepConstraints(cov_floor=(0.5 * np.asarray(policy.cov)).tolist())
-    ref = mstep.maximize(model, sm, Y, constraints=cons, previous=policy, config=cfg.em.mstep, min_norm=False)
+    ref = mstep.maximize(model, estep.moments(sm, Y), constraints=cons, previous=policy, config=cfg.em.mstep, min_norm=False).policy
     assert isinstance(new, LinearGaussianPolicy)
     for name in ("K", "k", "cov"):
         assert np.array_equal(getattr(new, name), getattr(ref, name))

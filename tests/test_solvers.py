@@ -142,14 +142,14 @@ def test_fatrop_mx_stage_formulation_matches_the_closed_form():
 
 from soc_opt.bench import qp_bench as QB  # noqa: E402
 from soc_opt.bench import qp_bench_report as QBR  # noqa: E402
-from soc_opt.mstep import maximize_moments  # noqa: E402
+from soc_opt.mstep import maximize  # noqa: E402
 from soc_opt.mstep.errors import InfeasibleConstraintsError  # noqa: E402
 
 
 def test_infeasible_family_raises_an_error_naming_the_offset_bound():
     (prob,) = QB.make_problems(sizes=((3, 2),), instances=1, families=("infeasible",))
     with pytest.raises(InfeasibleConstraintsError, match="infeasible constraint set: offset_bound"):
-        maximize_moments(prob.model, prob.mom, constraints=prob.constraints(), method="cvxpy")
+        maximize(prob.model, prob.mom, constraints=prob.constraints(), method="cvxpy")
     rows = QB.run(problems=[prob], methods=("closed_form", "library/CLARABEL", "cvxpy/CLARABEL"), repeats=1,
                   levels=("default",))
     assert all(r["success"] and not r["found"] for r in rows), rows

@@ -24,8 +24,8 @@ def test_kl_instance_draws_are_reproducible_from_the_generator():
 def test_mstep_instance_has_a_unique_closed_form_maximiser(mstep_instance):
     model, mom = mstep_instance
     cons = mstep.MStepConstraints(cov_floor=0.1)
-    cf = mstep.maximize_moments(model, mom, constraints=cons, min_norm=False)
-    cv = mstep.maximize_moments(model, mom, constraints=cons, method="cvxpy", min_norm=False)
+    cf = mstep.maximize(model, mom, constraints=cons, min_norm=False).policy
+    cv = mstep.maximize(model, mom, constraints=cons, method="cvxpy", min_norm=False).policy
     np.testing.assert_allclose(cf.K, cv.K, rtol=1e-5, atol=1e-6)
     assert random_mstep_instance(3, 2, 5, np.random.default_rng(0))[0].T == 5
 

@@ -165,7 +165,7 @@ def _uniqueness_verdicts(model, sm, y):
     raised = []
     for variant in ("time_varying", "time_invariant"):
         try:
-            mstep.maximize(model, sm, y, constraints=mstep.MStepConstraints(cov_floor=0.1), variant=variant, min_norm=False)
+            mstep.maximize(model, moments(sm, y), constraints=mstep.MStepConstraints(cov_floor=0.1), variant=variant, min_norm=False)
             raised.append(False)
         except mstep.NonUniqueMaximizerError:
             raised.append(True)

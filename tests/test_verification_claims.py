@@ -124,8 +124,9 @@ def _maximize_wrong_offset_sign(monkeypatch):
     orig = mstep.maximize
 
     def broken(*a, **kw):
-        p = orig(*a, **kw)
-        return LinearGaussianPolicy(p.K, -p.k - 0.5, p.cov)
+        r = orig(*a, **kw)
+        p = r.policy
+        return dataclasses.replace(r, policy=LinearGaussianPolicy(p.K, -p.k - 0.5, p.cov))
 
     monkeypatch.setattr(mstep, "maximize", broken)
 
@@ -146,8 +147,9 @@ def _maximize_perturbed_gains(monkeypatch):
     orig = mstep.maximize
 
     def broken(*a, **kw):
-        p = orig(*a, **kw)
-        return LinearGaussianPolicy(1.01 * p.K, 1.01 * p.k, p.cov)
+        r = orig(*a, **kw)
+        p = r.policy
+        return dataclasses.replace(r, policy=LinearGaussianPolicy(1.01 * p.K, 1.01 * p.k, p.cov))
 
     monkeypatch.setattr(mstep, "maximize", broken)
 

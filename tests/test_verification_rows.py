@@ -60,8 +60,9 @@ def test_ecm_row_catches_a_perturbed_gain_update(monkeypatch):
     orig = mstep.maximize
 
     def broken(*a, **kw):
-        p = orig(*a, **kw)
-        return LinearGaussianPolicy(1.01 * p.K, 1.01 * p.k, p.cov)
+        r = orig(*a, **kw)
+        p = r.policy
+        return dataclasses.replace(r, policy=LinearGaussianPolicy(1.01 * p.K, 1.01 * p.k, p.cov))
 
     monkeypatch.setattr(mstep, "maximize", broken)
     r = _run("ecm")
@@ -154,7 +155,7 @@ def test_library_accepts_a_negligible_P0_and_fails_later_without_naming_it():
     model, policy, mu0, _, y = _instance()
     sm = estep.smooth(model, policy, y, mu0, 1e-14 * np.eye(2))
     with pytest.raises(mstep.NonUniqueMaximizerError, match=r"P_0 = Cov\(s_0 \| Y\)"):
-        mstep.maximize(model, sm, y, constraints=mstep.MStepConstraints(cov_floor=0.1), min_norm=False)
+        mstep.maximize(model, estep.moments(sm, y), constraints=mstep.MStepConstraints(cov_floor=0.1), min_norm=False)
 
 
 @pytest.mark.parametrize("P0", [1e-14 * np.eye(2), np.diag([1.0, 1e-14]), np.diag([1.0, 0.0])])

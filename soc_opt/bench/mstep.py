@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from ..mstep import MStepConstraints, maximize_moments, maximize_moments_result
+from ..mstep import MStepConstraints, maximize
 from ..testing import random_mstep_instance as random_instance
 
 __all__ = ["QUICK", "random_instance", "run"]
@@ -42,11 +42,11 @@ def run(sizes=((6, 2), (26, 7)), T: int = 20, seed: int = 0, repeats: int = 5) -
     for n, m in sizes:
         model, mom = random_instance(n, m, T, rng)
         for cname, cons in _constraint_sets(m).items():
-            ref = maximize_moments_result(model, mom, constraints=cons, min_norm=False)
+            ref = maximize(model, mom, constraints=cons, min_norm=False)
             t_cf = []
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                maximize_moments(model, mom, constraints=cons, min_norm=False)
+                maximize(model, mom, constraints=cons, min_norm=False)
                 t_cf.append((time.perf_counter() - t0) / T)
             base = dict(n=n, m=m, T=T, constraints=cname)
             rows.append(dict(base, method="closed_form", time_per_step_s=statistics.median(t_cf),
@@ -54,9 +54,9 @@ def run(sizes=((6, 2), (26, 7)), T: int = 20, seed: int = 0, repeats: int = 5) -
             Fref = np.concatenate([ref.policy.K, ref.policy.k[..., None]], axis=-1)
             for solver in ("CLARABEL", "SCS"):
                 t0 = time.perf_counter()
-                maximize_moments(model, mom, constraints=cons, method="cvxpy", solver=solver, min_norm=False)
+                maximize(model, mom, constraints=cons, method="cvxpy", solver=solver, min_norm=False)
                 first = time.perf_counter() - t0
-                res = maximize_moments_result(model, mom, constraints=cons, method="cvxpy", solver=solver, min_norm=False)
+                res = maximize(model, mom, constraints=cons, method="cvxpy", solver=solver, min_norm=False)
                 F = np.concatenate([res.policy.K, res.policy.k[..., None]], axis=-1)
                 rows.append(dict(
                     base,

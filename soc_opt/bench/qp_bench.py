@@ -13,7 +13,7 @@ problem in ``(f, Sigma)`` with ``Sigma`` a PSD variable.  The families without a
 carry an inactive one, ``|k| <= 1e3 max(1, |k*|)`` (``Problem.inactive_b``): qpsolvers hands a QP
 without constraints for clarabel and scs to SciPy's LSQR, not to the solver.  Every timed call starts from the step's
 ``(model, moments)``: the statistics, the Kronecker product and the solver call are timed
-together, and the closed form (:func:`soc_opt.mstep.maximize_moments`) is timed with its own
+together, and the closed form (:func:`soc_opt.mstep.maximize`) is timed with its own
 factorisations.
 
 References (:func:`reference`): the unconstrained optimum by a Cholesky solve with iterative
@@ -50,7 +50,7 @@ import numpy as np
 
 from ..estep import Moments
 from ..models import AugmentedModel
-from ..mstep import MStepConfig, MStepConstraints, maximize_moments, maximize_moments_result
+from ..mstep import MStepConfig, MStepConstraints, maximize
 from ..mstep.errors import InfeasibleConstraintsError
 from ..mstep.objectives import moment_stats
 from ..testing import random_mstep_instance
@@ -332,8 +332,8 @@ def _pol_f(pol):
 
 def _run_closed_form(prob: Problem, level: Level) -> Outcome:
     try:
-        pol = maximize_moments(prob.model, prob.mom, constraints=prob.constraints(),
-                               min_norm=prob.family == "degenerate")
+        pol = maximize(prob.model, prob.mom, constraints=prob.constraints(),
+                               min_norm=prob.family == "degenerate").policy
     except InfeasibleConstraintsError as e:
         return Outcome(None, None, None, False, f"InfeasibleConstraintsError: {e}")
     return Outcome(_pol_f(pol), pol.cov[0], None, True, "optimal")
@@ -342,7 +342,7 @@ def _run_closed_form(prob: Problem, level: Level) -> Outcome:
 def _run_library(prob: Problem, level: Level) -> Outcome:
     cfg = MStepConfig() if level.eps_abs is None else MStepConfig(clarabel_tol=level.eps_abs)
     try:
-        res = maximize_moments_result(prob.model, prob.mom, constraints=prob.constraints(), method="cvxpy",
+        res = maximize(prob.model, prob.mom, constraints=prob.constraints(), method="cvxpy",
                                       solver="CLARABEL", config=cfg, min_norm=prob.family == "degenerate",
                                       previous=_previous(prob))
     except InfeasibleConstraintsError as e:

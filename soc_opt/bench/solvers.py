@@ -10,7 +10,7 @@ set (:func:`kkt_box_reference`; the committed tables of this benchmark predate i
 
 Solvers (``method`` column):
 
-* ``library/CLARABEL``, ``library/SCS``: ``mstep.maximize_moments(method="cvxpy")``, the whole
+* ``library/CLARABEL``, ``library/SCS``: ``mstep.maximize(method="cvxpy")``, the whole
   problem over ``([K k], Sigma)`` with ``Sigma`` a PSD variable (DPP, cached).
 * ``qp/<S>``: ``Sigma`` fixed at its closed-form optimum (the ``Sigma`` part is separable), the
   ``[K k]`` problem ``min 1/2 |Lq^T f - c|^2`` (``Lq Lq^T = Stilde kron H``) as a CVXPY DPP problem
@@ -39,7 +39,7 @@ import warnings
 
 import numpy as np
 
-from ..mstep import MStepConstraints, maximize_moments, maximize_moments_result
+from ..mstep import MStepConstraints, maximize
 from ..mstep.objectives import moment_stats
 from .mstep import random_instance
 
@@ -307,7 +307,7 @@ def _run_library(rows, base, insts, kind, solver, refs):
 
     def call(inst):
         cons = _constraints(kind, m, inst["b"], inst["delta"])
-        return maximize_moments_result(inst["model"], inst["mom"], constraints=cons, method="cvxpy", solver=solver,
+        return maximize(inst["model"], inst["mom"], constraints=cons, method="cvxpy", solver=solver,
                                        previous=inst["prev"], min_norm=False)
 
     t0 = _clock()
@@ -396,7 +396,7 @@ def _closed_form_rows(rows, base, insts, kind, refs):
     for i, inst in enumerate(insts):
         cons = _constraints(kind, base["m"])
         t0 = _clock()
-        pol = maximize_moments(inst["model"], inst["mom"], constraints=cons, min_norm=False)
+        pol = maximize(inst["model"], inst["mom"], constraints=cons, min_norm=False).policy
         per = (_clock() - t0) / base["T"]
         for k in range(base["T"]):
             Q, r = inst["data"][k]

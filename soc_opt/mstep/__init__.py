@@ -3,9 +3,8 @@
 Every public name is importable from ``soc_opt.mstep``.  Modules, each importing only those
 listed after it:
 
-* :mod:`~soc_opt.mstep.maximize` -- entry points :func:`maximize` / :func:`maximize_moments` (the
-  policy) and :func:`maximize_result` / :func:`maximize_moments_result` (the :class:`MStepResult`),
-  the surrogate's closed-form maximisers and the time-varying sweep / time-invariant variant.
+* :mod:`~soc_opt.mstep.maximize` -- the entry point :func:`maximize` (smoothed moments in, the whole
+  :class:`MStepResult` out), the surrogate's closed-form maximisers and the time-varying sweep / time-invariant variant.
 * :mod:`~soc_opt.mstep.exact_em` -- inner EM iterations for ``objective="exact"``.
 * :mod:`~soc_opt.mstep.cvx` -- the CVXPY (DPP) problems: factored, Kronecker and spectral forms,
   the entropy floor as an SDP, caching, solver settings, duals.
@@ -38,7 +37,7 @@ from .errors import (
     NonUniqueMaximizerError,
     SolverError,
 )
-from .maximize import MStepResult, maximize, maximize_moments, maximize_moments_result, maximize_result
+from .maximize import MStepResult, maximize
 from .objectives import (
     LOG_2PI,
     GradHess,
@@ -73,7 +72,4 @@ __all__ = [
     "exact_objective_from_moments",
     "surrogate_grad_hess",
     "maximize",
-    "maximize_result",
-    "maximize_moments",
-    "maximize_moments_result",
 ]

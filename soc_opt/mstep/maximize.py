@@ -1,8 +1,7 @@
-"""The M-step's entry points (docs/math.md §5) and the surrogate's closed-form maximisers.
+"""The M-step's entry point (docs/math.md §5) and the surrogate's closed-form maximisers.
 
-:func:`maximize` (from smoothed states) and :func:`maximize_moments` (from precomputed moments)
-return the policy; :func:`maximize_result` and :func:`maximize_moments_result` take the same
-arguments and return the :class:`MStepResult` (one return type per function).
+:func:`maximize` takes the smoothed moments (:class:`~soc_opt.estep.Moments`) and returns the whole
+:class:`MStepResult` (the policy is ``.policy``): ``maximize(model, moments(smoothed, y), ...)``.
 
 Time-varying sweep and time-invariant variant
 ---------------------------------------------
@@ -23,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import linalg as la
-from ..estep import Moments, moments
-from ..models import AugmentedModel, LinearGaussianPolicy, Smoothed
+from ..estep import Moments
+from ..models import AugmentedModel, LinearGaussianPolicy
 from .conditioning import CVXPY_HINT, MIN_NORM_HINT, check_time_invariant, check_time_varying
 from .config import MSTEP_METHODS, MSTEP_OBJECTIVES, MSTEP_SOLVERS, MSTEP_VARIANTS, MStepConfig
 from .constraints import MStepConstraints, pd_guaranteed, require_pd_covariance, sigma_closed
@@ -42,12 +41,12 @@ from .objectives import (
     ti_normal_equations,
 )
 
-__all__ = ["MStepResult", "maximize", "maximize_result", "maximize_moments", "maximize_moments_result"]
+__all__ = ["MStepResult", "maximize"]
 
 
 @dataclass(frozen=True)
 class MStepResult:
-    """Everything an M-step produced (:func:`maximize_result`, :func:`maximize_moments_result`).
+    """Everything an M-step produced (:func:`maximize`).
 
     Fields:
         policy: the maximiser.
@@ -87,8 +86,7 @@ class MStepResult:
 
 def maximize(
     model: AugmentedModel,
-    smoothed: Smoothed,
-    y: np.ndarray,
+    moments: Moments,
     *,
     constraints: MStepConstraints | None = None,
     method: str = "closed_form",
@@ -98,16 +96,16 @@ def maximize(
     previous: LinearGaussianPolicy | None = None,
     min_norm: bool = True,
     config: MStepConfig | None = None,
-) -> LinearGaussianPolicy:
+) -> MStepResult:
     """The DP M-step (docs/math.md §5): maximise ``Lbar_k`` (or the exact objective) over the feasible set.
 
-    Returns the maximiser; :func:`maximize_result` takes the same arguments and returns the
-    :class:`MStepResult` (objective values, solver statuses, duals, exact-EM history).
+    The M-step's one entry point; returns the whole :class:`MStepResult` (the maximiser ``.policy``,
+    objective values, solver statuses, duals, exact-EM history).
 
     Args:
         model: the augmented model (``Ao, co, So``).
-        smoothed, y: smoothed states and observations; reduced to :class:`Moments` by
-            :func:`soc_opt.estep.moments` (use :func:`maximize_moments` for precomputed moments).
+        moments: the smoothed sufficient statistics (:class:`~soc_opt.estep.Moments`); from the
+            smoother's output and the observations, ``soc_opt.estep.moments(smoothed, y)``.
         constraints: the feasible set (:class:`MStepConstraints`; default: none, which is an error
             for the surrogate unless ``MStepConstraints(allow_singular=True)``, because its optimum is
             ``Sigma = 0``).
@@ -117,8 +115,7 @@ def maximize(
             ``"time_invariant"`` (one shared ``phi`` maximising ``sum_k``).
         objective: ``"surrogate"`` (the paper's ``Lbar``) or ``"exact"`` (action integrated out,
             inner EM started from ``previous``; the time-invariant variant starts from the time
-            average of ``previous``).  The number of inner iterations and convergence are in the
-            :class:`MStepResult` of :func:`maximize_result`.
+            average of ``previous``; the number of inner iterations and convergence are in the result).
         previous: the current policy; trust-region centre and exact-EM starting point.
         min_norm: return the minimum-norm maximiser where it is not unique (closed form only; the
             default, as in the EM loop's :class:`~soc_opt.mstep.recipe.MStepRecipe`), with a
@@ -138,69 +135,12 @@ def maximize(
         SolverError: CVXPY failed (status and step in the message).
         ShapeError: inconsistent shapes.
     """
-    return _maximize(model, moments(smoothed, y), constraints, method, solver, variant, objective, previous,
-                     min_norm, config, False)
-
-
-def maximize_result(
-    model: AugmentedModel,
-    smoothed: Smoothed,
-    y: np.ndarray,
-    *,
-    constraints: MStepConstraints | None = None,
-    method: str = "closed_form",
-    solver: str | None = None,
-    variant: str = "time_varying",
-    objective: str = "surrogate",
-    previous: LinearGaussianPolicy | None = None,
-    min_norm: bool = True,
-    config: MStepConfig | None = None,
-) -> MStepResult:
-    """:func:`maximize` returning everything the M-step produced (:class:`MStepResult`); the same
-    arguments, the same policy (``maximize_result(...).policy``)."""
-    return _maximize(model, moments(smoothed, y), constraints, method, solver, variant, objective, previous,
-                     min_norm, config, True)
-
-
-def maximize_moments(
-    model: AugmentedModel,
-    mom: Moments,
-    *,
-    constraints: MStepConstraints | None = None,
-    method: str = "closed_form",
-    solver: str | None = None,
-    variant: str = "time_varying",
-    objective: str = "surrogate",
-    previous: LinearGaussianPolicy | None = None,
-    min_norm: bool = True,
-    config: MStepConfig | None = None,
-) -> LinearGaussianPolicy:
-    """The M-step from precomputed :class:`Moments` (see :func:`maximize`)."""
-    return _maximize(model, mom, constraints, method, solver, variant, objective, previous, min_norm, config, False)
-
-
-def maximize_moments_result(
-    model: AugmentedModel,
-    mom: Moments,
-    *,
-    constraints: MStepConstraints | None = None,
-    method: str = "closed_form",
-    solver: str | None = None,
-    variant: str = "time_varying",
-    objective: str = "surrogate",
-    previous: LinearGaussianPolicy | None = None,
-    min_norm: bool = True,
-    config: MStepConfig | None = None,
-) -> MStepResult:
-    """The M-step from precomputed :class:`Moments` returning its :class:`MStepResult` (see
-    :func:`maximize_result`)."""
-    return _maximize(model, mom, constraints, method, solver, variant, objective, previous, min_norm, config, True)
+    return _maximize(model, moments, constraints, method, solver, variant, objective, previous, min_norm, config)
 
 
 def _maximize(model: AugmentedModel, mom: Moments, constraints, method, solver, variant, objective, previous,
-              min_norm: bool, config, want_result: bool) -> LinearGaussianPolicy | MStepResult:
-    """The one implementation; ``want_result`` only decides what is returned (the policy, or the
-    policy with its objective values and solver diagnostics), never how it is computed."""
+              min_norm: bool, config) -> MStepResult:
+    """:func:`maximize` with its arguments positional."""
     cfg = config if config is not None else MStepConfig()
     for key, value, allowed in (("method", method, MSTEP_METHODS), ("variant", variant, MSTEP_VARIANTS),
                                 ("objective", objective, MSTEP_OBJECTIVES)):
@@ -223,8 +163,6 @@ def _maximize(model: AugmentedModel, mom: Moments, constraints, method, solver, 
 
     if objective == "exact":
         policy, hist, it, conv = run_exact_em(model, mom, rc, cfg, method, solver, variant, previous, min_norm)
-        if not want_result:
-            return policy
         return MStepResult(policy, hist[-1], history=hist, iterations=it, converged=conv)
 
     require_pd_covariance(rc)
@@ -259,8 +197,6 @@ def _maximize(model: AugmentedModel, mom: Moments, constraints, method, solver, 
     # without a PD guarantee require_pd_covariance only let us through with allow_singular=True
     policy = LinearGaussianPolicy(np.array(F[..., :n]), np.array(F[..., n]), np.array(Sigma),
                                   allow_singular=not pd_guaranteed(rc))
-    if not want_result:
-        return policy
     return MStepResult(policy, surrogate_from_moments(model, mom, policy), **extra)
 
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import Config, Interval, Options
+from ..estep import moments
 from ..models import AugmentedModel, LinearGaussianPolicy, Smoothed
 from .config import MSTEP_METHODS, MSTEP_OBJECTIVES, MSTEP_VARIANTS, MStepConfig
 from .constraints import MStepConstraints
@@ -72,6 +73,6 @@ class MStepRecipe(Config):
     def maximize(self, model: AugmentedModel, smoothed: Smoothed, y: np.ndarray,
                  previous: LinearGaussianPolicy) -> LinearGaussianPolicy:
         """The M-step of this recipe from ``previous`` (:func:`~soc_opt.mstep.maximize.maximize`)."""
-        return maximize(model, smoothed, y, constraints=self.constraints(previous), method=self.method,
+        return maximize(model, moments(smoothed, y), constraints=self.constraints(previous), method=self.method,
                         variant=self.variant, objective=self.objective, previous=previous,
-                        min_norm=self.min_norm, config=self.mstep)
+                        min_norm=self.min_norm, config=self.mstep).policy

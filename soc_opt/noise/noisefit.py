@@ -291,10 +291,10 @@ def smooth_states(kf, s, a) -> Smoothed:
     post = lgssm.rts_smoother(params, s3)
     M = s3.shape[0]
     return Smoothed(
-        mean=post.mean,
-        cov=np.broadcast_to(post.cov, (M,) + post.cov.shape),
-        cross=np.broadcast_to(post.cross, (M,) + post.cross.shape),
-        loglik=post.loglik,
+        mean=post.smoothed_means,
+        cov=np.broadcast_to(post.smoothed_covariances, (M,) + post.smoothed_covariances.shape),
+        cross=np.broadcast_to(post.smoothed_cross_covariances, (M,) + post.smoothed_cross_covariances.shape),
+        loglik=post.marginal_loglik,
     )
 
 

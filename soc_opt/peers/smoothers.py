@@ -148,7 +148,7 @@ def run_soc_opt_core(lg: LGSSM, Y, mu0, P0) -> SmootherOutput:
     post = lgssm.rts_smoother(params, Y3)
     dt = time.perf_counter() - t0
     T = Y.shape[1]
-    return SmootherOutput(post.mean[:, :T], post.cov[:T], post.loglik, dt)
+    return SmootherOutput(post.smoothed_means[:, :T], post.smoothed_covariances[:T], post.marginal_loglik, dt)
 
 
 def run_soc_opt_per_sequence(lg: LGSSM, Y, mu0, P0) -> SmootherOutput:
@@ -160,7 +160,7 @@ def run_soc_opt_per_sequence(lg: LGSSM, Y, mu0, P0) -> SmootherOutput:
     t0 = time.perf_counter()
     post = lgssm.rts_smoother(params, Y[:, :, None])
     dt = time.perf_counter() - t0
-    return SmootherOutput(post.mean[:, :T], post.cov[0, :T], post.loglik, dt)
+    return SmootherOutput(post.smoothed_means[:, :T], post.smoothed_covariances[0, :T], post.marginal_loglik, dt)
 
 
 def _dynamax_params(lg: LGSSM, mu0, P0):

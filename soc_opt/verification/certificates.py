@@ -153,13 +153,13 @@ def _uniqueness_found(rng, n, m, T):
     sm = estep.smooth(model, policy, y, mu0, P0)
     mom = estep.moments(sm, y)
     try:  # the library's own maximiser: unique (fine) or not unique (raises)
-        mstep.maximize(model, sm, y, constraints=mstep.MStepConstraints(cov_floor=0.1), min_norm=False)
+        mstep.maximize(model, estep.moments(sm, y), constraints=mstep.MStepConstraints(cov_floor=0.1), min_norm=False)
         return None
     except mstep.NonUniqueMaximizerError:
         pass
     with warnings.catch_warnings():  # the non-uniqueness is the point here: no MinNormWarning
         warnings.simplefilter("ignore", mstep.MinNormWarning)
-        first = mstep.maximize(model, sm, y, constraints=mstep.MStepConstraints(cov_floor=0.1), min_norm=True)
+        first = mstep.maximize(model, estep.moments(sm, y), constraints=mstep.MStepConstraints(cov_floor=0.1), min_norm=True).policy
     gh = mstep.surrogate_grad_hess(model, mom, 0, first)
     w, V = np.linalg.eigh(gh.hess)
     v = V[:, -1]  # null direction of the Hessian
@@ -199,7 +199,7 @@ def _sigma_found(rng, n, m, T):
     model, policy, mu0, P0, y = _instance(rng, n, m, T)
     sm = estep.smooth(model, policy, y, mu0, P0)
     floor = random_spd_spectrum(rng, m, 0.05, 0.3)
-    new = mstep.maximize(model, sm, y, constraints=mstep.MStepConstraints(cov_floor=floor.tolist()), min_norm=False)
+    new = mstep.maximize(model, estep.moments(sm, y), constraints=mstep.MStepConstraints(cov_floor=floor.tolist()), min_norm=False).policy
     ts = [0.0, 0.25, 0.5, 1.0, 2.0, 4.0]
     vals = []
     for t in ts:
@@ -229,7 +229,7 @@ def search_uniqueness_sigma(seeds: int = 3, max_total: int = 6) -> dict:
 def _ltv_found(rng, n, m, T):
     model, policy, mu0, P0, y = _instance(rng, n, m, T)
     sm = estep.smooth(model, policy, y, mu0, P0)
-    new = mstep.maximize(model, sm, y, constraints=mstep.MStepConstraints(cov_floor=0.05), min_norm=False)
+    new = mstep.maximize(model, estep.moments(sm, y), constraints=mstep.MStepConstraints(cov_floor=0.05), min_norm=False).policy
     g = em_inequality_gap(model, y, mu0, P0, policy, sm, new)
     if not (g["dL"] > 0 and g["dlogp"] < g["dL"] - 1e-6 * max(1.0, abs(g["logp_old"]))):
         return None
@@ -273,14 +273,15 @@ def _cost_found(rng, n, m, T):
     model = ls_augmented(s, a, np.exp(-cost))
     _, Y = sample_model_trajectory(rng, model, phi, sys_["mu0"], sys_["P0"])
     sm = estep.smooth(model, phi, Y, sys_["mu0"], sys_["P0"])
-    new = mstep.maximize(model, sm, Y, constraints=mstep.MStepConstraints(cov_floor=phi.cov[0].tolist()), min_norm=False)
+    new = mstep.maximize(model, estep.moments(sm, Y), constraints=mstep.MStepConstraints(cov_floor=phi.cov[0].tolist()),
+                         min_norm=False).policy
     g = em_inequality_gap(model, Y, sys_["mu0"], sys_["P0"], phi, sm, new)
     V = [float(expected_stage_costs(sm, p, sys_["Qs"], sys_["s_star"], sys_["Qa"], sys_["a_star"]).sum())
          for p in (phi, new)]
     if not (g["dL"] > 0 and g["dQ"] > 0 and V[1] > V[0] * (1 + 1e-6)):
         return None
-    ex = mstep.maximize(model, sm, Y, constraints=mstep.MStepConstraints(cov_floor=1e-3), objective="exact",
-                        previous=phi, config=mstep.MStepConfig(exact_max_iter=50), min_norm=False)
+    ex = mstep.maximize(model, estep.moments(sm, Y), constraints=mstep.MStepConstraints(cov_floor=1e-3), objective="exact",
+                        previous=phi, config=mstep.MStepConfig(exact_max_iter=50), min_norm=False).policy
     lp_ex = float(estep.smooth(model, ex, Y, sys_["mu0"], sys_["P0"]).loglik)
     # the model's prior-predictive mean of y_0 under phi^i (an observed y below it pushes the update)
     mean_s = sys_["mu0"]

@@ -259,7 +259,8 @@ def uniqueness_sigma_case(case: SigmaCase) -> CaseResult:
     the action's units."""
     inst, floor = case.inst, case.floor
     n, m, T = inst.model.n, inst.model.m, inst.model.T
-    new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=mstep.MStepConstraints(cov_floor=floor.tolist()), min_norm=False)
+    new = mstep.maximize(inst.model, estep.moments(inst.sm, inst.y),
+                         constraints=mstep.MStepConstraints(cov_floor=floor.tolist()), min_norm=False).policy
     L = lambda cov: np.asarray(mstep.surrogate(inst.model, inst.sm, inst.y, new.with_cov(cov)))  # noqa: E731
     h = 0.25 * float(np.linalg.eigvalsh(floor)[0])
     base = np.array(new.cov)
@@ -339,7 +340,8 @@ def ltv_case(case: LtvCase) -> CaseResult:
     inst = case.inst
     n, m, T = inst.model.n, inst.model.m, inst.model.T
     args = (inst.model, inst.y, inst.mu0, inst.P0, inst.policy, inst.sm)
-    new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=mstep.MStepConstraints(cov_floor=case.floor), min_norm=False)
+    new = mstep.maximize(inst.model, estep.moments(inst.sm, inst.y),
+                         constraints=mstep.MStepConstraints(cov_floor=case.floor), min_norm=False).policy
     g = em_inequality_gap(*args, new)
     scale = max(1.0, abs(g["logp_old"]))
     ok = g["dlogp"] >= g["dL"] - INEQ_TOL * scale
@@ -348,8 +350,8 @@ def ltv_case(case: LtvCase) -> CaseResult:
     g2 = em_inequality_gap(*args, rand)
     margin = min(g["dlogp"] - g["dQ"], g2["dlogp"] - g2["dQ"]) / scale
     # informative: the same lemma with Sigma held at Sigma^i
-    fx = mstep.maximize(inst.model, inst.sm, inst.y,
-                        constraints=mstep.MStepConstraints(cov_floor=inst.policy.cov[0].tolist()), min_norm=False)
+    fx = mstep.maximize(inst.model, estep.moments(inst.sm, inst.y),
+                        constraints=mstep.MStepConstraints(cov_floor=inst.policy.cov[0].tolist()), min_norm=False).policy
     g3 = em_inequality_gap(*args, fx)
     return CaseResult(ok, (g["dlogp"] - g["dL"]) / scale, {"n": n, "m": m, "T": T, **g},
                       margin >= -INEQ_TOL, margin, {"n": n, "m": m, "T": T, "mstep": g, "random": g2},
@@ -405,7 +407,7 @@ def dpsoc_case(case: DpsocCase, full: bool = False) -> CaseResult:
     inst = case.inst
     n, m, T = inst.model.n, inst.model.m, inst.model.T
     cons = mstep.MStepConstraints(cov_floor=case.floor)
-    new = mstep.maximize(inst.model, inst.sm, inst.y, constraints=cons, min_norm=False)
+    new = mstep.maximize(inst.model, estep.moments(inst.sm, inst.y), constraints=cons, min_norm=False).policy
     L = lambda p: np.asarray(mstep.surrogate(inst.model, inst.sm, inst.y, p))  # noqa: E731
     F = policy_F(new)
     u = f_units(inst)
@@ -430,7 +432,7 @@ def dpsoc_case(case: DpsocCase, full: bool = False) -> CaseResult:
         gain = float(np.sum(L(with_F(new, F + 0.1 * dF * u, cov))) - np.sum(L0))
         worst = max(worst, gain / scale)
     if full:
-        cv = mstep.maximize(inst.model, inst.sm, inst.y, constraints=cons, method="cvxpy", min_norm=False)
+        cv = mstep.maximize(inst.model, estep.moments(inst.sm, inst.y), constraints=cons, method="cvxpy", min_norm=False).policy
         worst = max(worst, float(np.abs((policy_F(cv) - F) / u).max()) / max(1.0, float(np.abs(F / u).max())))
     return CaseResult(worst <= 1e-6, worst, {"n": n, "m": m, "T": T, "worst": worst})
 
@@ -480,7 +482,7 @@ def theorem_cost_decrease(rng, instances: int, full: bool = False):
         mu0, P0 = system["mu0"], system["P0"]
         sm = estep.smooth(model, phi, Y, mu0, P0)
         cons = mstep.MStepConstraints(cov_floor=phi.cov[0].tolist())
-        new = mstep.maximize(model, sm, Y, constraints=cons, min_norm=False)
+        new = mstep.maximize(model, estep.moments(sm, Y), constraints=cons, min_norm=False).policy
         g = em_inequality_gap(model, Y, mu0, P0, phi, sm, new)
         cost = lambda p: float(expected_stage_costs(sm, p, system["Qs"], system["s_star"], system["Qa"],  # noqa: E731
                                                     system["a_star"]).sum())
@@ -488,8 +490,8 @@ def theorem_cost_decrease(rng, instances: int, full: bool = False):
         if g["dL"] >= -INEQ_TOL * max(1.0, abs(g["logp_old"])):
             rel = (V_new - V_old) / max(1.0, abs(V_old))
             aw.add(rel <= INEQ_TOL, rel, {"n": n, "m": m, "T": T, "EV_old": V_old, "EV_new": V_new, **g})
-        ex = mstep.maximize(model, sm, Y, constraints=mstep.MStepConstraints(cov_floor=1e-3), objective="exact",
-                            previous=phi, config=cfg, min_norm=False)
+        ex = mstep.maximize(model, estep.moments(sm, Y), constraints=mstep.MStepConstraints(cov_floor=1e-3), objective="exact",
+                            previous=phi, config=cfg, min_norm=False).policy
         lp_ex = float(estep.smooth(model, ex, Y, mu0, P0).loglik)
         scale = max(1.0, abs(g["logp_old"]))
         margin = min(g["dlogp"] - g["dQ"], lp_ex - g["logp_old"]) / scale

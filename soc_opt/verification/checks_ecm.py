@@ -89,7 +89,7 @@ def ecm_case(case: EcmCase) -> CaseResult:
     model, sm, y, old = inst.model, inst.sm, inst.y, inst.policy
     n, m, T = model.n, model.m, model.T
     Sig = np.asarray(old.cov)
-    new = mstep.maximize(model, sm, y, constraints=mstep.MStepConstraints(cov_floor=Sig[0].tolist()), min_norm=False)
+    new = mstep.maximize(model, estep.moments(sm, y), constraints=mstep.MStepConstraints(cov_floor=Sig[0].tolist()), min_norm=False).policy
     sig_rel = float(np.abs(np.asarray(new.cov) - Sig).max() / np.abs(Sig).max())
     mom = estep.moments(sm, y)
     FQ = exact_maximiser_F(model, mom, Sig)

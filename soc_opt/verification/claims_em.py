@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..estep import smooth
+from ..estep import moments, smooth
 from ..models import AugmentedModel, LinearGaussianPolicy, Smoothed, symmetrize
 from ..testing import (
     random_augmented_model,
@@ -43,9 +43,9 @@ def _em_run(model, policy, Y, mu0, P0, *, objective: str, constraints, iteration
     lls.append(float(np.sum(sm.loglik)))
     for _ in range(iterations):
         policy = ms.maximize(
-            model, sm, Y, constraints=constraints, method="closed_form", variant="time_varying",
+            model, moments(sm, Y), constraints=constraints, method="closed_form", variant="time_varying",
             objective=objective, previous=policy, config=config, min_norm=False,
-        )
+        ).policy
         sm = smooth(model, policy, Y, mu0, P0)
         lls.append(float(np.sum(sm.loglik)))
         pols.append(policy)
@@ -295,8 +295,8 @@ def _claim3_accumulate(r: dict, ms, model, phi, system: dict, baseline, floor, r
     n, m, T = model.n, model.m, model.T
     Y, sm, V_old, L_old = baseline
     try:
-        new = ms.maximize(model, sm, Y, constraints=_cov_floor_constraints(floor), method="closed_form",
-                          variant="time_varying", objective="surrogate", previous=phi, min_norm=False)
+        new = ms.maximize(model, moments(sm, Y), constraints=_cov_floor_constraints(floor), method="closed_form",
+                          variant="time_varying", objective="surrogate", previous=phi, min_norm=False).policy
     except Exception as exc:
         r["errors"] += 1
         if r["ce"] is None:

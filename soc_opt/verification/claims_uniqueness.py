@@ -321,7 +321,7 @@ def _mstep_rejects(model, sm, y) -> int:
     if ms is None or not hasattr(ms, "NonUniqueMaximizerError"):
         return 0
     try:
-        ms.maximize(model, sm, y, constraints=ms.MStepConstraints(cov_floor=0.1), min_norm=False)
+        ms.maximize(model, moments(sm, y), constraints=ms.MStepConstraints(cov_floor=0.1), min_norm=False)
     except ms.NonUniqueMaximizerError:
         return 1
     return 0

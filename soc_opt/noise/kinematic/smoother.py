@@ -102,4 +102,5 @@ def smooth(km, lg: LinearGaussianZ, s, a, R, z_lin=None, lin=None) -> Smoothed:
     params = lgssm.Params(lgssm.Initial(lg.z0, lg.P0), lgssm.Dynamics(lg.A, np.einsum("mtj,tij->mti", a, lg.Bz) + lg.cz, lg.Q),
                           lgssm.Emissions(H_lin, d_lin, np.broadcast_to(R, (T1, n, n))))
     post = lgssm.rts_smoother(params, s, linearize)
-    return Smoothed(post.mean, post.cov, post.cross, post.loglik, zl, (hx_all, H_all))
+    return Smoothed(post.smoothed_means, post.smoothed_covariances, post.smoothed_cross_covariances, post.marginal_loglik,
+                    zl, (hx_all, H_all))
