@@ -158,6 +158,8 @@ class RunState:
                    batch after a rejection, the batch the sampled policy's estimator comes from).
     accepted:      the last accepted policy (step acceptance, docs/math.md §12; None without).
     mult_ceiling:  upper bound on the multiplier after a rejection (None: ``step_size.mult_max`` only).
+    mult_recover:  the multiplier a rejection interrupted, given back once the model predicts well again
+                   (``[baseline.acceptance] recover``, docs/math.md §12.2; None: nothing to give back).
     """
 
     iteration: int
@@ -172,6 +174,7 @@ class RunState:
     last_rollouts: Rollouts | None = None
     accepted: AcceptedPolicy | None = None
     mult_ceiling: float | None = None
+    mult_recover: float | None = None
 
 
 def state_rng(state: RunState) -> np.random.Generator:

@@ -5,9 +5,11 @@ for a :class:`Verdict` on that batch against the last accepted policy ``p_a``.  
 ``[baseline.acceptance] enabled = true`` (the default) the verdict is the test of §12.1; with
 ``enabled = false`` it is the paper as written: a judge that accepts every batch and records nothing,
 so the iteration (:mod:`soc_opt.methods.lqr_flm.iteration`) has one path.  :func:`next_multiplier`
-turns the verdict into the KL-budget multiplier of the step: the GPS rule on an accepted batch
-(:func:`soc_opt.lqg.adapt_multiplier`, its settings :class:`~soc_opt.lqg.step_size.StepSizeConfig`),
-bounded by the ceiling a rejection leaves; the shrunk multiplier of a rejected one (§12.2).
+turns the verdict into the KL-budget multiplier of the step (a :class:`NextMultiplier`): the GPS rule on
+an accepted batch (:func:`soc_opt.lqg.adapt_multiplier`, its settings
+:class:`~soc_opt.lqg.step_size.StepSizeConfig`), bounded by the ceiling a rejection leaves; the shrunk
+multiplier of a rejected one; with ``recover = true`` the multiplier a rejection interrupted, given back
+once the model predicts well again (§12.2).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ if TYPE_CHECKING:
     from ...models import Rollouts
     from ..state import AcceptedPolicy, IterationRecord
 
-__all__ = ["AcceptanceConfig", "AS_WRITTEN", "Verdict", "judge", "next_multiplier", "acceptance_cost",
+__all__ = ["AcceptanceConfig", "AS_WRITTEN", "Verdict", "NextMultiplier", "judge", "next_multiplier", "acceptance_cost",
            "acceptance_limit", "acceptance_threshold"]
 
 
@@ -59,6 +61,14 @@ class AcceptanceConfig(Config):
               new samples' fitted model's expected cost, as the paper) or "samples" (the mean cost of the
               last accepted batch minus the new batch's, on the cost the test reads (``cost``): the
               trust-region ratio's numerator read from the samples the acceptance test already has).
+    recover:  step sizes that recover (docs/math.md §12.2; off by default, which is the rule above and the
+              paper as written unchanged): a rejection remembers the multiplier the run had before it (the
+              largest rejected one since the last recovery, ``RunState.mult_recover``); a later accepted
+              step whose actual improvement (the one ``actual`` names) is at least ``recover_ratio`` times a
+              positive predicted one gives it back (at most ``[baseline.step_size] mult_max``, never below
+              the GPS rule's value) and lifts the ceiling.
+    recover_ratio: the actual / predicted improvement from which the model counts as good again and the
+              remembered multiplier is given back (0.5; in [0, 1]; read only with ``recover``).
     """
 
     enabled: bool = True
@@ -69,7 +79,11 @@ class AcceptanceConfig(Config):
     ceiling: float = 0.5
     hold_when_improved: bool = False
     actual: Literal["laplace", "samples"] = "laplace"
+    recover: bool = False
+    recover_ratio: float = 0.5
 
+    #: records written before ``recover`` existed ran without it (soc_opt.config.IMPLIED_WHEN_ABSENT)
+    _implied_when_absent = {"acceptance.recover": (False, {}), "acceptance.recover_ratio": (0.5, {})}
     _constraints = {
         "kappa": [Interval(0)],
         "eps": [Interval(0)],
@@ -77,6 +91,7 @@ class AcceptanceConfig(Config):
         "cost": [Options(("measured", "estimated", "true"))],
         "ceiling": [Interval(0, 1, "right")],
         "actual": [Options(("laplace", "samples"))],
+        "recover_ratio": [Interval(0, 1)],
     }
 
 
@@ -148,33 +163,71 @@ def judge(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollouts | None,
     return Verdict(bool(c <= threshold), True, c, se, threshold)
 
 
+class NextMultiplier(NamedTuple):
+    """What :func:`next_multiplier` leaves for the step that follows a verdict (docs/math.md §6, §12.2).
+
+    mult:       the multiplier of the KL budget of that step.
+    ceiling:    the bound a rejection put on the multiplier (None: ``step_size.mult_max`` only).
+    recover_to: the multiplier a rejection interrupted, given back once the model predicts well again
+                (``AcceptanceConfig.recover``; None: nothing to give back, always None with ``recover`` off).
+    """
+
+    mult: float
+    ceiling: float | None
+    recover_to: float | None = None
+
+
 def next_multiplier(step: StepSizeConfig, cfg: AcceptanceConfig, verdict: Verdict, mult: float,
                     ceiling: float | None, improvements: tuple[float, float] | None,
-                    accepted: AcceptedPolicy | None, adapt: bool = True) -> tuple[float, float | None]:
-    """``(mult, ceiling)`` of the step that follows ``verdict`` (docs/math.md §6, §12.2).
+                    accepted: AcceptedPolicy | None, adapt: bool = True,
+                    recover_to: float | None = None) -> NextMultiplier:
+    """The :class:`NextMultiplier` of the step that follows ``verdict`` (docs/math.md §6, §12.2).
+
+    ``mult``: the multiplier of the step whose batch ``verdict`` judged; ``ceiling``, ``recover_to``: what
+    the previous call left (``RunState.mult_ceiling``, ``RunState.mult_recover``).
 
     Accepted: with ``adapt`` and the previous step's Laplace ``improvements`` (predicted, actual), the GPS
     rule (:func:`soc_opt.lqg.adapt_multiplier`) reads the actual improvement of ``cfg.actual``; with
     ``cfg.hold_when_improved`` a clear improvement on ``accepted`` keeps the multiplier from shrinking; the
     result stays below ``ceiling``, which is lifted once a step at the ceiling is accepted.  Rejected:
     ``mult * cfg.shrink`` floored at ``step.mult_min``, and the ceiling lowered to ``cfg.ceiling * mult``.
+
+    With ``cfg.recover`` a rejection also remembers ``recover_to = min(max(recover_to, mult), step.mult_max)``
+    (never above ``mult_max``); an accepted step whose improvements have ``predicted > 0`` and
+    ``actual >= cfg.recover_ratio * predicted`` (the actual improvement the rule reads, with or without
+    ``adapt``) gives it back: the multiplier is the larger of the rule's value and ``recover_to``, the
+    ceiling is lifted and nothing is remembered any more; nor is it once an accepted step's multiplier is
+    back at ``recover_to`` on its own.  Without ``cfg.recover`` ``recover_to`` is ignored and None.
     """
+    if not cfg.recover or recover_to is None:
+        recover_to = None
+    else:
+        recover_to = min(recover_to, step.mult_max)
     if not verdict.accept:
         new = max(mult * cfg.shrink, step.mult_min)
         if cfg.ceiling < 1.0:
             ceiling = min(ceiling if ceiling is not None else np.inf, cfg.ceiling * mult)
-        return new, ceiling
+        if cfg.recover:
+            recover_to = min(mult if recover_to is None else max(recover_to, mult), step.mult_max)
+        return NextMultiplier(new, ceiling, recover_to)
     new = mult
-    if adapt and improvements is not None:
+    seen = None
+    if improvements is not None:
         predicted, actual = improvements
         seen = actual if cfg.actual == "laplace" or accepted is None else accepted.cost_mean - verdict.cost
+    if adapt and improvements is not None:
         new = lqg.adapt_multiplier(new, predicted, seen, step)
         if (cfg.hold_when_improved and accepted is not None
                 and verdict.cost < accepted.cost_mean - cfg.kappa * float(np.hypot(verdict.se, accepted.cost_se))):
             new = max(new, mult)  # the samples show a clear improvement: do not shrink
+    if recover_to is not None and seen is not None and predicted > 0 and seen >= cfg.recover_ratio * predicted:
+        # the model predicts well again: the multiplier the rejection interrupted, without a ceiling
+        return NextMultiplier(max(new, recover_to), None, None)
     if ceiling is not None:
         if mult >= ceiling * (1.0 - 1e-12):
             ceiling = None  # a step at the ceiling was accepted: the rule may grow again
         else:
             new = min(new, ceiling)
-    return new, ceiling
+    if recover_to is not None and new >= recover_to:
+        recover_to = None  # back at the remembered size on its own: nothing left to give back
+    return NextMultiplier(new, ceiling, recover_to)

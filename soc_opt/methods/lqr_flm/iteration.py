@@ -183,7 +183,8 @@ def _step(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch, rec: Iterati
           rng: np.random.Generator, noise: NoiseStrategy) -> RunState:
     """Steps 4–5 after ``verdict`` on the batch ``b`` of ``state.policy`` (history row ``rec``).
 
-    Accepted: the GPS rule adapts the multiplier (below ``state.mult_ceiling``) and the KL step is taken
+    Accepted: the GPS rule adapts the multiplier (below ``state.mult_ceiling``; with ``acceptance.recover``
+    a good prediction gives back ``state.mult_recover``; history column ``mult_recover``) and the KL step is taken
     around ``p_i`` on ``b``'s model; with a test made, ``p_i`` becomes the accepted policy.  Rejected: no
     adaptation; the step is taken again around ``p_a`` on the model fitted on ``p_a``'s own samples, with
     the multiplier shrunk; the rejected batch still entered the mixture prior.  A tested step whose budget
@@ -195,8 +196,9 @@ def _step(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch, rec: Iterati
     improvements = None
     if state.prev is not None:
         improvements = lqg.laplace_improvements(state.prev.reference, ref, state.prev.model, b.local)
-    mult, ceiling = next_multiplier(cfg.step_size, cfg.acceptance, verdict, state.mult, state.mult_ceiling,
-                                    improvements, acc, cfg.adapt_multiplier)
+    nxt = next_multiplier(cfg.step_size, cfg.acceptance, verdict, state.mult, state.mult_ceiling, improvements, acc,
+                          cfg.adapt_multiplier, state.mult_recover)
+    mult = nxt.mult
     step = PreviousStep(b.local, ref) if verdict.accept else acc.step
     retry = None if verdict.accept else (lambda g: noise_aware.with_gains(acc.child, g))
 
@@ -225,7 +227,7 @@ def _step(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch, rec: Iterati
     predicted, actual = (float("nan"), float("nan")) if improvements is None else improvements
     extra = {"eta_mean": eta_mean, "predicted_cost": predicted_cost, "predicted_improvement": predicted,
              "actual_improvement": actual, **verdict.columns(acc.iteration if verdict.tested else -1),
-             **({"zero_step": 1.0} if zero_step else {})}
+             **({"zero_step": 1.0} if zero_step else {}), **_recover_column(cfg, nxt)}
     rec = dataclasses.replace(rec, kl=kl, nu=float(np.sum(nu)), mult=float(mult), timings=timings, extra=extra)
     return dataclasses.replace(
         state,
@@ -239,8 +241,17 @@ def _step(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch, rec: Iterati
         best=improved(state.best, float(np.mean(rec.cost)), state.policy, state.iteration),
         last_rollouts=last,
         accepted=acc,
-        mult_ceiling=ceiling,
+        mult_ceiling=nxt.ceiling,
+        mult_recover=nxt.recover_to,
     )
+
+
+def _recover_column(cfg: LQRFLMConfig, nxt) -> dict[str, float]:
+    """The history column ``mult_recover`` with ``acceptance.recover`` (the multiplier still to be given back
+    after this step, NaN when none; docs/math.md §12.2); no column without it."""
+    if not cfg.acceptance.recover:
+        return {}
+    return {"mult_recover": float("nan") if nxt.recover_to is None else float(nxt.recover_to)}
 
 
 def final_policy(cfg: LQRFLMConfig, state: RunState):
