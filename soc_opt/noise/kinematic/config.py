@@ -38,11 +38,10 @@ class KinematicConfig(Config):
     restart_from_data: with ``warm_start``, also run EM from the batch's own initial map and keep
                     the run whose final ``log p(s | a)`` (each at its own linearisation of ``h``) is
                     higher: EM from the previous map can stay in a poor local optimum near the plan
-                    of the last KL step, whose smoothed states then confirm the plan (issue 19's
-                    fourth round, measured on peg: the warm start's likelihood 5,000 lower, a 3 cm
-                    bias of the peg position while it rests on the table, the learner's cost 22
-                    against a true 33).  Default on since that round (off before it); doubles the
-                    estimator's work (see ``parallel_starts``).
+                    of the last KL step, whose smoothed states then confirm the plan (measured on
+                    peg: the warm start's likelihood 5,000 lower, a 3 cm bias of the peg position
+                    while it rests on the table, the learner's cost 22 against a true 33).  Doubles
+                    the estimator's work (see ``parallel_starts``).
     parallel_starts: run the second EM start in a forked child process while this one runs the
                     first (:func:`soc_opt.noise.kinematic.em.fit_starts`), when ``fork`` exists, more
                     than one CPU is available and one is idle (:func:`soc_opt.parallel.spare_cpu`);
@@ -52,25 +51,24 @@ class KinematicConfig(Config):
                     likelihood each final map gives the previous batch, which the sampling policy's
                     filter was learned from and which was drawn under other gains: held out, one
                     extended-Kalman pass per map, docs/math.md §11.2) or ``"batch"`` (the final
-                    likelihood of this batch, the fourth round's rule).  In-sample, the batch's own
+                    likelihood of this batch, the default).  In-sample, the batch's own
                     start can win with a map that explains this batch through the state feedback
                     ``D`` the sampler's gains tie to its actions, and predict badly once the gains
-                    change (the hypothesis; measured in issue 19's fifth round, ``"previous"`` is
-                    worse on peg and no better on the door, so it is off).  Without a previous
+                    change (the hypothesis; measured, ``"previous"`` is worse on peg and no better
+                    on the door, so it is not the default).  Without a previous
                     batch (the first iteration) ``"batch"`` is used.  ``"data"``: always the batch's
                     own start (for the learner; with ``filter_start = "sampler"`` the filter still
                     follows the sampler's line; measured worse on both tasks, off).
     filter_start:   the EM run the online filter (what the next policy acts on) is built from:
-                    ``"kept"`` (the run ``start_select`` kept, which the learner also learns from; the
-                    fourth round) or ``"sampler"`` (the run started from the sampling policy's filter's
-                    map, so the filter's map follows its own line of warm starts, the third round's,
-                    while the learner still gets the kept run's smoothed states).  The batch's own
+                    ``"kept"`` (the run ``start_select`` kept, which the learner also learns from) or
+                    ``"sampler"`` (the default: the run started from the sampling policy's filter's
+                    map, so the filter's map follows its own line of warm starts, while the learner
+                    still gets the kept run's smoothed states).  The batch's own
                     start ends with a larger acceleration noise ``S`` (EM shrinks it slowly from its
                     broad start): the smoother then follows the measurements more, which removes the
                     bias the learner needs removed, and the filter follows them more too: under
                     high-gain feedback that drove the door's closed loop off, although the same
-                    filter estimated the batch itself better (issue 19's fifth round).  Default
-                    ``"sampler"`` since that round (``"kept"`` before it).  Without a sampler's map (the first iteration), or with
+                    filter estimated the batch itself better.  Without a sampler's map (the first iteration), or with
                     a single EM start, the filter is the kept run's.
     kl_model:       the LQR-FLM KL step's model: ``"plain"`` (the fit on the smoothed states as if
                     the state were known) or ``"innovation"`` (its innovation form with the
@@ -85,7 +83,7 @@ class KinematicConfig(Config):
     gains:          the online filter's update: ``"online"`` (relinearised at each rollout's own
                     prediction, the extended Kalman update with the nominal prior covariance;
                     docs/math.md §11.3) or ``"nominal"`` (gains computed once along the mean
-                    smoothed trajectory; the default before issue 19's second round).  Used with
+                    smoothed trajectory).  Used with
                     ``filter = "kinematic"``.
     dynamics:       the local dynamics of the KL step and the EM phase: ``"fit"`` (the §2 regression
                     on the smoothed states) or ``"structured"`` (the estimator's own transition in ``z``,
@@ -97,7 +95,7 @@ class KinematicConfig(Config):
                     covariances ``H P H^T`` and cross-covariances of consecutive states, in task
                     coordinates, averaged over rollouts and weighted as data against the NIW prior:
                     the expected sufficient statistics of the EM M-step, docs/math.md §11.3; the
-                    default since issue 19's third round, before it ``"means"``).  Used with
+                    default).  Used with
                     ``learn_on = "smoothed"`` and ``rho^2 > 0`` (otherwise the states are exact or
                     filtered, and the fit takes them as they are).
     structured_prior: pseudo-count of the structured transition (the one ``dynamics = "structured"``
