@@ -7,6 +7,7 @@ metrics, the initial distribution of ``s_0`` and the initial policy.
 
 from __future__ import annotations
 
+import abc
 import math
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
@@ -105,8 +106,9 @@ class Task(Protocol):
     def ee_points(self, x) -> np.ndarray: ...
 
 
-class TaskBase:
-    """Shared behaviour: cost evaluation, metrics, initial distribution and policy."""
+class TaskBase(abc.ABC):
+    """Shared behaviour: cost evaluation, metrics, initial distribution and policy.  A task kind derives
+    from it and defines the two start hooks (:meth:`_start_coordinates`, :meth:`_start_jacobian`)."""
 
     config: TaskConfig
     n: int
@@ -128,17 +130,17 @@ class TaskBase:
         self.process_noise = process_noise.resolve(c.process_noise, names, idx, self._action_names(), what)
         self._start_cov = None
 
+    @abc.abstractmethod
     def _start_coordinates(self) -> tuple[list[str], np.ndarray, str]:
         """``(names, state indices, what they are)`` of the coordinates ``[process_noise] start`` offsets."""
-        raise NotImplementedError
 
     def _action_names(self) -> list[str]:
         """One name per action (for the errors of ``[process_noise] actuation``)."""
         return [f"a{i}" for i in range(self.m)]
 
+    @abc.abstractmethod
     def _start_jacobian(self) -> np.ndarray:
         """``(n, k)``: ``d x_0 / d`` (start coordinates) at the nominal start."""
-        raise NotImplementedError
 
     # -- cost
     def _site_indices(self, sites, key) -> list[int]:
