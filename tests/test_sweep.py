@@ -24,7 +24,8 @@ from soc_opt.experiments.rundir import decode_checkpoint
 from soc_opt.linalg import single_thread_blas
 from soc_opt.methods.state import IterationRecord, RunState
 from soc_opt.sweeps.runner import ProgressBoard, run_sweep
-from soc_opt.sweeps.spec import SweepError, TrialDiverged, check_finite, load_sweep, sweep_from_dict
+from soc_opt.sweeps.spec import SweepError, TrialDiverged, load_sweep, sweep_from_dict
+from soc_opt.sweeps.trial import check_finite
 from soc_opt.tasks import BUILTIN_TASKS, load_task
 from soc_opt.tasks.loading import problems_dir
 
@@ -231,7 +232,7 @@ def _first_cost(trial_dir):
 
 
 def test_a_grid_over_task_init_var_gives_trials_with_that_initial_covariance(tmp_path):
-    from soc_opt.sweeps.spec import run_trial
+    from soc_opt.sweeps.trial import run_trial
 
     data = {"tasks": ["linear2d"], "methods": ["lqr-flm"], "seeds": [0],
             "common": {"baseline": {"iterations": 1, "samples": 4}, "task": {"T": 10}},
@@ -262,7 +263,7 @@ def test_sweep_rejects_setting_both_task_and_baseline_init_var(tmp_path):
 
 
 def test_sweep_accepts_gym_tasks(tmp_path):
-    from soc_opt.sweeps.spec import run_trial
+    from soc_opt.sweeps.trial import run_trial
 
     data = {"tasks": ["gym:Reacher-v5"], "methods": ["lqr-flm"], "seeds": [0],
             "common": {"baseline": {"iterations": 1, "samples": 3}, "task": {"T": 5, "gym": {"reset_seed": 3}}}}

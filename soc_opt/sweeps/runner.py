@@ -1,7 +1,7 @@
 """Running a sweep on Ray core tasks: scheduling, retries, status, live progress.
 
 Each trial of a :class:`~soc_opt.sweeps.spec.SweepSpec` is one Ray task calling
-:func:`soc_opt.sweeps.spec.run_trial` on its run directory ``OUT/trials/<task>/<setting>/<method>/seed_<n>``.
+:func:`soc_opt.sweeps.trial.run_trial` on its run directory ``OUT/trials/<task>/<setting>/<method>/seed_<n>``.
 Why Ray core tasks and not Ray Tune: docs/choices.md ("Sweeps").
 
 - Local by default: a private Ray instance on this machine's cores (no dashboard, quiet logs),
@@ -42,9 +42,9 @@ from .spec import (
     as_json,
     read_json,
     read_result,
-    run_trial,
     write_json,
 )
+from .trial import run_trial
 
 #: What marks a folder as a sweep directory: its ``sweep.json`` (a table with ``name`` and ``trials``).
 SWEEP_FILE = "sweep.json"
