@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_lqr_flm import _damage_call  # a KL step that returns a wrecked policy
 
-from soc_opt import lqg
 from soc_opt.config import ConfigError
 from soc_opt.experiments.overrides import apply_config_sets, split_sets
 from soc_opt.experiments.run import load_run_config, run_experiment
@@ -27,11 +27,9 @@ from soc_opt.methods.config import AS_WRITTEN, AcceptanceConfig
 from soc_opt.methods.lqr_flm.acceptance import NextMultiplier, Verdict, next_multiplier
 from soc_opt.methods.registry import get_method
 from soc_opt.methods.state import AcceptedPolicy
-from soc_opt.models import LinearGaussianPolicy
 from soc_opt.tasks import load_task
 
 STEP = StepSizeConfig()
-_KL_STEP = lqg.kl_step_local  # the loop's call, before any test patches it
 
 
 @pytest.fixture(scope="module")
@@ -160,24 +158,6 @@ def test_recover_to_never_exceeds_mult_max(mult, recover_to, mult_max, ratio, ac
     if actual >= ratio:  # the model predicts well: given back, at most mult_max
         assert got.recover_to is None and got.ceiling is None
         assert got.mult == max(min(rej.recover_to, mult_max), got.mult) and got.mult >= rej.recover_to
-
-
-def _damage_call(monkeypatch, which: set[int]):
-    """Make the KL steps numbered ``which`` (0-based, in call order) return a wrecked policy
-    (tests/test_lqr_flm.py); the count runs on across runs made with the same patch."""
-    real = _KL_STEP
-    calls = []
-
-    def kl_step(*args, **kwargs):
-        res = real(*args, **kwargs)
-        calls.append(len(calls))
-        if len(calls) - 1 in which:
-            p = res.policy
-            res = res._replace(policy=LinearGaussianPolicy(p.K, p.k + 200.0, p.cov))
-        return res
-
-    monkeypatch.setattr(lqg, "kl_step_local", kl_step)
-    return calls
 
 
 def _cfg(method: str, recover: bool, iterations: int = 5, samples: int = 5, i_switch: int = 3):

@@ -19,19 +19,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
+from noise_kernels_table import interval  # the same 95% Student-t interval (a study beside this one)
 
 GOAL = -0.95
-
-
-def interval(values) -> tuple[float, float, float]:
-    """``(mean, low, high)``: the mean and its 95% Student-t interval."""
-    v = np.asarray(values, dtype=float)
-    m = float(v.mean())
-    if v.size < 2:
-        return m, float("nan"), float("nan")
-    h = float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size))
-    return m, m - h, m + h
 
 
 def trials(root: Path) -> dict[tuple[str, str, int], Path]:

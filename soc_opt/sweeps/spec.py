@@ -1,9 +1,9 @@
 """Sweeps: a grid of trials (tasks x settings x methods x seeds) from one strict TOML file.
 
 This module is the pure part of ``soc-opt sweep`` (docs/sweeps.md): reading and validating a
-sweep file, expanding it into :class:`TrialSpec` objects, and running *one* trial in its own
-run directory (:func:`soc_opt.sweeps.trial.run_trial`, called inside a Ray worker by :mod:`soc_opt.sweeps.runner`,
-but an ordinary function).  Nothing here imports Ray.
+sweep file and expanding it into :class:`TrialSpec` objects; one trial runs in its own run directory
+(:func:`soc_opt.sweeps.trial.run_trial`, called inside a Ray worker by :mod:`soc_opt.sweeps.runner`, but
+an ordinary function).  Nothing here imports Ray.
 
 A sweep file (every key optional except ``tasks``, ``methods`` and ``seeds``)::
 
