@@ -18,8 +18,10 @@ install: $(BIN)/.installed
 run: install
 	$(BIN)/soc-opt compare $(TASK) --out $(OUT)
 
+# the default suite on TEST_WORKERS processes (pytest-xdist); the Ray tests share one (their xdist_group)
+TEST_WORKERS ?= 2
 test: install
-	$(BIN)/ruff check soc_opt tests examples && $(BIN)/lint-imports && $(BIN)/python -m pytest
+	$(BIN)/ruff check soc_opt tests examples && $(BIN)/lint-imports && $(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadgroup
 
 lint: install
 	$(BIN)/ruff check soc_opt tests examples && $(BIN)/lint-imports

@@ -61,3 +61,18 @@ def test_the_package_ships_its_license_and_its_typing_marker():
     assert (ROOT / "soc_opt" / "py.typed").is_file()
     assert "py.typed" in data["tool"]["setuptools"]["package-data"]["soc_opt"]
     assert (ROOT / "CHANGELOG.md").read_text().startswith("# Changelog")
+
+
+def test_make_test_runs_in_parallel_workers_with_the_ray_tests_in_one_group():
+    """``make test`` runs the suite on pytest-xdist workers with ``--dist loadgroup``, and every test module that
+    starts a local Ray cluster is in the one ``xdist_group("ray")``, so two clusters never start at once."""
+    make = (ROOT / "Makefile").read_text()
+    line = next(ln for ln in make.splitlines() if "-m pytest" in ln and "lint-imports" in ln)
+    assert "-n $(TEST_WORKERS)" in line and "--dist loadgroup" in line
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]["test"]
+    assert any(r.replace(" ", "").startswith("pytest-xdist") for r in extras)
+    ray_modules = sorted(p.name for p in (ROOT / "tests").glob("test_*.py") if p.name != Path(__file__).name
+                         and ("import ray" in p.read_text() or "run_sweep(" in p.read_text()))
+    assert ray_modules, "no module runs a sweep"
+    for name in ray_modules:
+        assert 'pytestmark = pytest.mark.xdist_group("ray")' in (ROOT / "tests" / name).read_text(), name

@@ -29,6 +29,10 @@ from soc_opt.sweeps.trial import check_finite
 from soc_opt.tasks import BUILTIN_TASKS, load_task
 from soc_opt.tasks.loading import problems_dir
 
+# the Ray tests run in one pytest-xdist worker, one after the other (`make test` uses --dist loadgroup):
+# two local Ray clusters at once on a 2-core machine only slow each other down
+pytestmark = pytest.mark.xdist_group("ray")
+
 SMALL = {
     "name": "small",
     "tasks": ["linear2d"],

@@ -26,6 +26,10 @@ from soc_opt.experiments.run import run_experiment
 from soc_opt.sweeps.spec import load_sweep
 from soc_opt.tasks import load_task
 
+# the Ray tests run in one pytest-xdist worker, one after the other (`make test` uses --dist loadgroup):
+# two local Ray clusters at once on a 2-core machine only slow each other down
+pytestmark = pytest.mark.xdist_group("ray")
+
 ROOT = Path(__file__).resolve().parents[1]
 SWEEP = """name = "cluster"
 tasks = ["linear2d"]
