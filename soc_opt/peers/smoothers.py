@@ -258,21 +258,26 @@ def compare(rng: np.random.Generator, n: int, T: int = 100, M: int = 20, m: int 
         calls["dynamax"], first = _dynamax_call(lg, Y, mu0, P0)
     for f in calls.values():  # warm up
         f()
-    runs: dict[str, list] = {k: [] for k in calls}
+    # each call's time, and only its last output: holding every output would make each call allocate
+    # fresh memory (and fault in its pages) where a program that drops its results reuses the heap
+    times: dict[str, list[float]] = {k: [] for k in calls}
+    last: dict[str, SmootherOutput] = {}
     names = list(calls)
     order = np.random.default_rng(0)
     for _ in range(repeats):  # in turn, in an order drawn afresh every round (module docstring)
         for k in order.permutation(names):
-            runs[k].append(calls[k]())
-    sec = {k: float(np.median([r.seconds for r in v])) for k, v in runs.items()}
-    ref, so_s = runs["soc_opt"][-1], sec["soc_opt"]
-    d = _diff(ref, runs["per_seq"][-1])
-    dc = _diff(ref, runs["core"][-1])
+            last[k] = out = calls[k]()
+            times[k].append(out.seconds)
+            del out
+    sec = {k: float(np.median(v)) for k, v in times.items()}
+    ref, so_s = last["soc_opt"], sec["soc_opt"]
+    d = _diff(ref, last["per_seq"])
+    dc = _diff(ref, last["core"])
     row = {"n": n, "m": m, "T": T, "sequences": M, "soc_opt_ms": 1e3 * so_s, "soc_opt_core_ms": 1e3 * sec["core"],
            "soc_opt_per_seq_ms": 1e3 * sec["per_seq"], "core_max_dmean": dc["mean"], "per_seq_max_dmean": d["mean"],
            "per_seq_max_dcov": d["cov"], "per_seq_max_dloglik": d["loglik"], "kernels": compiled.describe()}
     if "dynamax" in peers:
-        dx = runs["dynamax"][-1]
+        dx = last["dynamax"]
         d = _diff(ref, dx)
         row.update(dynamax_ms=1e3 * sec["dynamax"], dynamax_first_call_s=first,
                    dynamax_ratio=sec["dynamax"] / so_s, dynamax_ratio_core=sec["dynamax"] / sec["core"],
