@@ -122,6 +122,24 @@ def test_an_accepted_step_predicting_well_after_a_rejection_restores_the_pre_rej
     assert big == NextMultiplier(1.5 * STEP.factor_max, None, None)
 
 
+def test_recover_fraction_gives_back_that_fraction_of_the_remembered_multiplier():
+    """``recover_fraction = 0.5``: the step that failed at 10 is not retried at 10 at once, but at 5; the
+    rule's own value still wins when larger, and the default 1.0 is the full multiplier."""
+    half = AcceptanceConfig(recover=True, recover_fraction=0.5)
+    acc = _accepted(10.0, 1.0, mult=10.0)
+    rej = next_multiplier(STEP, half, REJECT, 10.0, None, (5.0, -50.0), acc)
+    assert rej.recover_to == 10.0
+    got = next_multiplier(STEP, half, ACCEPT, rej.mult, rej.ceiling, (100.0, 80.0), acc, recover_to=rej.recover_to)
+    assert got == NextMultiplier(5.0, None, None)
+    full = next_multiplier(STEP, ON, ACCEPT, rej.mult, rej.ceiling, (100.0, 80.0), acc, recover_to=rej.recover_to)
+    assert full == NextMultiplier(10.0, None, None) and AcceptanceConfig().recover_fraction == 1.0
+    big = next_multiplier(STEP, half, ACCEPT, 4.0, None, (100.0, 100.0), acc, recover_to=10.0)
+    assert big == NextMultiplier(4.0 * STEP.factor_max, None, None)
+    for bad in (0.0, -0.5, 1.5):
+        with pytest.raises(ConfigError, match="recover_fraction: must be in"):
+            AcceptanceConfig(recover_fraction=bad)
+
+
 def test_an_accepted_step_below_the_recover_ratio_does_not_restore_the_multiplier():
     acc = _accepted(10.0, 1.0, mult=2.0)
     rej = next_multiplier(STEP, ON, REJECT, 2.0, None, None, acc)

@@ -6,9 +6,11 @@ as it is beside the same with ``[baseline.acceptance] recover = true``.
 
 Per (setting, method): the final policies' min hinge over the seeds, sampled and with the mean action (mean
 and 95% Student-t interval), the seeds at min hinge <= -0.95 (the issue's goal) and the final policies flagged
-worse than their last batch (docs/math.md §12.3).  Then the seeds where the two settings differ by more than
-0.05 rad, and, for each ``--trace`` seed, every iteration's multiplier, predicted and actual improvement and
-verdict in both settings (read from the trials' ``metrics.csv``).
+worse than their last batch (docs/math.md §12.3), then the seeds that miss the goal.  With two settings: the
+paired difference over seeds and the seeds where the two differ by more than 0.05 rad.  Any door sweep's
+folder will do (door_search.toml and the tuning sweeps beside it, docs/results/door_search.md).  And, for
+each ``--trace`` seed, every iteration's multiplier, predicted and actual improvement and verdict in both
+settings (read from the trials' ``metrics.csv``).
 """
 
 from __future__ import annotations
@@ -79,8 +81,20 @@ def main(argv=None) -> int:
             a, b = interval(vals[:, 0]), interval(vals[:, 1])
             print(f"| {s} | {m} | {len(seeds)} | {a[0]:.3f} [{a[1]:.3f}, {a[2]:.3f}] | {b[0]:.3f} [{b[1]:.3f}, {b[2]:.3f}] "
                   f"| {int((vals[:, 0] <= GOAL).sum())} / {len(seeds)} | {int(vals[:, 2].sum())} |")
+    print("\nseeds above -0.95 sampled (sampled / mean action):")
+    for s in settings:
+        for m in methods:
+            miss = [(x, *final(found[(s, m, x)])[:2]) for x in sorted(k[2] for k in found if k[:2] == (s, m))]
+            miss = [f"{x} ({a:.3f} / {b:.3f})" for x, a, b in miss if a > GOAL]
+            print(f"  {s}, {m}: {', '.join(miss) or 'none'}")
     if len(settings) == 2:
         s0, s1 = settings
+        print(f"\npaired over seeds, {s1} minus {s0} (min hinge, mean and 95% Student-t interval):")
+        for m in methods:
+            both = sorted(x for x in {k[2] for k in found} if (s0, m, x) in found and (s1, m, x) in found)
+            for i, kind in ((0, "sampled"), (1, "mean action")):
+                d = interval(np.array([final(found[(s1, m, x)])[i] - final(found[(s0, m, x)])[i] for x in both]))
+                print(f"  {m}, {kind}: {d[0]:+.3f} [{d[1]:+.3f}, {d[2]:+.3f}] over {len(both)} seeds")
         print(f"\nseeds where {s1} and {s0} differ by more than 0.05 rad (sampled):")
         for m in methods:
             for x in sorted({k[2] for k in found}):

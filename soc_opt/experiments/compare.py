@@ -22,6 +22,7 @@ import numpy as np
 from .. import files, plugins
 from ..config import ConfigError
 from ..methods.config import DPSOCConfig, EvalConfig, check_scale, with_task_init_var
+from ..methods.lqr_flm.acceptance import rank_worse
 from ..methods.state import RunState
 from ..models import LinearGaussianPolicy, Rollouts
 from ..noise.aware import mean_action
@@ -274,34 +275,13 @@ WORSE_ALPHA = 0.05
 
 
 def worse_than_batch(c_last, c_fin, alpha: float = WORSE_ALPHA, margin: float = WORSE_MARGIN) -> dict:
-    """Is a policy's fresh evaluation worse than the batch it is compared with? (docs/math.md §12.3)
-
-    ``c_last``: the ``n`` total costs of the batch, ``c_fin``: the ``m`` total costs of the fresh rollouts.
-    Worse when both hold:
-
-    * *material*: the mean rises by more than ``margin |C_last|`` (``rise``);
-    * *not noise*, by one of two one-sided, distribution-free tests, each at ``alpha / 2``: the
-      Mann-Whitney U test that the fresh costs are stochastically larger (``p_rank``: a shift of the bulk)
-      or Rosenbaum's exceedance test (``p_tail``: ``j`` fresh costs above the batch's largest has
-      probability ``C(m, j) / C(n + m, j)`` when both come from one distribution; a few catastrophic
-      rollouts).  Both are rank tests, so a heavy tail does not widen them as it widens a standard error.
+    """Is a policy's fresh evaluation ``c_fin (m,)`` worse than the batch ``c_last (n,)`` it is compared with?
+    (docs/math.md §12.3): :func:`soc_opt.methods.lqr_flm.acceptance.rank_worse` at ``alpha`` and ``margin``,
+    a material rise of the mean confirmed by one of two one-sided rank tests.
 
     Returns ``{"ratio", "rise", "p_rank", "p_tail", "exceed", "worse"}``.
     """
-    from math import comb
-
-    from scipy import stats
-
-    c_last, c_fin = np.asarray(c_last, float).ravel(), np.asarray(c_fin, float).ravel()
-    n, m = c_last.size, c_fin.size
-    mean_l, mean_f = float(c_last.mean()), float(c_fin.mean())
-    rise = (mean_f - mean_l) / abs(mean_l) if mean_l != 0 else (np.inf if mean_f > 0 else 0.0)
-    p_rank = float(stats.mannwhitneyu(c_fin, c_last, alternative="greater").pvalue) if n and m else 1.0
-    j = int(np.sum(c_fin > c_last.max())) if n else 0
-    p_tail = comb(m, j) / comb(n + m, j)
-    return {"ratio": mean_f / mean_l if mean_l != 0 else float("nan"), "rise": float(rise), "p_rank": p_rank,
-            "p_tail": float(p_tail), "exceed": j,
-            "worse": bool(rise > margin and min(p_rank, p_tail) < alpha / 2)}
+    return rank_worse(c_last, c_fin, alpha, margin)
 
 
 def final_vs_last(task, history, ro: Rollouts, acceptance=None) -> dict:

@@ -58,6 +58,8 @@ class AcceptedPolicy(NamedTuple):
     child:     the policy that step produced (a retry keeps its filter, built from ``p_a``'s batch,
                and replaces its gains).
     mult:      the multiplier of the step taken around it.
+    costs:     ``(M,)`` the total costs of its own samples, on the cost the test reads: the reference of the
+               "rank" test (``[baseline.acceptance] test``; None in states written before it existed).
     """
 
     policy: LinearGaussianPolicy | FilteredPolicy
@@ -67,6 +69,7 @@ class AcceptedPolicy(NamedTuple):
     step: PreviousStep
     child: LinearGaussianPolicy | FilteredPolicy
     mult: float
+    costs: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

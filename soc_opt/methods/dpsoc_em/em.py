@@ -98,7 +98,7 @@ def em_phase(cfg, task: Task, state: RunState, drawn: Drawn, verdict: Verdict, r
         b = fit_batch(task, base, state, drawn, noise)
         gains = noise.gains(state.policy)
         accepted = AcceptedPolicy(state.policy, verdict.cost, verdict.se, state.iteration, PreviousStep(b.local, gains),
-                                  b.wrap(gains), float(state.mult))
+                                  b.wrap(gains), float(state.mult), verdict.costs)
     current = state
     history, best = state.history, state.best
     for r in range(cfg.em.n_em):

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from ..state import AcceptedPolicy, IterationRecord
 
 __all__ = ["AcceptanceConfig", "AS_WRITTEN", "Verdict", "NextMultiplier", "judge", "next_multiplier", "acceptance_cost",
-           "acceptance_limit", "acceptance_threshold"]
+           "acceptance_costs", "acceptance_limit", "acceptance_threshold", "rank_worse", "rank_level"]
 
 
 @dataclass(frozen=True)
@@ -69,6 +69,17 @@ class AcceptanceConfig(Config):
               the GPS rule's value) and lifts the ceiling.
     recover_ratio: the actual / predicted improvement from which the model counts as good again and the
               remembered multiplier is given back (0.5; in [0, 1]; read only with ``recover``).
+    recover_fraction: the fraction of the remembered multiplier that is given back (1.0: all of it; in
+              (0, 1]; read only with ``recover``).  Below 1 a step that failed at a size is not retried at
+              that size as soon as one step predicts well (the sawtooth of docs/results/recover_door.md).
+    test:     how a batch is compared with the accepted policy's (docs/math.md §12.1): "mean" (default, the
+              test above: means through standard errors) or "rank" (distribution-free: rejected when the
+              mean rises by more than ``eps |C_a|`` and the samples are stochastically larger by a one-sided
+              Mann-Whitney test or have more costs above the accepted batch's largest than chance allows
+              (exceedance test), either at the level ``Phi(-kappa) / 2`` (0.011 at ``kappa = 2``);
+              :func:`rank_worse`).  Contact tasks have heavy-tailed costs: a few failed rollouts widen the
+              standard error until "mean" accepts a batch whose mean cost is several times the reference's,
+              and a rank test is not widened by them.
     """
 
     enabled: bool = True
@@ -81,9 +92,12 @@ class AcceptanceConfig(Config):
     actual: Literal["laplace", "samples"] = "laplace"
     recover: bool = False
     recover_ratio: float = 0.5
+    recover_fraction: float = 1.0
+    test: Literal["mean", "rank"] = "mean"
 
     #: records written before ``recover`` existed ran without it (soc_opt.config.IMPLIED_WHEN_ABSENT)
-    _implied_when_absent = {"acceptance.recover": (False, {}), "acceptance.recover_ratio": (0.5, {})}
+    _implied_when_absent = {"acceptance.recover": (False, {}), "acceptance.recover_ratio": (0.5, {}),
+                            "acceptance.test": ("mean", {}), "acceptance.recover_fraction": (1.0, {})}
     _constraints = {
         "kappa": [Interval(0)],
         "eps": [Interval(0)],
@@ -92,6 +106,8 @@ class AcceptanceConfig(Config):
         "ceiling": [Interval(0, 1, "right")],
         "actual": [Options(("laplace", "samples"))],
         "recover_ratio": [Interval(0, 1)],
+        "recover_fraction": [Interval(0, 1, "right")],
+        "test": [Options(("mean", "rank"))],
     }
 
 
@@ -106,7 +122,10 @@ class Verdict(NamedTuple):
     tested:    whether a test was made (False: the paper as written, which tracks no accepted policy and
                has no zero step).
     cost, se:  ``C_i`` and its standard error, on the cost the test reads (NaN untested).
-    threshold: the largest ``C_i`` accepted (``inf`` before any policy is accepted, or untested).
+    threshold: the largest ``C_i`` the "mean" test accepts (``inf`` before any policy is accepted, or
+               untested; recorded with the "rank" test too).
+    costs:     the batch's costs the test read ``(M,)`` (None untested): the reference of the next test
+               when the batch is accepted.
     """
 
     accept: bool
@@ -114,6 +133,7 @@ class Verdict(NamedTuple):
     cost: float = float("nan")
     se: float = float("nan")
     threshold: float = float("inf")
+    costs: np.ndarray | None = None
 
     def columns(self, accepted_iteration: int) -> dict[str, float]:
         """The history row's acceptance columns (none untested); ``accepted_iteration``: the iteration of
@@ -130,18 +150,57 @@ def acceptance_limit(cfg: AcceptanceConfig, c_a: float, se_a: float, se: float) 
     return c_a + cfg.kappa * float(np.hypot(se, se_a)) + cfg.eps * abs(c_a)
 
 
-def acceptance_cost(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollouts | None = None) -> tuple[float, float]:
-    """``(C_i, se_i)``: the mean total cost of a batch and its standard error, on the cost the
-    acceptance test reads (``cfg.cost``: measured, estimated or true states; docs/math.md §12.1).
-    ``learned``: the batch as the learner sees it (:meth:`Estimates.data`), whose costs are the
-    estimated ones; needed with ``cost = "estimated"``."""
+def acceptance_costs(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollouts | None = None) -> np.ndarray:
+    """``(M,)``: the total cost of each rollout of a batch on the cost the acceptance test reads
+    (``cfg.cost``: measured, estimated or true states; docs/math.md §12.1).  ``learned``: the batch as the
+    learner sees it (:meth:`Estimates.data`), whose costs are the estimated ones; needed with
+    ``cost = "estimated"``."""
     if cfg.cost == "estimated":
         if learned is None:
             raise ValueError("acceptance cost 'estimated' needs the batch's estimated states")
-        c = np.asarray(learned.total_cost(), float)
-    else:
-        c = np.asarray(rec.cost if cfg.cost == "true" else rec.cost_measured, float)
+        return np.asarray(learned.total_cost(), float)
+    return np.asarray(rec.cost if cfg.cost == "true" else rec.cost_measured, float)
+
+
+def acceptance_cost(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollouts | None = None) -> tuple[float, float]:
+    """``(C_i, se_i)``: the mean of :func:`acceptance_costs` and its standard error."""
+    c = acceptance_costs(cfg, rec, learned)
     return float(np.mean(c)), float(np.std(c, ddof=1) / np.sqrt(c.size)) if c.size > 1 else float("inf")
+
+
+def rank_worse(c_ref, c_new, alpha: float, margin: float) -> dict:
+    """Are the costs ``c_new (m,)`` worse than ``c_ref (n,)``?  (docs/math.md §12.1 "rank", §12.3.)
+
+    Worse when both hold: the mean rises by more than ``margin |mean(c_ref)|`` (``rise``, relative), and
+    one of two one-sided, distribution-free tests is below ``alpha / 2``: the Mann-Whitney U test that
+    ``c_new`` is stochastically larger (``p_rank``: a shift of the bulk) or the exceedance test
+    (``p_tail``: ``j`` of the ``m`` new costs above the largest reference cost has probability
+    ``C(m, j) / C(n + m, j)`` when both come from one distribution: a few catastrophic rollouts).  Both are
+    rank tests, so a heavy tail does not widen them as it widens a standard error.
+
+    Returns ``{"ratio", "rise", "p_rank", "p_tail", "exceed", "worse"}``.
+    """
+    from math import comb
+
+    from scipy import stats
+
+    c_ref, c_new = np.asarray(c_ref, float).ravel(), np.asarray(c_new, float).ravel()
+    n, m = c_ref.size, c_new.size
+    mean_r, mean_n = float(c_ref.mean()), float(c_new.mean())
+    rise = (mean_n - mean_r) / abs(mean_r) if mean_r != 0 else (np.inf if mean_n > 0 else 0.0)
+    p_rank = float(stats.mannwhitneyu(c_new, c_ref, alternative="greater").pvalue) if n and m else 1.0
+    j = int(np.sum(c_new > c_ref.max())) if n else 0
+    p_tail = comb(m, j) / comb(n + m, j)
+    return {"ratio": mean_n / mean_r if mean_r != 0 else float("nan"), "rise": float(rise), "p_rank": p_rank,
+            "p_tail": float(p_tail), "exceed": j, "worse": bool(rise > margin and min(p_rank, p_tail) < alpha / 2)}
+
+
+def rank_level(cfg: AcceptanceConfig) -> float:
+    """The level of the "rank" test: ``Phi(-kappa)``, the one-sided level of the "mean" test's ``kappa``
+    standard errors for normal costs (split between its two rank tests)."""
+    from scipy import stats
+
+    return float(stats.norm.sf(cfg.kappa))
 
 
 def acceptance_threshold(cfg: AcceptanceConfig, se: float, accepted: AcceptedPolicy | None) -> float:
@@ -155,12 +214,19 @@ def judge(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollouts | None,
           accepted: AcceptedPolicy | None) -> Verdict:
     """The verdict on the batch of ``rec`` (``learned``: the same batch as the learner sees it) against the
     last accepted policy (docs/math.md §12.1): accepted iff ``C_i <= C_a + kappa sqrt(se_i^2 + se_a^2) +
-    eps |C_a|``; the first batch is always accepted.  Disabled: every batch is accepted, untested."""
+    eps |C_a|``, or with ``cfg.test = "rank"`` iff :func:`rank_worse` does not find it worse than the accepted
+    policy's batch (the mean test when the accepted policy carries no costs: a run resumed from a state
+    written before the option existed); the first batch is always accepted.  Disabled: every batch is
+    accepted, untested."""
     if not cfg.enabled:
         return Verdict(True, False)
+    costs = acceptance_costs(cfg, rec, learned)
     c, se = acceptance_cost(cfg, rec, learned)
     threshold = acceptance_threshold(cfg, se, accepted)
-    return Verdict(bool(c <= threshold), True, c, se, threshold)
+    if cfg.test == "rank" and accepted is not None and accepted.costs is not None:
+        worse = rank_worse(accepted.costs, costs, rank_level(cfg), cfg.eps)["worse"]
+        return Verdict(not worse, True, c, se, threshold, costs)
+    return Verdict(bool(c <= threshold), True, c, se, threshold, costs)
 
 
 class NextMultiplier(NamedTuple):
@@ -195,7 +261,8 @@ def next_multiplier(step: StepSizeConfig, cfg: AcceptanceConfig, verdict: Verdic
     With ``cfg.recover`` a rejection also remembers ``recover_to = min(max(recover_to, mult), step.mult_max)``
     (never above ``mult_max``); an accepted step whose improvements have ``predicted > 0`` and
     ``actual >= cfg.recover_ratio * predicted`` (the actual improvement the rule reads, with or without
-    ``adapt``) gives it back: the multiplier is the larger of the rule's value and ``recover_to``, the
+    ``adapt``) gives it back: the multiplier is the larger of the rule's value and ``cfg.recover_fraction *
+    recover_to``, the
     ceiling is lifted and nothing is remembered any more; nor is it once an accepted step's multiplier is
     back at ``recover_to`` on its own.  Without ``cfg.recover`` ``recover_to`` is ignored and None.
     """
@@ -222,7 +289,7 @@ def next_multiplier(step: StepSizeConfig, cfg: AcceptanceConfig, verdict: Verdic
             new = max(new, mult)  # the samples show a clear improvement: do not shrink
     if recover_to is not None and seen is not None and predicted > 0 and seen >= cfg.recover_ratio * predicted:
         # the model predicts well again: the multiplier the rejection interrupted, without a ceiling
-        return NextMultiplier(max(new, recover_to), None, None)
+        return NextMultiplier(max(new, cfg.recover_fraction * recover_to), None, None)
     if ceiling is not None:
         if mult >= ceiling * (1.0 - 1e-12):
             ceiling = None  # a step at the ceiling was accepted: the rule may grow again

@@ -220,7 +220,8 @@ def _step(task: Task, cfg: LQRFLMConfig, state: RunState, b: Batch, rec: Iterati
     if verdict.accept:
         new_policy, last = b.wrap(gains), b.rollouts
         if verdict.tested:
-            acc = AcceptedPolicy(state.policy, verdict.cost, verdict.se, state.iteration, step, new_policy, float(mult))
+            acc = AcceptedPolicy(state.policy, verdict.cost, verdict.se, state.iteration, step, new_policy, float(mult),
+                                 verdict.costs)
     else:
         new_policy = retry(gains)
         last = state.last_rollouts  # the batch the new policy's estimator was learned from
