@@ -164,7 +164,11 @@ def acceptance_costs(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollo
 
 def acceptance_cost(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollouts | None = None) -> tuple[float, float]:
     """``(C_i, se_i)``: the mean of :func:`acceptance_costs` and its standard error."""
-    c = acceptance_costs(cfg, rec, learned)
+    return _mean_se(acceptance_costs(cfg, rec, learned))
+
+
+def _mean_se(c: np.ndarray) -> tuple[float, float]:
+    """The mean of the costs ``c (M,)`` and its standard error (``ddof = 1``; ``inf`` for one cost)."""
     return float(np.mean(c)), float(np.std(c, ddof=1) / np.sqrt(c.size)) if c.size > 1 else float("inf")
 
 
@@ -221,7 +225,7 @@ def judge(cfg: AcceptanceConfig, rec: IterationRecord, learned: Rollouts | None,
     if not cfg.enabled:
         return Verdict(True, False)
     costs = acceptance_costs(cfg, rec, learned)
-    c, se = acceptance_cost(cfg, rec, learned)
+    c, se = _mean_se(costs)
     threshold = acceptance_threshold(cfg, se, accepted)
     if cfg.test == "rank" and accepted is not None and accepted.costs is not None:
         worse = rank_worse(accepted.costs, costs, rank_level(cfg), cfg.eps)["worse"]
@@ -261,10 +265,9 @@ def next_multiplier(step: StepSizeConfig, cfg: AcceptanceConfig, verdict: Verdic
     With ``cfg.recover`` a rejection also remembers ``recover_to = min(max(recover_to, mult), step.mult_max)``
     (never above ``mult_max``); an accepted step whose improvements have ``predicted > 0`` and
     ``actual >= cfg.recover_ratio * predicted`` (the actual improvement the rule reads, with or without
-    ``adapt``) gives it back: the multiplier is the larger of the rule's value and ``cfg.recover_fraction *
-    recover_to``, the
-    ceiling is lifted and nothing is remembered any more; nor is it once an accepted step's multiplier is
-    back at ``recover_to`` on its own.  Without ``cfg.recover`` ``recover_to`` is ignored and None.
+    ``adapt``) gives it back: the multiplier is the larger of the rule's value and
+    ``cfg.recover_fraction * recover_to``, the ceiling is lifted and nothing is remembered any more; nor is
+    it once an accepted step's multiplier is back at ``recover_to`` on its own.  Without ``cfg.recover`` ``recover_to`` is ignored and None.
     """
     if not cfg.recover or recover_to is None:
         recover_to = None
