@@ -124,10 +124,7 @@ def test_a_run_with_the_rank_test_keeps_the_accepted_batch_costs_in_its_state_fi
 
 
 def _with_test(cfg, test: str):
-    import dataclasses
-
-    base = dataclasses.replace(cfg.baseline, acceptance=dataclasses.replace(cfg.baseline.acceptance, test=test))
-    return dataclasses.replace(cfg, baseline=base)
+    return cfg.replace(baseline=cfg.baseline.replace(acceptance=cfg.baseline.acceptance.replace(test=test)))
 
 
 def test_the_test_loads_from_toml_and_a_bad_value_names_the_key(tmp_path):

@@ -350,6 +350,26 @@ def test_every_iteration_in_its_own_process_equals_the_uninterrupted_run(tmp_pat
     assert_same_run(d, ref)
 
 
+@pytest.mark.parametrize("method, seed", [("lqr-flm", 4), ("dpsoc-em", 3)])  # seeds on which a step is rejected
+def test_a_run_with_the_rank_test_and_partial_recovery_resumed_in_new_processes_equals_the_uninterrupted_run(
+        tmp_path, method, seed):
+    """Issue 47: the rank test reads the accepted batch's costs from the checkpoint (``AcceptedPolicy.costs``)
+    and recovery its remembered multiplier; a strict rank test (kappa = eps = 0) rejects steps on linear2d,
+    and a run stopped after every iteration and resumed each time in a new process equals the uninterrupted
+    one."""
+    cfg = load_run_config("linear2d", method=method, overrides={"iterations": 7, "samples": 6})
+    cfg = cfg.replace(i_switch=2, baseline=cfg.baseline.replace(acceptance=cfg.baseline.acceptance.replace(
+        kappa=0.0, eps=0.0, test="rank", recover=True, recover_fraction=0.5)))
+    ref, d = tmp_path / "ref", tmp_path / "chain"
+    assert _resume_in_a_new_process(method, ref, cfg=cfg, task_overrides={}, seed=seed) == "done"
+    rows = json.loads((ref / "metrics.json").read_text())
+    assert any(r.get("accepted") == 0.0 for r in rows), "the strict rank test should reject a step"
+    for k in range(1, cfg.baseline.iterations):
+        assert _resume_in_a_new_process(method, d, cfg=cfg, task_overrides={}, seed=seed, stop_after=k) == "stopped"
+    assert _resume_in_a_new_process(method, d, cfg=cfg, task_overrides={}, seed=seed) == "done"
+    assert_same_run(d, ref)
+
+
 @pytest.mark.parametrize("method", ["lqr-flm", "dpsoc-em"])
 def test_a_run_with_rejected_steps_resumed_in_new_processes_equals_the_uninterrupted_run(tmp_path, method):
     """Issue 30: the last accepted policy, its step and the multiplier's ceiling are in the checkpoint; a
