@@ -207,3 +207,62 @@ def test_oracle_loop_variant_names_say_how_it_learns_and_where_it_is_scored():
     assert parse("oracle state") == ("oracle state", True)
     with pytest.raises(ValueError, match="oracle fitt"):
         parse("oracle fitt @ true state")
+
+
+def test_internal_model_estimate_is_the_linear_model_state_and_ignores_the_measurements():
+    """examples/studies/noise_unkept_variants.py ``--variant internal``: on a system that is its local model
+    (``x_{k+1} = A_k x_k + B_k a_k + c_k`` from ``mu_0``), the estimate is the true state for any actions,
+    whatever is measured, and the plan's mean when the actions are the plan's."""
+    import types
+
+    import numpy as np
+
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_unkept_variants.py"))
+    rng = np.random.default_rng(0)
+    T, n, m, B_rows = 6, 4, 2, 3
+    A = 0.3 * rng.standard_normal((T, n, n)) + np.eye(n)
+    B = rng.standard_normal((T, n, m))
+    c = rng.standard_normal((T, n))
+    abar = rng.standard_normal((T, m))
+    mu = np.empty((T + 1, n))
+    mu[0] = rng.standard_normal(n)
+    for k in range(T):
+        mu[k + 1] = A[k] @ mu[k] + B[k] @ abar[k] + c[k]
+    pol = types.SimpleNamespace(mu=mu, A=A, B=B, abar=abar)
+    est = mod["InternalModelPolicy"].estimate
+    a = abar + rng.standard_normal((B_rows, T, m))
+    x = np.broadcast_to(mu[0], (B_rows, n)).copy()
+    xhat = est(pol, 0, 100.0 * rng.standard_normal((B_rows, n)))
+    np.testing.assert_array_equal(xhat, x)
+    for k in range(1, T + 1):
+        x = x @ A[k - 1].T + a[:, k - 1] @ B[k - 1].T + c[k - 1]
+        xhat = est(pol, k, 100.0 * rng.standard_normal((B_rows, n)), xhat, a[:, k - 1])
+        np.testing.assert_allclose(xhat, x, rtol=1e-10, atol=1e-10)
+    xhat = est(pol, 0, rng.standard_normal(n))
+    for k in range(1, T + 1):
+        xhat = est(pol, k, rng.standard_normal(n), xhat, abar[k - 1])
+        np.testing.assert_allclose(xhat, mu[k], rtol=1e-12, atol=1e-12)
+    with pytest.raises(SystemExit, match="unknown variant"):
+        mod["patch"]("w-scale 0.1")
+
+
+def test_restarts_emulation_returns_the_restart_with_the_cheaper_last_batch(tmp_path, capsys):
+    """examples/studies/restarts_emulation.py: seeds s and s + offset are one run's two restarts; the run
+    returns the one whose last sampled batch cost less (not the one that evaluates better)."""
+    import json
+
+    runs = {600: (-1.0, 5.0), 601: (-0.5, 2.0), 602: (-0.9, 9.0), 603: (-0.7, 1.0)}  # seed: (min hinge, last batch)
+    for seed, (hinge, last) in runs.items():
+        d = tmp_path / "trials" / "door" / "recover-half,rho2=0" / "lqr-flm" / f"seed_{seed}"
+        d.mkdir(parents=True)
+        (d / "result.json").write_text(json.dumps({"metrics": {"min_hinge": hinge},
+                                                   "metrics_mean_action": {"min_hinge": hinge - 0.01},
+                                                   "final_vs_last_last_sampled_cost": last}))
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "restarts_emulation.py"))
+    mod["main"]([str(tmp_path), "--offset", "2"])
+    out = capsys.readouterr().out
+    assert "one half-sample run, 4 seeds: mean -0.775, 1 / 4 at the goal" in out
+    # run 600+602 returns 600 (last batch 5 < 9): -1.00; run 601+603 returns 603 (1 < 2): -0.70
+    assert "2 runs: sampled -0.850 (1 / 2 at the goal)" in out
+    assert "picked by evaluation (oracle): 1 / 2" in out
+    assert "-1.00 -0.70" in out
