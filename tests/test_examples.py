@@ -266,3 +266,22 @@ def test_restarts_emulation_returns_the_restart_with_the_cheaper_last_batch(tmp_
     assert "2 runs: sampled -0.850 (1 / 2 at the goal)" in out
     assert "picked by evaluation (oracle): 1 / 2" in out
     assert "-1.00 -0.70" in out
+
+
+def test_peg_landing_is_the_first_step_at_table_height_or_the_lowest_one():
+    """examples/studies/noise_peg_landing.py: the landing step is the first step at or below the height, the
+    lowest step of a rollout that never gets there; errors and offsets are horizontal only."""
+    import numpy as np
+
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_peg_landing.py"))
+    target = mod["TARGET"]
+    z = np.array([[-0.30, -0.35, -0.39, -0.45, -0.50], [-0.30, -0.33, -0.37, -0.36, -0.35]])
+    x = np.zeros((2, 5, 3))
+    x[..., 0] = target[0] + 0.03 * np.arange(5)  # 3 cm further from the hole's centre each step
+    x[..., 1] = target[1]
+    x[..., 2] = z
+    xhat = x + np.array([0.0, 0.04, 1.0])  # 4 cm off horizontally, 1 m off in height (ignored)
+    k, err, off = mod["landing"](x, xhat, -0.38)
+    np.testing.assert_array_equal(k, [2, 2])  # rollout 0 first at -0.39; rollout 1 never, lowest at step 2
+    np.testing.assert_allclose(err, [0.04, 0.04])
+    np.testing.assert_allclose(off, [0.06, 0.06])
