@@ -1,6 +1,6 @@
 """Where the peg comes down under sensor noise, and how far off the policy's estimate is there (issue 46).
 
-For each trial of a peg sweep under noise (kinematic estimator), the final accepted policy's filter is run
+For each trial of a peg sweep under noise (kinematic estimator), the filter of the policy the run returns is run
 again on the measurements and actions of its ``final_eval.npz``. At the first step where the true peg bottom is
 within ``--above`` of the table top, the script takes the horizontal error of the estimate and the true
 horizontal offset from the hole's centre. It prints their medians for the rollouts that end in the hole, that
@@ -12,11 +12,14 @@ count as successes, and that fail. Diagnostics, not a method.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
 
-from soc_opt.experiments.statefile import decode_state
+from soc_opt.experiments.rundir import decode_checkpoint
+from soc_opt.methods.config import DPSOCConfig
+from soc_opt.methods.registry import get_method
 from soc_opt.tasks import load_task
 
 TARGET = np.array([0.0, 0.3, -0.5])  # the peg bottom's target, the floor of the hole (docs/math.md §8)
@@ -46,8 +49,9 @@ def main(argv=None) -> None:
     success = task.config.metric.success
     end, err, off = [], [], []
     for d in sorted(args.root.glob("seed_*")):
-        state = decode_state((d / "checkpoint.npz").read_bytes())
-        policy = (state.accepted.policy if state.accepted is not None else state.policy).for_task(task)
+        trial = json.loads((d / "trial.json").read_text())
+        state = decode_checkpoint(d / "checkpoint.npz")
+        policy = get_method(trial["method"]).final_policy(DPSOCConfig.from_dict(trial["config"]), state).for_task(task)
         z = np.load(d / "final_eval.npz")
         xhat = policy.filter.states(z["s"], z["a"])
         pb, pbh = z["x"][..., ib], xhat[..., ib]

@@ -266,9 +266,8 @@ def compare(rng: np.random.Generator, n: int, T: int = 100, M: int = 20, m: int 
     order = np.random.default_rng(0)
     for _ in range(repeats):  # in turn, in an order drawn afresh every round (module docstring)
         for k in order.permutation(names):
-            last[k] = out = calls[k]()
-            times[k].append(out.seconds)
-            del out
+            last[k] = calls[k]()
+            times[k].append(last[k].seconds)
     sec = {k: float(np.median(v)) for k, v in times.items()}
     ref, so_s = last["soc_opt"], sec["soc_opt"]
     d = _diff(ref, last["per_seq"])

@@ -267,7 +267,8 @@ def next_multiplier(step: StepSizeConfig, cfg: AcceptanceConfig, verdict: Verdic
     ``actual >= cfg.recover_ratio * predicted`` (the actual improvement the rule reads, with or without
     ``adapt``) gives it back: the multiplier is the larger of the rule's value and
     ``cfg.recover_fraction * recover_to``, the ceiling is lifted and nothing is remembered any more; nor is
-    it once an accepted step's multiplier is back at ``recover_to`` on its own.  Without ``cfg.recover`` ``recover_to`` is ignored and None.
+    it once an accepted step's multiplier is back at ``recover_to`` on its own.  Without ``cfg.recover``
+    ``recover_to`` is ignored and None.
     """
     if not cfg.recover or recover_to is None:
         recover_to = None
