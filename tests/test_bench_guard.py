@@ -59,18 +59,44 @@ def _line(stream, timeout: float = 120.0) -> bytes:
 _SCRIPT = """
 import sys, time
 from soc_opt.bench.guard import Guard
+
+def nap(path):
+    open(path, "w").close()  # the worker is in its call
+    time.sleep(120)
+
 with Guard() as g:
     print("calling", flush=True)
-    g.call(time.sleep, 120, limit_s=600)
+    g.call(nap, sys.argv[1], limit_s=600)
 """
 
 
-def test_ctrl_c_stops_a_guarded_call_blocked_in_the_worker():
-    proc = subprocess.Popen([sys.executable, "-c", _SCRIPT], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            start_new_session=True)
+def _wait_for(path, timeout: float = 120.0) -> None:
+    """Until ``path`` exists (a guard of ``timeout`` seconds, not a measurement)."""
+    end = time.monotonic() + timeout
+    while not os.path.exists(path):
+        assert time.monotonic() < end, f"{path} did not appear within {timeout} s"
+        time.sleep(0.01)
+
+
+def _group_gone(pgid: int, timeout: float = 60.0) -> bool:
+    """Whether every process of group ``pgid`` has exited within ``timeout`` seconds."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_ctrl_c_stops_a_guarded_call_blocked_in_the_worker(tmp_path):
+    marker = tmp_path / "asleep"
+    proc = subprocess.Popen([sys.executable, "-c", _SCRIPT, str(marker)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, start_new_session=True)
     try:
         assert _line(proc.stdout).strip() == b"calling"
-        time.sleep(0.5)  # the worker is asleep in its call
+        _wait_for(marker)  # the worker is asleep in its call
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)  # the guard: a hang fails here instead of hanging the suite
     finally:
@@ -79,6 +105,47 @@ def test_ctrl_c_stops_a_guarded_call_blocked_in_the_worker():
     assert b"KeyboardInterrupt" in err
     with pytest.raises(ProcessLookupError):  # no worker left behind in the process group
         os.killpg(proc.pid, 0)
+
+
+def test_ctrl_c_at_once_still_leaves_no_worker_behind():
+    """Ctrl-C as soon as the script announces its call: it may land before, during or after the fork."""
+    proc = subprocess.Popen([sys.executable, "-c", _SCRIPT, os.devnull], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        assert _line(proc.stdout).strip() == b"calling"
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert b"KeyboardInterrupt" in err
+    assert _group_gone(proc.pid), "a worker outlived the interrupted script"
+
+
+_IDLE = """
+import time
+from soc_opt.bench.guard import Guard
+g = Guard()
+g.call(pow, 2, 3, limit_s=30)
+print("idle", flush=True)
+time.sleep(120)
+"""
+
+
+def test_an_idle_worker_exits_when_its_guards_process_is_killed():
+    """SIGKILL gives the guard no chance to end its worker: the worker sees the end of its pipe and exits."""
+    proc = subprocess.Popen([sys.executable, "-c", _IDLE], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        assert _line(proc.stdout).strip() == b"idle"
+        proc.kill()
+        proc.wait(timeout=60)
+        assert _group_gone(proc.pid), "the worker outlived its guard's process"
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
 
 
 @pytest.mark.slow

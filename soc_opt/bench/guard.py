@@ -12,7 +12,9 @@ waits on it from this process in steps of :data:`POLL_S` seconds, so that
 * Ctrl-C (``KeyboardInterrupt`` here, within ``POLL_S``) kills the worker and propagates: the command stops
   within a second whatever the solver is doing.
 
-The worker ignores ``SIGINT`` (the terminal sends it to the whole process group; this process decides).
+The worker ignores ``SIGINT`` (the terminal sends it to the whole process group; this process decides),
+and it never outlives this process: it holds no copy of this process's end of their pipe, so an idle worker
+sees the end of the pipe and exits when this process is gone, even by ``SIGKILL``.
 An exception raised by the call itself is raised here as it was raised there.  Calls and arguments are
 pickled to the worker: module-level functions and plain data.
 """
@@ -42,8 +44,9 @@ class GuardError(SolverError):
     """A guarded call was stopped: ``status`` is ``"time limit"``, ``"NaN"`` or ``"worker died"``."""
 
 
-def _worker(conn, out_fd: int) -> None:
+def _worker(conn, other_end, out_fd: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    other_end.close()  # the guard's end, inherited by the fork: once the guard's process is gone, recv sees EOF
     os.dup2(out_fd, 1)  # the solvers' banners and warnings (C level) go to the guard, not the terminal
     os.dup2(out_fd, 2)
     while True:
@@ -84,23 +87,30 @@ class Guard:
         self.close()
 
     def _start(self) -> None:
+        """Fork the worker.  The guard owns the process and its pipes before the fork, so that a Ctrl-C
+        landing anywhere in here leaves :meth:`_kill` what to clean up."""
         ctx = multiprocessing.get_context("fork")
         parent, child = ctx.Pipe()
         out_r, out_w = os.pipe()
         os.set_blocking(out_r, False)
-        proc = ctx.Process(target=_worker, args=(child, out_w), daemon=True)
-        proc.start()
-        child.close()
-        os.close(out_w)
+        proc = ctx.Process(target=_worker, args=(child, parent, out_w), daemon=True)
         self._proc, self._conn, self._out = proc, parent, out_r
+        try:
+            proc.start()
+        finally:
+            child.close()
+            os.close(out_w)
 
     def _kill(self) -> None:
-        if self._proc is not None:
-            self._proc.kill()
-            self._proc.join()
-            self._conn.close()
-            os.close(self._out)
+        proc, conn, out = self._proc, self._conn, self._out
         self._proc = self._conn = self._out = None
+        if proc is not None and proc.pid is not None:  # started (a Ctrl-C may have come before the fork)
+            proc.kill()
+            proc.join()
+        if conn is not None:
+            conn.close()
+        if out is not None:
+            os.close(out)
 
     def close(self) -> None:
         """End the worker (politely if it is idle)."""
@@ -130,13 +140,13 @@ class Guard:
         after more than ``nan_limit`` NaN reports or when the worker dies."""
         if not limit_s > 0 or math.isnan(limit_s):
             raise ValueError(f"limit_s must be > 0, got {limit_s}")
-        if self._proc is None or not self._proc.is_alive():
-            self._kill()
-            self._start()
         self.last_output = b""
         nans = 0
         deadline = time.monotonic() + limit_s
         try:
+            if self._proc is None or not self._proc.is_alive():
+                self._kill()
+                self._start()
             self._conn.send((fn, args, kwargs))
             while True:
                 ready, _, _ = select.select([self._conn, self._out], [], [], POLL_S)
