@@ -2,6 +2,8 @@
 how differences are listed, and that a run resumed in another environment says so."""
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 
@@ -34,6 +36,17 @@ def test_the_record_names_the_path_of_the_compiled_kernels(monkeypatch):
         monkeypatch.setenv(compiled.ENV, "numba")
         assert environment()["kernels"].startswith("numba ")
         assert any(d.startswith("kernels: numpy") for d in environment_differences(env, environment()))
+
+
+def test_the_blas_record_does_not_depend_on_what_else_the_process_imported():
+    """cvxpy loads SCS, whose wheel bundles a BLAS of its own; a run that never solves with CVXPY does not
+    import it, so two processes of one run (a sweep's worker, the resume) may differ in that alone.  The
+    record names numpy's and scipy's BLAS, before and after."""
+    code = ("import json; from soc_opt.experiments.environment import environment; a = environment()['blas']; "
+            "import cvxpy; print(json.dumps([a, environment()['blas']]))")
+    before, after = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                              check=True).stdout)
+    assert before == after and before
 
 
 def test_differences_list_each_changed_entry_and_nothing_for_an_old_record():

@@ -12,6 +12,7 @@ from __future__ import annotations
 import platform
 import sys
 from importlib import metadata
+from pathlib import Path
 
 __all__ = ["environment", "environment_differences", "PACKAGES"]
 
@@ -27,16 +28,24 @@ def _version(name: str) -> str | None:
 
 
 def _blas() -> list[str]:
-    """``"<library> <version> <kernel>"`` of every BLAS loaded (the kernel OpenBLAS picked for this CPU)."""
+    """``"<library> <version> <kernel>"`` of the BLAS that numpy and scipy call (the kernel OpenBLAS picked for
+    this CPU).  Only theirs: a BLAS that another package bundles (SCS's, loaded with cvxpy) is in the process
+    only once that package is imported, so a list of every loaded one would differ between two processes of
+    one run by what else they had imported.  Where numpy's and scipy's BLAS do not live in their own package
+    directories (a system BLAS), every loaded BLAS is listed."""
     try:
         from threadpoolctl import threadpool_info
     except ImportError:  # pragma: no cover - a declared dependency
         return []
-    out = []
-    for lib in threadpool_info():
-        if lib.get("user_api") == "blas":
-            out.append(" ".join(str(lib.get(k)) for k in ("internal_api", "version", "architecture") if lib.get(k)))
-    return sorted(set(out))
+    import numpy
+    import scipy.linalg  # loads scipy's BLAS
+
+    homes = [Path(mod.__file__).resolve().parent for mod in (numpy, scipy)]
+    homes += [h.with_name(h.name + ".libs") for h in homes]  # where the wheels keep their shared libraries
+    found = [lib for lib in threadpool_info() if lib.get("user_api") == "blas"]
+    own = [lib for lib in found if any(h in Path(str(lib.get("filepath", ""))).resolve().parents for h in homes)]
+    return sorted({" ".join(str(lib.get(k)) for k in ("internal_api", "version", "architecture") if lib.get(k))
+                   for lib in own or found})
 
 
 def environment() -> dict:

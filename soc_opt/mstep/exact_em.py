@@ -29,7 +29,6 @@ from ..estep import Moments
 from ..models import AugmentedModel, LinearGaussianPolicy, symmetrize
 from .config import MStepConfig
 from .constraints import Resolved, feasible_sigma
-from .cvx import get_problem, kron_eig, set_spectral_params, solve_cvx, spectral_data, spectral_F, vec_batch
 from .errors import ClosedFormUnavailableError, NonUniqueMaximizerError
 from .objectives import atil, exact_objective_from_moments, min_eig_rel, policy_F
 
@@ -92,6 +91,8 @@ def sigma_exact(W: np.ndarray, rc: Resolved, method: str, solver: str, cfg: MSte
                 f"{labels[i]}: cov_floor and cov_ceiling are active together in the exact-EM covariance "
                 f"step, which has no closed form; use method='cvxpy'"
             )
+        from .cvx import get_problem, solve_cvx  # cvxpy only when a CVXPY step runs (maximize.py)
+
         prob = get_problem(("prec", 0, m, None, False, 0))
         prob.params["W"].value = W[i]
         prob.params["Pmax"].value = la.inv_from_chol(np.linalg.cholesky(rc.Smin[i]))
@@ -124,6 +125,8 @@ def _f_step_exact(model, Eas, S, Sigma, rc, method, solver, cfg, Fprev, min_norm
         raise ClosedFormUnavailableError(
             "offset_bound and trust_region have no closed form (also in the exact-EM step); use method='cvxpy'"
         )
+    from .cvx import get_problem, kron_eig, set_spectral_params, solve_cvx, spectral_data, spectral_F, vec_batch
+
     N = F.shape[0]
     n1 = n + 1
     n_trust = 0 if rc.delta is None else (1 if N == model.T else model.T)

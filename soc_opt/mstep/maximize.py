@@ -27,7 +27,6 @@ from ..models import AugmentedModel, LinearGaussianPolicy
 from .conditioning import CVXPY_HINT, MIN_NORM_HINT, check_time_invariant, check_time_varying
 from .config import MSTEP_METHODS, MSTEP_OBJECTIVES, MSTEP_SOLVERS, MSTEP_VARIANTS, MStepConfig
 from .constraints import MStepConstraints, pd_guaranteed, require_pd_covariance, sigma_closed
-from .cvx import cvxpy_ti, cvxpy_tv
 from .errors import ClosedFormUnavailableError
 from .exact import EXACT_TI_MAX, unique_maximiser, unique_maximiser_ti
 from .exact_em import run_exact_em
@@ -185,6 +184,8 @@ def _maximize(model: AugmentedModel, mom: Moments, constraints, method, solver, 
                          exact_steps=tuple(range(T)) if route == "exact" else ())
     else:
         hint = CVXPY_HINT if min_norm else MIN_NORM_HINT + " (closed form only)"
+        from .cvx import cvxpy_ti, cvxpy_tv  # cvxpy only when a CVXPY step runs: its import takes 0.5 s
+
         if variant == "time_varying":
             check_time_varying(model, st.S, cfg, min_norm=False, cvxpy=True, hint=hint)
             F, Sigma, val, status, duals, times = cvxpy_tv(model, st, rc, cfg, solver, Fprev)
