@@ -285,3 +285,43 @@ def test_peg_landing_is_the_first_step_at_table_height_or_the_lowest_one():
     np.testing.assert_array_equal(k, [2, 2])  # rollout 0 first at -0.39; rollout 1 never, lowest at step 2
     np.testing.assert_allclose(err, [0.04, 0.04])
     np.testing.assert_allclose(off, [0.06, 0.06])
+
+
+def test_peg_landing_per_seed_separates_the_plan_from_the_scatter_and_the_bias_from_the_noise():
+    """examples/studies/noise_peg_landing.py: rollouts landing symmetrically around a point 5 cm from the hole
+    have a plan offset of 5 cm and a scatter of their distance to that point; an estimate error that is the
+    same vector in every rollout is all bias, one that alternates in sign all scatter."""
+    import numpy as np
+
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_peg_landing.py"))
+    off = np.array([[0.05, 0.01], [0.05, -0.01], [0.04, 0.0], [0.06, 0.0]])
+    same = np.tile([0.0, 0.02], (4, 1))
+    r = mod["per_seed"](same, off)
+    np.testing.assert_allclose([r["plan_offset"], r["scatter"]], [0.05, 0.01])
+    np.testing.assert_allclose([r["estimate_bias"], r["estimate_scatter"]], [0.02, 0.0], atol=1e-15)
+    np.testing.assert_allclose(r["plan_offset_estimated"], np.hypot(0.05, 0.02))
+    alternating = same * np.array([[1], [-1], [1], [-1]])
+    r = mod["per_seed"](alternating, off)
+    np.testing.assert_allclose([r["estimate_bias"], r["estimate_scatter"]], [0.0, 0.02], atol=1e-15)
+
+
+def test_peg_table_filter_moves_only_estimates_inside_the_table_beside_the_opening(monkeypatch):
+    """examples/studies/noise_peg_table_filter.py: with a linear ``h`` (the peg bottom is ``z`` itself) an estimate
+    below the table top 5 cm beside the hole is lifted to the table top (to within the pseudo-measurement's
+    weight), and one below the table top inside the opening, or above the table, is left as it is."""
+    import numpy as np
+
+    monkeypatch.syspath_prepend(str(EXAMPLES / "studies"))
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_peg_table_filter.py"))
+    target, table = mod["TARGET"], mod["TABLE_Z"]
+
+    def measure(z, jacobian=True):
+        return (z.copy(), np.broadcast_to(np.eye(3), z.shape[:-1] + (3, 3))) if jacobian else z.copy()
+
+    z = np.array([target + [0.05, 0.0, 0.05],     # below the table top (target + 0.05 < table), beside the hole
+                  target + [0.0, 0.002, 0.05],    # as low, inside the opening
+                  target + [0.05, 0.0, 0.2]])     # above the table
+    info = np.broadcast_to(np.eye(3) / 1e-2, (3, 3, 3))  # prior variance 1e-2 in every coordinate
+    out = mod["project"](z, measure, info, [0, 1, 2], outside=0.01, r=1e-8)
+    assert abs(out[0, 2] - table) < 1e-5 and np.array_equal(out[0, :2], z[0, :2])
+    assert np.array_equal(out[1:], z[1:])
