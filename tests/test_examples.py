@@ -209,7 +209,7 @@ def test_oracle_loop_variant_names_say_how_it_learns_and_where_it_is_scored():
         parse("oracle fitt @ true state")
 
 
-def test_internal_model_estimate_is_the_linear_model_state_and_ignores_the_measurements():
+def test_internal_model_estimate_is_the_linear_model_state_and_ignores_the_measurements(monkeypatch):
     """examples/studies/noise_unkept_variants.py ``--variant internal``: on a system that is its local model
     (``x_{k+1} = A_k x_k + B_k a_k + c_k`` from ``mu_0``), the estimate is the true state for any actions,
     whatever is measured, and the plan's mean when the actions are the plan's."""
@@ -217,6 +217,7 @@ def test_internal_model_estimate_is_the_linear_model_state_and_ignores_the_measu
 
     import numpy as np
 
+    monkeypatch.syspath_prepend(str(EXAMPLES / "studies"))  # it imports the peg geometry of a study beside it
     mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_unkept_variants.py"))
     rng = np.random.default_rng(0)
     T, n, m, B_rows = 6, 4, 2, 3
@@ -325,3 +326,28 @@ def test_peg_table_filter_moves_only_estimates_inside_the_table_beside_the_openi
     out = mod["project"](z, measure, info, [0, 1, 2], outside=0.01, r=1e-8)
     assert abs(out[0, 2] - table) < 1e-5 and np.array_equal(out[0, :2], z[0, :2])
     assert np.array_equal(out[1:], z[1:])
+
+
+def test_table_variant_lifts_only_states_inside_the_table_beside_the_opening(monkeypatch):
+    """examples/studies/noise_unkept_variants.py ``--variant table``: with a kinematics whose peg bottom is the
+    joint vector itself, a state below the table top beside the hole is moved onto the table top (its velocity
+    untouched), one as low inside the opening and one above the table are left as they are."""
+    import types
+
+    import numpy as np
+
+    monkeypatch.syspath_prepend(str(EXAMPLES / "studies"))
+    mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_unkept_variants.py"))
+    target, table = mod["TARGET"], mod["TABLE_Z"]
+
+    def measure(z, jacobian=True):
+        z = np.atleast_2d(z)
+        return (z.copy(), np.broadcast_to(np.eye(6), z.shape[:-1] + (6, 6))) if jacobian else z.copy()
+
+    km = types.SimpleNamespace(nq=3, zidx=np.arange(6), measure=measure)
+    x = np.array([[*(target + [0.05, 0.0, 0.05]), 1.0, 2.0, 3.0],
+                  [*(target + [0.0, 0.002, 0.05]), 1.0, 2.0, 3.0],
+                  [*(target + [0.05, 0.0, 0.2]), 1.0, 2.0, 3.0]])
+    out = mod["lift_onto_table"](km, x, [0, 1, 2], 0.01)
+    np.testing.assert_allclose(out[0], [*(target[:2] + [0.05, 0.0]), table, 1.0, 2.0, 3.0])
+    assert np.array_equal(out[1:], x[1:])

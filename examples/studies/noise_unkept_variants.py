@@ -1,4 +1,4 @@
-"""Two variants of the kinematic learner under sensor noise that were measured and not kept (issue 46).
+"""Variants of the kinematic learner under sensor noise that were measured and not kept (issue 46).
 
 Diagnostics, not methods: each patches the kinematic estimator in this process
 (:class:`soc_opt.noise.kinematic_strategy.KinematicEstimator`) and runs the trials of a sweep file one after
@@ -16,6 +16,14 @@ ordinary trial directories under ``--out``.  Read them with ``noise_kernels_tabl
     ``xhat_0 = mu_0``. The policy does not read the measurements; the learner still does. With the task's
     fixed start and no process noise, the only disturbance is the policy's own exploration, which the policy
     knows. A rejected step keeps the accepted policy's plan.
+``--variant table=OUTSIDE`` (peg)
+    The estimator is told that the peg cannot be inside the table, in the learning loop and in the filter the
+    policy acts on. Where an estimated peg bottom lies below the table top and more than ``OUTSIDE`` (m) from
+    the hole's centre in x or y: the online filter applies a pseudo-measurement "peg bottom at the table top"
+    after each update (``noise_peg_table_filter.py``), and the learner's smoothed states are moved there by the
+    smallest change of the joint angles (the smoother's covariance is not at hand outside the estimator), their
+    costs recomputed. Seeds 400-419 with ``table=0.02``: sampled success -0.065 / -0.035 (LQR-FLM / DPSOC-EM)
+    against the kinematic learner, both intervals containing 0 (issue46.md §4).
 
     python examples/studies/noise_unkept_variants.py problems/sweeps/noise_issue46.toml --variant w_scale=0.1 \\
         --tasks door --settings kinematic-var4 --out runs/w400-0.1
@@ -28,13 +36,17 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+from noise_peg_landing import TABLE_Z, TARGET
 
 from soc_opt.lqg import forward
 from soc_opt.noise import kinematic_strategy
-from soc_opt.noise.kinematic.filter import KinematicFilteredPolicy
+from soc_opt.noise.kinematic import loop as kinematic_loop
+from soc_opt.noise.kinematic.filter import KinematicFilter, KinematicFilteredPolicy
+from soc_opt.noise.kinematic.model import KinematicModel
 from soc_opt.noise.strategy import LoopModel
 from soc_opt.sweeps.spec import load_sweep
 from soc_opt.sweeps.trial import run_trial
+from soc_opt.tasks import load_task
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,9 +94,53 @@ def patch(variant: str) -> None:
                                            B=local.dynamics.B, abar=marg.a_mean)
 
             return LoopModel(local, wrap)
+    elif variant.startswith("table="):
+        patch_table(float(variant.split("=", 1)[1]))
+        return
     else:
-        raise SystemExit(f"unknown variant {variant!r}: w_scale=S or internal")
+        raise SystemExit(f"unknown variant {variant!r}: w_scale=S, internal or table=OUTSIDE")
     cls.lqg_model = lqg_model
+
+
+def lift_onto_table(km, x: np.ndarray, ib: list[int], outside: float, passes: int = 2) -> np.ndarray:
+    """Task states ``x (..., n)`` whose peg bottom (rows ``ib``) lies below the table top more than ``outside``
+    from the hole's centre, moved onto the table top by the smallest change of the joint angles (``--variant
+    table``): ``q += h_q (TABLE_Z - h) / |h_q|^2`` with ``h_q`` the height's gradient, relinearised ``passes`` times."""
+    x = np.array(x, dtype=float)
+    flat = x.reshape(-1, x.shape[-1])
+    nq = km.nq
+    for _ in range(passes):
+        z = flat[:, km.zidx]
+        pb = flat[:, ib]
+        bad = np.flatnonzero((pb[:, 2] < TABLE_Z) & (np.abs(pb[:, :2] - TARGET[:2]).max(axis=1) > outside))
+        if bad.size == 0:
+            break
+        _, H = km.measure(z[bad])
+        g = H[:, ib[2], :nq]  # d height / d q
+        z[bad, :nq] += g * ((TABLE_Z - pb[bad, 2]) / np.einsum("bi,bi->b", g, g))[:, None]
+        flat[bad] = km.measure(z[bad], False)
+    return flat.reshape(x.shape)
+
+
+def patch_table(outside: float) -> None:
+    """Install ``--variant table=OUTSIDE`` (module docstring) in this process."""
+    from noise_peg_table_filter import patched_step
+
+    task = load_task("peg")
+    km = KinematicModel(task)
+    ib = [task.state_labels.index(f"peg_bottom.{c}") for c in "xyz"]
+    KinematicFilter.step = patched_step(KinematicFilter.step, km, outside, 1e-4, ib)
+    plain = kinematic_loop.learn
+
+    def learn(task, rollouts, sampler, cfg, previous=None):
+        smoothed, filt, diag = plain(task, rollouts, sampler, cfg, previous)
+        if float(task.rho2) == 0.0:
+            return smoothed, filt, diag
+        xs = lift_onto_table(km, smoothed.s, ib, outside)
+        cost = np.asarray(task.cost(xs, smoothed.a))
+        return dataclasses.replace(smoothed, s=xs, cost=cost, y=np.exp(-task.y_scale * cost)), filt, diag
+
+    kinematic_loop.learn = learn
 
 
 def main(argv=None) -> None:
