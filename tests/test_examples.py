@@ -338,7 +338,7 @@ def test_table_variant_lifts_only_states_inside_the_table_beside_the_opening(mon
 
     monkeypatch.syspath_prepend(str(EXAMPLES / "studies"))
     mod = runpy.run_path(str(EXAMPLES / "studies" / "noise_unkept_variants.py"))
-    target, table = mod["TARGET"], mod["TABLE_Z"]
+    target, table = runpy.run_path(str(EXAMPLES / "studies" / "noise_peg_landing.py"))["TARGET"], mod["TABLE_Z"]
 
     def measure(z, jacobian=True):
         z = np.atleast_2d(z)

@@ -20,6 +20,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from noise_kernels_table import interval  # the same 95% Student-t interval (a study beside this one)
 from noise_peg_landing import TABLE_Z, TARGET
 
 from soc_opt.experiments.rundir import decode_checkpoint
@@ -28,6 +29,12 @@ from soc_opt.methods.registry import get_method
 from soc_opt.noise.kinematic.filter import KinematicFilter
 from soc_opt.noise.kinematic.model import KinematicModel
 from soc_opt.tasks import load_task
+
+
+def inside_table(pb: np.ndarray, outside: float) -> np.ndarray:
+    """Which peg-bottom positions ``pb (B, 3)`` lie below the table top more than ``outside`` (m) from the hole's
+    centre in x or y, where the peg cannot be (``(B,)`` booleans)."""
+    return (pb[:, 2] < TABLE_Z) & (np.abs(pb[:, :2] - TARGET[:2]).max(axis=1) > outside)
 
 
 def project(z: np.ndarray, measure, info: np.ndarray, ib: list[int], outside: float, r: float, passes: int = 2) -> np.ndarray:
@@ -41,7 +48,7 @@ def project(z: np.ndarray, measure, info: np.ndarray, ib: list[int], outside: fl
     for _ in range(passes):
         hx, H = measure(z)
         pb = hx[:, ib]
-        bad = np.flatnonzero((pb[:, 2] < TABLE_Z) & (np.abs(pb[:, :2] - TARGET[:2]).max(axis=1) > outside))
+        bad = np.flatnonzero(inside_table(pb, outside))
         if bad.size == 0:
             break
         for i in bad:
@@ -93,10 +100,14 @@ def main(argv=None) -> None:
             print(json.dumps({"seed": d.name, "success_by_outside": row}), flush=True)
     finally:
         KinematicFilter.step = original
+    base = np.asarray(scores[str(None)]) if None in args.outside else None
     for o, v in scores.items():
-        v = np.asarray(v)
-        half = 1.96 * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else float("nan")
-        print(f"outside {o}: success {v.mean():.3f} +- {half:.3f} over {v.size} seeds")
+        m, lo, hi = interval(v)
+        line = f"outside {o}: success {m:.3f} [{lo:.3f}, {hi:.3f}] over {len(v)} seeds"
+        if base is not None and o != str(None):
+            d, dlo, dhi = interval(np.asarray(v) - base)
+            line += f"; paired change against the filter as learned {d:+.3f} [{dlo:+.3f}, {dhi:+.3f}]"
+        print(line)
 
 
 if __name__ == "__main__":

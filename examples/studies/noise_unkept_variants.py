@@ -36,7 +36,8 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-from noise_peg_landing import TABLE_Z, TARGET
+from noise_peg_landing import TABLE_Z
+from noise_peg_table_filter import inside_table, patched_step
 
 from soc_opt.lqg import forward
 from soc_opt.noise import kinematic_strategy
@@ -112,7 +113,7 @@ def lift_onto_table(km, x: np.ndarray, ib: list[int], outside: float, passes: in
     for _ in range(passes):
         z = flat[:, km.zidx]
         pb = flat[:, ib]
-        bad = np.flatnonzero((pb[:, 2] < TABLE_Z) & (np.abs(pb[:, :2] - TARGET[:2]).max(axis=1) > outside))
+        bad = np.flatnonzero(inside_table(pb, outside))
         if bad.size == 0:
             break
         _, H = km.measure(z[bad])
@@ -124,8 +125,6 @@ def lift_onto_table(km, x: np.ndarray, ib: list[int], outside: float, passes: in
 
 def patch_table(outside: float) -> None:
     """Install ``--variant table=OUTSIDE`` (module docstring) in this process."""
-    from noise_peg_table_filter import patched_step
-
     task = load_task("peg")
     km = KinematicModel(task)
     ib = [task.state_labels.index(f"peg_bottom.{c}") for c in "xyz"]
