@@ -68,6 +68,7 @@ def main(argv=None) -> None:
     ap.add_argument("--rho2", type=float, default=0.1)
     ap.add_argument("--above", type=float, default=0.02, help="height above the table top that counts as landing (m)")
     ap.add_argument("--json", type=Path, help="write the per-seed rows here")
+    ap.add_argument("--eval", default="final_eval", help="the evaluation file: final_eval (sampled) or final_eval_mean_action")
     ap.add_argument("--window", type=int, nargs=2, default=[10, 60], help="steps over which the distances to the target are averaged")
     ap.add_argument("--smoother", action="store_true",
                     help="also the learner's smoothed states of each batch (the kinematic estimator run on it, as in learning)")
@@ -80,7 +81,7 @@ def main(argv=None) -> None:
     w = slice(*args.window)
     for d in sorted(args.root.glob("seed_*")):
         trial = json.loads((d / "trial.json").read_text())
-        z = np.load(d / "final_eval.npz")
+        z = np.load(d / f"{args.eval}.npz")
         if args.rho2 > 0:
             state = decode_checkpoint(d / "checkpoint.npz")
             policy = get_method(trial["method"]).final_policy(DPSOCConfig.from_dict(trial["config"]), state).for_task(task)
