@@ -23,7 +23,8 @@ ordinary trial directories under ``--out``.  Read them with ``noise_kernels_tabl
     after each update (``noise_peg_table_filter.py``), and the learner's smoothed states are moved there by the
     smallest change of the joint angles (the smoother's covariance is not at hand outside the estimator), their
     costs recomputed. Seeds 400-419 with ``table=0.02``: sampled success -0.065 / -0.035 (LQR-FLM / DPSOC-EM)
-    against the kinematic learner, both intervals containing 0 (issue46.md §4).
+    against the kinematic learner on SkylakeX, +0.060 / -0.008 on Haswell, every interval containing 0
+    (issue46.md §4).
 
     python examples/studies/noise_unkept_variants.py problems/sweeps/noise_issue46.toml --variant w_scale=0.1 \\
         --tasks door --settings kinematic-var4 --out runs/w400-0.1
