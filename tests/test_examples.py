@@ -322,8 +322,8 @@ def test_peg_table_filter_moves_only_estimates_inside_the_table_beside_the_openi
     z = np.array([target + [0.05, 0.0, 0.05],     # below the table top (target + 0.05 < table), beside the hole
                   target + [0.0, 0.002, 0.05],    # as low, inside the opening
                   target + [0.05, 0.0, 0.2]])     # above the table
-    info = np.broadcast_to(np.eye(3) / 1e-2, (3, 3, 3))  # prior variance 1e-2 in every coordinate
-    out = mod["project"](z, measure, info, [0, 1, 2], outside=0.01, r=1e-8)
+    # no prior information; the update's information H^T H / r2 = I / 1e-2: variance 1e-2 in every coordinate
+    out = mod["project"](z, measure, np.zeros((3, 3)), 1e-2, [0, 1, 2], outside=0.01, r=1e-8)
     assert abs(out[0, 2] - table) < 1e-5 and np.array_equal(out[0, :2], z[0, :2])
     assert np.array_equal(out[1:], z[1:])
 

@@ -62,6 +62,14 @@ def per_seed(err: np.ndarray, off: np.ndarray) -> dict:
             "scatter": rms(off), "estimate_bias": float(np.linalg.norm(err.mean(0))), "estimate_scatter": rms(err)}
 
 
+def trial_policy(d: Path, task):
+    """``(trial, config, policy)`` of the sweep trial in ``d``: its ``trial.json``, its configuration and the policy its
+    method returns (``final_policy`` of the last checkpoint), bound to ``task``."""
+    trial = json.loads((d / "trial.json").read_text())
+    cfg = DPSOCConfig.from_dict(trial["config"])
+    return trial, cfg, get_method(trial["method"]).final_policy(cfg, decode_checkpoint(d / "checkpoint.npz")).for_task(task)
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("root", type=Path, help="a method's directory of a peg sweep: seed_*/ below it")
@@ -80,11 +88,9 @@ def main(argv=None) -> None:
     dist: dict[str, list] = {"true": [], "filtered": [], "smoothed": []}
     w = slice(*args.window)
     for d in sorted(args.root.glob("seed_*")):
-        trial = json.loads((d / "trial.json").read_text())
         z = np.load(d / f"{args.eval}.npz")
         if args.rho2 > 0:
-            state = decode_checkpoint(d / "checkpoint.npz")
-            policy = get_method(trial["method"]).final_policy(DPSOCConfig.from_dict(trial["config"]), state).for_task(task)
+            _, cfg, policy = trial_policy(d, task)
             xhat = policy.filter.states(z["s"], z["a"])
         else:  # without sensor noise the policy acts on the measured state, the state itself
             xhat = z["s"]
@@ -93,7 +99,6 @@ def main(argv=None) -> None:
         dist["true"].append(np.linalg.norm(pb[:, w] - TARGET, axis=-1).mean(axis=1))
         dist["filtered"].append(np.linalg.norm(pbh[:, w] - TARGET, axis=-1).mean(axis=1))
         if args.smoother and args.rho2 > 0:
-            cfg = DPSOCConfig.from_dict(trial["config"])
             batch = Rollouts(z["x"], z["s"], z["a"], z["cost"], z["y"])
             smoothed = learn(task, batch, policy, cfg.baseline.noise.kinematic)[0].s
             dist["smoothed"].append(np.linalg.norm(smoothed[:, w][..., ib] - TARGET, axis=-1).mean(axis=1))

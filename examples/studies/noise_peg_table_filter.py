@@ -21,11 +21,8 @@ from pathlib import Path
 
 import numpy as np
 from noise_kernels_table import interval  # the same 95% Student-t interval (a study beside this one)
-from noise_peg_landing import TABLE_Z, TARGET
+from noise_peg_landing import TABLE_Z, TARGET, trial_policy
 
-from soc_opt.experiments.rundir import decode_checkpoint
-from soc_opt.methods.config import DPSOCConfig
-from soc_opt.methods.registry import get_method
 from soc_opt.noise.kinematic.filter import KinematicFilter
 from soc_opt.noise.kinematic.model import KinematicModel
 from soc_opt.tasks import load_task
@@ -37,16 +34,20 @@ def inside_table(pb: np.ndarray, outside: float) -> np.ndarray:
     return (pb[:, 2] < TABLE_Z) & (np.abs(pb[:, :2] - TARGET[:2]).max(axis=1) > outside)
 
 
-def project(z: np.ndarray, measure, info: np.ndarray, ib: list[int], outside: float, r: float, passes: int = 2) -> np.ndarray:
+def project(z: np.ndarray, measure, prior_info: np.ndarray, r2: float, ib: list[int], outside: float, r: float,
+            passes: int = 2) -> np.ndarray:
     """Latent estimates ``z (B, nz)`` moved so that no peg bottom lies below the table top outside the opening.
 
-    ``measure(z) -> (h (B, n), H (B, n, nz))``; ``info (nz, nz)`` the information matrix of the update just made
-    (the filter's predicted information plus ``H^T H / rho^2``); ``ib`` the peg bottom's rows in ``h``.  Each
-    violating row gets the scalar update ``z += P h_z (TABLE_Z - h_z(z)) / (h_z P h_z^T + r)`` with
-    ``P = info^{-1}``, relinearised ``passes`` times."""
+    ``measure(z) -> (h (B, n), H (B, n, nz))`` at the estimates of the update just made; its information matrix
+    is ``info = prior_info + H^T H / r2`` (the filter's predicted information ``(nz, nz)`` and ``rho^2``), from
+    the first pass's ``H``; ``ib`` the peg bottom's rows in ``h``.  Each violating row gets the scalar update
+    ``z += P h_z (TABLE_Z - h_z(z)) / (h_z P h_z^T + r)`` with ``P = info^{-1}``, relinearised ``passes`` times."""
     z = np.array(z, dtype=float)
+    info = None
     for _ in range(passes):
         hx, H = measure(z)
+        if info is None:  # the update's information, at the estimates it made
+            info = prior_info + np.swapaxes(H, -1, -2) @ H / r2
         pb = hx[:, ib]
         bad = np.flatnonzero(inside_table(pb, outside))
         if bad.size == 0:
@@ -67,9 +68,7 @@ def patched_step(original, km, outside: float | None, r: float, ib: list[int]):
         if outside is None or k == 0:
             return x
         z = np.atleast_2d(x)[:, self.zidx]
-        _, H = km.measure(z)
-        info = self.Lm[k] + np.swapaxes(H, -1, -2) @ H / self.R[0, 0]
-        return km.measure(project(z, km.measure, info, ib, outside, r), False).reshape(np.shape(x))
+        return km.measure(project(z, km.measure, self.Lm[k], self.R[0, 0], ib, outside, r), False).reshape(np.shape(x))
 
     return step
 
@@ -88,9 +87,7 @@ def main(argv=None) -> None:
     scores: dict[str, list[float]] = {str(o): [] for o in args.outside}
     try:
         for d in sorted(args.root.glob("seed_*")):
-            trial = json.loads((d / "trial.json").read_text())
-            state = decode_checkpoint(d / "checkpoint.npz")
-            policy = get_method(trial["method"]).final_policy(DPSOCConfig.from_dict(trial["config"]), state).for_task(task)
+            trial, _, policy = trial_policy(d, task)
             row = {}
             for o in args.outside:
                 KinematicFilter.step = patched_step(original, km, o, args.r, ib)
