@@ -90,10 +90,16 @@ def _group_gone(pgid: int, timeout: float = 60.0) -> bool:
     return False
 
 
+def _interruptible(args: list[str]) -> subprocess.Popen:
+    """``args`` in a new session with Ctrl-C's default action restored: a shell's background job (``make test &``)
+    starts its children with SIGINT ignored, and an interpreter started that way never raises KeyboardInterrupt."""
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
 def test_ctrl_c_stops_a_guarded_call_blocked_in_the_worker(tmp_path):
     marker = tmp_path / "asleep"
-    proc = subprocess.Popen([sys.executable, "-c", _SCRIPT, str(marker)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, start_new_session=True)
+    proc = _interruptible([sys.executable, "-c", _SCRIPT, str(marker)])
     try:
         assert _line(proc.stdout).strip() == b"calling"
         _wait_for(marker)  # the worker is asleep in its call
@@ -109,8 +115,7 @@ def test_ctrl_c_stops_a_guarded_call_blocked_in_the_worker(tmp_path):
 
 def test_ctrl_c_at_once_still_leaves_no_worker_behind():
     """Ctrl-C as soon as the script announces its call: it may land before, during or after the fork."""
-    proc = subprocess.Popen([sys.executable, "-c", _SCRIPT, os.devnull], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, start_new_session=True)
+    proc = _interruptible([sys.executable, "-c", _SCRIPT, os.devnull])
     try:
         assert _line(proc.stdout).strip() == b"calling"
         proc.send_signal(signal.SIGINT)
@@ -151,8 +156,7 @@ def test_an_idle_worker_exits_when_its_guards_process_is_killed():
 @pytest.mark.slow
 def test_soc_opt_solvers_stops_on_ctrl_c_with_exit_status_130():
     """The command itself (about 10-20 s: it starts the benchmark, waits for its first progress line)."""
-    proc = subprocess.Popen([sys.executable, "-m", "soc_opt.cli", "solvers", "--sizes", "2x1", "--instances", "1"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    proc = _interruptible([sys.executable, "-m", "soc_opt.cli", "solvers", "--sizes", "2x1", "--instances", "1"])
     try:
         assert b"guarded worker" in _line(proc.stderr)
         assert b"M-step [1/" in _line(proc.stderr)

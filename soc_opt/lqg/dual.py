@@ -22,7 +22,6 @@ import math
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
-from scipy.signal import lfilter
 
 from ..models import NotPositiveDefiniteError
 from .backward import DualEval, NotPDPoint, backward_pass, direct_dkl, evaluate_eta
@@ -340,6 +339,8 @@ def _kms(t: np.ndarray, rho: float) -> np.ndarray:
 def _kms_apply(u: np.ndarray, rho: float) -> np.ndarray:
     """``K_rho u`` over all ``T`` steps in O(T): ``sum_{j != i} rho^|i - j| u_j`` by two
     first-order recursive filters (forward and backward in time)."""
+    from scipy.signal import lfilter  # here, not at the top: importing scipy.signal takes ~0.5 s
+
     a = [1.0, -rho]
     return lfilter([0.0, rho], a, u) + lfilter([0.0, rho], a, u[::-1])[::-1]
 
